@@ -1,0 +1,1 @@
+"""The simulated vehicle: JSBSim airframe, sensors, estimator, controllers, autopilot, MAVLink endpoint."""

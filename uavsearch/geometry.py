@@ -1,0 +1,365 @@
+"""Frames, the camera model and the search grid: the one module that converts between them.
+
+Conventions (DESIGN.md):
+- Scene frame: ENU metres, origin on the ground at the centre of the search area, z up.
+- MAVLink local frame: NED with the same origin (home). Global: WGS84, home at the scene origin.
+- Vehicle attitude: roll, pitch, yaw (rad) of the FRD body in NED, yaw clockwise from north.
+- Camera frame: OpenCV (x right, y down, z along the optical axis). Pixel coordinates are continuous:
+  pixel (row i, col j) covers u in [j, j+1), v in [i, i+1); its centre is (j + 0.5, i + 0.5).
+- Grid: N x N cells of `cell_m` metres centred on the origin; cell index i = row * N + col, row 0 the
+  northernmost, col 0 the westernmost, so a map array reads like a north-up image.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# --------------------------------------------------------------------------------------------------
+# Frames
+
+R_ENU_FROM_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # its own inverse
+
+WGS84_A_M = 6378137.0
+WGS84_E2 = 6.69437999014e-3
+
+
+def enu_to_ned(p_enu) -> np.ndarray:
+    """ENU -> NED for points or arrays of points (..., 3). The matrix is symmetric and its own inverse."""
+    return np.asarray(p_enu, dtype=float) @ R_ENU_FROM_NED.T
+
+
+ned_to_enu = enu_to_ned
+
+
+@dataclass(frozen=True)
+class GeodeticOrigin:
+    """WGS84 position of the scene origin (home): local tangent-plane conversion with WGS84 radii.
+
+    Exact round trips; under 1 mm of error against a full ellipsoidal conversion over the scene's extent
+    (a few hundred metres), which is far below GPS noise.
+    """
+
+    lat_deg: float = 47.397742  # PX4 SITL's default home (Zurich)
+    lon_deg: float = 8.545594
+    alt_m: float = 488.0  # AMSL of the ground at the origin
+
+    @functools.cached_property
+    def _radii(self) -> tuple[float, float]:
+        s = math.sin(math.radians(self.lat_deg))
+        d = 1.0 - WGS84_E2 * s * s
+        r_north = WGS84_A_M * (1.0 - WGS84_E2) / d**1.5  # meridian radius of curvature
+        r_east = WGS84_A_M / math.sqrt(d) * math.cos(math.radians(self.lat_deg))
+        return r_north, r_east
+
+    def enu_to_geodetic(self, p_enu) -> np.ndarray:
+        """(..., 3) ENU metres -> (..., 3) [lat_deg, lon_deg, alt_m AMSL]."""
+        p = np.asarray(p_enu, dtype=float)
+        r_n, r_e = self._radii
+        lat = self.lat_deg + np.degrees(p[..., 1] / r_n)
+        lon = self.lon_deg + np.degrees(p[..., 0] / r_e)
+        return np.stack([lat, lon, self.alt_m + p[..., 2]], axis=-1)
+
+    def geodetic_to_enu(self, lla) -> np.ndarray:
+        """(..., 3) [lat_deg, lon_deg, alt_m AMSL] -> (..., 3) ENU metres."""
+        q = np.asarray(lla, dtype=float)
+        r_n, r_e = self._radii
+        north = np.radians(q[..., 0] - self.lat_deg) * r_n
+        east = np.radians(q[..., 1] - self.lon_deg) * r_e
+        return np.stack([east, north, q[..., 2] - self.alt_m], axis=-1)
+
+
+def rotation_ned_from_body(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
+    """Body FRD -> NED rotation matrix (aerospace ZYX Euler angles)."""
+    return Rotation.from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_matrix()
+
+
+def quaternion_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
+    """[w, x, y, z] of the body FRD -> NED rotation, as MAVLink's attitude quaternions."""
+    x, y, z, w = Rotation.from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_quat()
+    return np.array([w, x, y, z])
+
+
+def euler_from_quaternion(q_wxyz) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) in rad from a MAVLink [w, x, y, z] quaternion; yaw in (-pi, pi]."""
+    w, x, y, z = q_wxyz
+    yaw, pitch, roll = Rotation.from_quat([x, y, z, w]).as_euler("ZYX")
+    return float(roll), float(pitch), float(yaw)
+
+
+def wrap_pi(angle_rad):
+    """Wrap to [-pi, pi)."""
+    return (np.asarray(angle_rad) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+# --------------------------------------------------------------------------------------------------
+# Camera
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole camera with square pixels and the principal point at the image centre."""
+
+    width_px: int = 224
+    height_px: int = 224
+    hfov_deg: float = 60.0
+
+    @property
+    def fx(self) -> float:
+        return (self.width_px / 2.0) / math.tan(math.radians(self.hfov_deg) / 2.0)
+
+    @property
+    def fy(self) -> float:
+        return self.fx
+
+    @property
+    def cx(self) -> float:
+        return self.width_px / 2.0
+
+    @property
+    def cy(self) -> float:
+        return self.height_px / 2.0
+
+    @property
+    def vfov_deg(self) -> float:
+        return math.degrees(2.0 * math.atan((self.height_px / 2.0) / self.fy))
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, factor: int) -> "CameraIntrinsics":
+        """The same camera at `factor` times the resolution (for supersampling)."""
+        return CameraIntrinsics(self.width_px * factor, self.height_px * factor, self.hfov_deg)
+
+
+# Body FRD -> camera (x right, y down, z forward) for a camera looking straight down with image up
+# pointing to the vehicle's nose: columns are the camera axes expressed in the body frame.
+R_BODY_FROM_NADIR_CAM = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """Camera centre in scene ENU metres and the camera -> ENU rotation."""
+
+    position_enu: np.ndarray
+    R_enu_from_cam: np.ndarray = field(repr=False)
+
+    @property
+    def forward_enu(self) -> np.ndarray:
+        return self.R_enu_from_cam[:, 2]
+
+    @property
+    def up_enu(self) -> np.ndarray:
+        """Image-up direction (minus the camera's y axis)."""
+        return -self.R_enu_from_cam[:, 1]
+
+    def world_to_camera(self, points_enu) -> np.ndarray:
+        p = np.asarray(points_enu, dtype=float) - self.position_enu
+        return p @ self.R_enu_from_cam  # == (R^T p^T)^T
+
+
+def camera_pose_from_vehicle(
+    position_enu,
+    roll_rad: float = 0.0,
+    pitch_rad: float = 0.0,
+    yaw_rad: float = 0.0,
+    gimbal_stabilised: bool = True,
+) -> CameraPose:
+    """Compose the vehicle pose with the nadir gimbal.
+
+    A stabilised gimbal cancels roll and pitch and keeps the vehicle's yaw (as a 2-axis gimbal does);
+    a hard-mounted camera follows the full attitude.
+    """
+    if gimbal_stabilised:
+        r_ned_body = rotation_ned_from_body(0.0, 0.0, yaw_rad)
+    else:
+        r_ned_body = rotation_ned_from_body(roll_rad, pitch_rad, yaw_rad)
+    r = R_ENU_FROM_NED @ r_ned_body @ R_BODY_FROM_NADIR_CAM
+    return CameraPose(np.asarray(position_enu, dtype=float).copy(), r)
+
+
+def nadir_camera_pose(position_enu, yaw_rad: float = 0.0) -> CameraPose:
+    """A perfectly level nadir camera with image-up along heading `yaw_rad` (0 = north)."""
+    return camera_pose_from_vehicle(position_enu, 0.0, 0.0, yaw_rad, gimbal_stabilised=True)
+
+
+def project_points(points_enu, intr: CameraIntrinsics, pose: CameraPose) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. (1): world points -> pixel coordinates (..., 2) and depth along the optical axis (...).
+
+    Points behind the camera (depth <= 0) get NaN pixel coordinates.
+    """
+    pc = pose.world_to_camera(points_enu)
+    z = pc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = intr.fx * pc[..., 0] / z + intr.cx
+        v = intr.fy * pc[..., 1] / z + intr.cy
+    uv = np.stack([u, v], axis=-1)
+    uv[z <= 0] = np.nan
+    return uv, z
+
+
+@functools.lru_cache(maxsize=16)
+def _pixel_rays_cam(intr: CameraIntrinsics) -> np.ndarray:
+    """Unnormalised camera-frame rays through every pixel centre, (H, W, 3)."""
+    u = (np.arange(intr.width_px) + 0.5 - intr.cx) / intr.fx
+    v = (np.arange(intr.height_px) + 0.5 - intr.cy) / intr.fy
+    uu, vv = np.meshgrid(u, v)
+    rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1)
+    rays.setflags(write=False)
+    return rays
+
+
+def ground_points_of_pixels(intr: CameraIntrinsics, pose: CameraPose, ground_z_m: float = 0.0) -> np.ndarray:
+    """Where each pixel centre's ray meets the ground plane, (H, W, 2) ENU x/y; NaN where it never does."""
+    d = _pixel_rays_cam(intr) @ pose.R_enu_from_cam.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (ground_z_m - pose.position_enu[2]) / d[..., 2]
+    t = np.where(t > 0, t, np.nan)
+    return pose.position_enu[:2] + t[..., None] * d[..., :2]
+
+
+# --------------------------------------------------------------------------------------------------
+# Grid
+
+
+@dataclass(frozen=True)
+class Grid:
+    """The N x N occupancy grid over the search area, centred on the scene origin."""
+
+    n: int = 10
+    cell_m: float = 5.0
+
+    @property
+    def size_m(self) -> float:
+        return self.n * self.cell_m
+
+    @property
+    def half_m(self) -> float:
+        return self.size_m / 2.0
+
+    @property
+    def num_cells(self) -> int:
+        return self.n * self.n
+
+    def row_col(self, index) -> tuple:
+        return np.divmod(index, self.n)
+
+    def cell_corners_enu(self, index: int) -> np.ndarray:
+        """The four ground corners of a cell (NW, NE, SE, SW), (4, 3) ENU metres, z = 0.
+
+        The one function that maps a cell to the ground; everything else calls it.
+        """
+        if not 0 <= index < self.num_cells:
+            raise IndexError(f"cell {index} outside a {self.n}x{self.n} grid")
+        r, c = divmod(int(index), self.n)
+        x0 = -self.half_m + c * self.cell_m
+        y0 = self.half_m - r * self.cell_m
+        x1, y1 = x0 + self.cell_m, y0 - self.cell_m
+        return np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+
+    @functools.cached_property
+    def all_corners_enu(self) -> np.ndarray:
+        """(num_cells, 4, 3)."""
+        return np.stack([self.cell_corners_enu(i) for i in range(self.num_cells)])
+
+    @functools.cached_property
+    def centers_enu(self) -> np.ndarray:
+        """(num_cells, 3) cell centres on the ground."""
+        return self.all_corners_enu.mean(axis=1)
+
+    def cell_of_points(self, x_m, y_m) -> np.ndarray:
+        """Cell index of ground points (ENU x, y); -1 outside the grid or for NaN."""
+        x = np.asarray(x_m, dtype=float)
+        y = np.asarray(y_m, dtype=float)
+        with np.errstate(invalid="ignore"):
+            col = np.floor((x + self.half_m) / self.cell_m)
+            row = np.floor((self.half_m - y) / self.cell_m)
+            ok = (col >= 0) & (col < self.n) & (row >= 0) & (row < self.n)
+        idx = np.where(ok, np.nan_to_num(row) * self.n + np.nan_to_num(col), -1)
+        return idx.astype(np.int64)
+
+
+def _clip_polygon(poly: np.ndarray, axis: int, bound: float, keep_greater: bool) -> np.ndarray:
+    """Sutherland-Hodgman: keep the part of a convex polygon on one side of coordinate axis = bound."""
+    if len(poly) == 0:
+        return poly
+    out = []
+    n = len(poly)
+    for k in range(n):
+        a, b = poly[k], poly[(k + 1) % n]
+        ina = a[axis] >= bound if keep_greater else a[axis] <= bound
+        inb = b[axis] >= bound if keep_greater else b[axis] <= bound
+        if ina:
+            out.append(a)
+        if ina != inb:
+            t = (bound - a[axis]) / (b[axis] - a[axis])
+            out.append(a + t * (b - a))
+    return np.array(out) if out else np.zeros((0, poly.shape[1]))
+
+
+def polygon_area(poly: np.ndarray) -> float:
+    """Shoelace area of a 2D polygon."""
+    if len(poly) < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+NEAR_PLANE_M = 0.05
+
+
+def cell_image_polygons(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> list[np.ndarray]:
+    """Each cell's image polygon, clipped to the camera's near plane and the image (never wrapped).
+
+    Returns one (k, 2) array of pixel coordinates per cell (k = 0 when the cell is out of view).
+    """
+    polys = []
+    for corners in grid.all_corners_enu:
+        pc = pose.world_to_camera(corners)
+        if np.all(pc[:, 2] > NEAR_PLANE_M):
+            inside = pc
+        else:
+            inside = _clip_polygon(pc, 2, NEAR_PLANE_M, keep_greater=True)
+        if len(inside) < 3:
+            polys.append(np.zeros((0, 2)))
+            continue
+        uv = np.stack(
+            [intr.fx * inside[:, 0] / inside[:, 2] + intr.cx, intr.fy * inside[:, 1] / inside[:, 2] + intr.cy],
+            axis=-1,
+        )
+        uv = _clip_polygon(uv, 0, 0.0, True)
+        uv = _clip_polygon(uv, 0, float(intr.width_px), False)
+        uv = _clip_polygon(uv, 1, 0.0, True)
+        uv = _clip_polygon(uv, 1, float(intr.height_px), False)
+        polys.append(uv if len(uv) >= 3 else np.zeros((0, 2)))
+    return polys
+
+
+def cell_pixel_areas(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> np.ndarray:
+    """F_size of every cell: the area in pixels of its clipped image polygon, (num_cells,)."""
+    return np.array([polygon_area(p) for p in cell_image_polygons(grid, intr, pose)])
+
+
+def cell_label_image(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> np.ndarray:
+    """Which cell each pixel sees on the ground plane, (H, W) int16; -1 off the grid.
+
+    The mask m_i of Eq. (2) is `label == i`: exact per pixel centre, for any attitude.
+    """
+    g = ground_points_of_pixels(intr, pose)
+    return grid.cell_of_points(g[..., 0], g[..., 1]).astype(np.int16)
+
+
+def cell_masks(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> np.ndarray:
+    """(num_cells, H, W) bool masks m_i^t."""
+    label = cell_label_image(grid, intr, pose)
+    return label[None, :, :] == np.arange(grid.num_cells, dtype=np.int16)[:, None, None]
+
+
+def cells_in_view(grid: Grid, intr: CameraIntrinsics, pose: CameraPose, min_area_px: float = 1.0) -> np.ndarray:
+    """c^t: which cells cover at least `min_area_px` pixels of the image, (num_cells,) bool."""
+    return cell_pixel_areas(grid, intr, pose) >= min_area_px
