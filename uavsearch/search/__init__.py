@@ -1,0 +1,1 @@
+"""The search loop shared by training, evaluation and flight: vehicles, perception, fusion, policies."""

@@ -1,0 +1,76 @@
+"""Pictures people look at: the grid drawn over a view, occupancy maps, scene overviews (PNG)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import UavsearchError
+from .geometry import CameraIntrinsics, Grid, cell_image_polygons
+
+
+def draw_grid_overlay(
+    image: np.ndarray,
+    pose,
+    grid: Grid,
+    intrinsics: CameraIntrinsics,
+    occupancy: np.ndarray | None = None,
+    scale: int = 3,
+) -> np.ndarray:
+    """Upscale a view and draw every cell's projected outline; ground-truth occupied cells in red."""
+    big = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    polys = cell_image_polygons(grid, intrinsics, pose)
+    shift = 4  # sub-pixel drawing precision (cv2 fixed point)
+    for i, poly in enumerate(polys):
+        if len(poly) < 3:
+            continue
+        pts = np.round(poly * scale * (1 << shift)).astype(np.int32).reshape(-1, 1, 2)
+        occupied = occupancy is not None and occupancy[i]
+        color, thickness = ((255, 40, 40), 2) if occupied else ((255, 255, 0), 1)
+        cv2.polylines(big, [pts], True, color, thickness, cv2.LINE_AA, shift)
+    return big
+
+
+def map_image(values: np.ndarray, grid: Grid) -> np.ndarray:
+    """A (num_cells,) vector as the (N, N) north-up array matplotlib's imshow expects."""
+    return np.asarray(values, dtype=float).reshape(grid.n, grid.n)
+
+
+def save_figure(fig, out: str | Path) -> Path:
+    """Save a matplotlib figure, turning an unwritable path into a one-line error."""
+    out = Path(out)
+    if out.parent and not out.parent.exists():
+        raise UavsearchError(f"cannot write {out}: directory {out.parent} does not exist")
+    try:
+        fig.savefig(out, dpi=110, bbox_inches="tight")
+    except OSError as e:
+        raise UavsearchError(f"cannot write {out}: {e.strerror or e}") from None
+    finally:
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
+    return out
+
+
+def scene_show_figure(spec, view, grid: Grid, intrinsics: CameraIntrinsics, out: str | Path) -> Path:
+    """The start view with the grid and the occupied cells, beside a top-down map of the scene."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .world.topdown import draw_topdown
+
+    occ = spec.occupancy_array()
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6.5))
+    axes[0].imshow(draw_grid_overlay(view.image, view.pose, grid, intrinsics, occ))
+    axes[0].set_title(
+        f"start view at {view.position_enu[2]:.0f} m, {intrinsics.width_px}x{intrinsics.height_px} px, "
+        f"{intrinsics.hfov_deg:.0f} deg FOV\n(grid in yellow, occupied cells in red)"
+    )
+    axes[0].axis("off")
+    draw_topdown(spec, ax=axes[1])
+    axes[1].set_title(f"scene seed {spec.seed}: {int(occ.sum())} occupied cells")
+    return save_figure(fig, out)
