@@ -1,0 +1,154 @@
+"""Each fusion method on hand-made inputs whose fused result is computed by hand."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from uavsearch.errors import UavsearchError
+from uavsearch.search.fusion import FUSION_METHODS, fuse, fuse_prefixes
+
+# Three views (T = 3) of four cells (N = 4). Cell 3 is never seen; cell 2 is seen by views 0 and 2 only.
+P = np.array(
+    [
+        [0.9, 0.2, 0.6, 0.7],
+        [0.6, 0.4, 0.99, 0.7],
+        [0.3, 0.1, 0.2, 0.7],
+    ]
+)
+V = np.array(
+    [
+        [True, True, True, False],
+        [True, True, False, False],
+        [True, True, True, False],
+    ]
+)
+AREA = np.array(
+    [
+        [100.0, 250.0, 180.0, 0.0],
+        [300.0, 250.0, 999.0, 0.0],
+        [120.0, 90.0, 200.0, 0.0],
+    ]
+)
+PRIOR = 0.1
+
+
+def logit(p):
+    return math.log(p / (1 - p))
+
+
+def test_average_by_hand():
+    out = fuse("average", P, V, prior=PRIOR)
+    assert out == pytest.approx([(0.9 + 0.6 + 0.3) / 3, (0.2 + 0.4 + 0.1) / 3, (0.6 + 0.2) / 2, PRIOR])
+
+
+def test_bayes_log_odds_by_hand():
+    l0 = logit(PRIOR)
+    expect0 = l0 + sum(logit(p) - l0 for p in (0.9, 0.6, 0.3))
+    expect2 = l0 + (logit(0.6) - l0) + (logit(0.2) - l0)
+    out = fuse("bayes", P, V, prior=PRIOR)
+    assert out[0] == pytest.approx(1 / (1 + math.exp(-expect0)))
+    assert out[2] == pytest.approx(1 / (1 + math.exp(-expect2)))
+    assert out[3] == pytest.approx(PRIOR)
+
+
+def test_bayes_with_uniform_prior_multiplies_odds():
+    # prior 0.5: odds multiply; 0.8 and 0.8 -> odds 4 * 4 = 16 -> 16/17.
+    out = fuse("bayes", np.array([[0.8], [0.8]]), np.ones((2, 1), bool), prior=0.5)
+    assert out[0] == pytest.approx(16 / 17)
+
+
+def test_bayes_single_view_returns_that_view():
+    out = fuse("bayes", P[:1], V[:1], prior=PRIOR)
+    assert out[:3] == pytest.approx(P[0, :3])
+
+
+def test_by_size_picks_largest_valid_view():
+    out = fuse("size", P, V, area_px=AREA, prior=PRIOR)
+    # cell 0: view 1 (300 px); cell 1: tie 250/250 -> earliest (view 0); cell 2: view 1 (999 px) is not
+    # valid, so view 2 (200 px); cell 3: prior.
+    assert out == pytest.approx([0.6, 0.2, 0.2, PRIOR])
+
+
+def test_learned_softmax_weights_by_hand():
+    s = np.array(
+        [
+            [0.0, 1.0, 2.0, 5.0],
+            [math.log(2.0), 1.0, 50.0, 5.0],
+            [math.log(3.0), 1.0, 2.0, 5.0],
+        ]
+    )
+    out = fuse("learned", P, V, scores=s, prior=PRIOR)
+    # cell 0: weights 1:2:3 -> (0.9 + 1.2 + 0.9) / 6; cell 1: equal scores -> mean; cell 2: view 1 (score 50)
+    # is masked, equal weights on views 0 and 2; cell 3 never seen -> prior.
+    assert out == pytest.approx([3.0 / 6, 0.7 / 3, 0.4, PRIOR])
+
+
+def test_learned_is_differentiable_and_masked_views_get_no_gradient():
+    p = torch.tensor(P, requires_grad=True)
+    s = torch.zeros(3, 4, dtype=torch.float64, requires_grad=True)
+    out = fuse("learned", p, torch.tensor(V), scores=s, prior=PRIOR)
+    assert isinstance(out, torch.Tensor)
+    torch.log(out[:3]).sum().backward()
+    assert torch.isfinite(s.grad).all() and torch.isfinite(p.grad).all()
+    assert s.grad[1, 2] == 0 and p.grad[1, 2] == 0  # cell 2 unseen in view 1
+    assert (s.grad[:, 3] == 0).all()  # never-seen cell
+    # Raising the score of the view with the highest p raises the fused p: gradient sign check for cell 0.
+    assert s.grad[0, 0] > 0 and s.grad[2, 0] < 0
+
+
+def test_oracle_correct_iff_any_view_correct():
+    labels = np.array([0, 1, 1, 0])
+    out = fuse("oracle", P, V, labels=labels, prior=PRIOR)
+    # cell 0 (empty): min = 0.3 -> correct; cell 1 (occupied): max = 0.4 -> wrong (no view had > 0.5);
+    # cell 2 (occupied): max over views 0, 2 = 0.6 (0.99 is masked); cell 3: prior.
+    assert out == pytest.approx([0.3, 0.4, 0.6, PRIOR])
+
+
+def test_variable_length_sequences_by_padding():
+    # Batch of two sequences: the second has only one real view, padded with valid=False.
+    p = np.stack([P, np.array([[0.8, 0.3, 0.1, 0.9], [0.5] * 4, [0.5] * 4])])
+    v = np.stack([V, np.array([[True] * 4, [False] * 4, [False] * 4])])
+    for method in ("bayes", "average", "learned"):
+        kw = {"scores": np.zeros_like(p)} if method == "learned" else {}
+        out = fuse(method, p, v, prior=PRIOR, **kw)
+        assert out.shape == (2, 4)
+        assert out[1] == pytest.approx([0.8, 0.3, 0.1, 0.9])
+    out = fuse("size", p, v, area_px=np.ones_like(p), prior=PRIOR)
+    assert out[1] == pytest.approx([0.8, 0.3, 0.1, 0.9])
+
+
+def test_all_methods_torch_and_numpy_agree_and_never_nan():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(0, 1, (4, 5, 100))
+    v = rng.uniform(size=(4, 5, 100)) < 0.6
+    v[:, :, 0] = False  # a cell nobody saw
+    kw = dict(area_px=rng.uniform(50, 300, p.shape), scores=rng.normal(size=p.shape), labels=rng.uniform(size=(4, 100)) < 0.1)
+    for m in FUSION_METHODS:
+        a = fuse(m, p, v, **kw)
+        b = fuse(m, torch.tensor(p), torch.tensor(v), **{k: torch.tensor(x) for k, x in kw.items()}).numpy()
+        assert a == pytest.approx(b)
+        assert not np.isnan(a).any() and ((a >= 0) & (a <= 1)).all()
+        assert a[:, 0] == pytest.approx(0.1)
+
+
+def test_prefixes_match_truncated_sequences():
+    s = np.arange(12.0).reshape(3, 4)
+    pre = fuse_prefixes("learned", P, V, scores=s, prior=PRIOR)
+    assert pre.shape == (3, 4)
+    assert pre[1] == pytest.approx(fuse("learned", P[:2], V[:2], scores=s[:2], prior=PRIOR))
+    assert pre[2] == pytest.approx(fuse("learned", P, V, scores=s, prior=PRIOR))
+
+
+def test_bad_input_is_a_clear_error():
+    with pytest.raises(UavsearchError, match="unknown fusion"):
+        fuse("median", P, V)
+    with pytest.raises(UavsearchError, match="needs scores"):
+        fuse("learned", P, V)
+    with pytest.raises(UavsearchError, match="needs labels"):
+        fuse("oracle", P, V)
+    with pytest.raises(UavsearchError, match="must both be"):
+        fuse("average", P, V[:2])
+    with pytest.raises(UavsearchError, match="prior"):
+        fuse("average", P, V, prior=0.0)

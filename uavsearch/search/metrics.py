@@ -1,0 +1,76 @@
+"""Occupancy-map metrics of the paper (Eq. 16-19): per-map accuracy and F1, averaged over maps.
+
+A cell is correct iff p-bar(y_i = y_i^gt) > 0.5 (Sec. VII-A), strictly. So a cell is predicted occupied iff
+p > 0.5 and predicted empty iff p < 0.5; a cell at exactly 0.5 is wrong whatever its label, and is counted
+as a false positive on an empty cell and a false negative on an occupied one. That keeps acc and F1
+consistent: acc = (N_tp + N_tn) / N.
+
+F1 of a map with no occupied cells and no predicted ones (2 N_tp + N_fp + N_fn = 0) is defined as 1.0:
+nothing to find and nothing falsely claimed is a perfect map. (The paper's settings always have occupied
+cells, so this only matters for user scenes with K = 0.)
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from uavsearch.errors import UavsearchError
+
+F1_WHEN_EMPTY = 1.0
+
+
+class MapCounts(NamedTuple):
+    tp: np.ndarray
+    tn: np.ndarray
+    fp: np.ndarray
+    fn: np.ndarray
+
+
+def confusion_counts(p_occ, labels) -> MapCounts:
+    """Per-map counts for (M, N) fused probabilities and (M, N) binary ground truth (or (N,) for one map)."""
+    p = np.asarray(p_occ, dtype=np.float64)
+    y = np.asarray(labels).astype(bool)
+    if p.shape != y.shape:
+        raise UavsearchError(f"predictions {p.shape} and labels {y.shape} must have the same shape")
+    if np.isnan(p).any():
+        raise UavsearchError("predictions contain NaN")
+    pos, neg = p > 0.5, p < 0.5
+    tp = (pos & y).sum(-1)
+    tn = (neg & ~y).sum(-1)
+    fp = (~neg & ~y).sum(-1)  # predicted occupied, or undecided (0.5), on an empty cell
+    fn = (~pos & y).sum(-1)  # predicted empty, or undecided, on an occupied cell
+    return MapCounts(tp, tn, fp, fn)
+
+
+def map_accuracy(p_occ, labels) -> np.ndarray:
+    """Eq. 16 per map."""
+    c = confusion_counts(p_occ, labels)
+    n = np.shape(labels)[-1]
+    return (c.tp + c.tn) / n
+
+
+def map_f1(p_occ, labels) -> np.ndarray:
+    """Eq. 17 per map, with F1 = 1 for a map with no positives and no predictions."""
+    c = confusion_counts(p_occ, labels)
+    den = 2 * c.tp + c.fp + c.fn
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f1 = np.where(den > 0, 2 * c.tp / np.maximum(den, 1), F1_WHEN_EMPTY)
+    return f1.astype(np.float64)
+
+
+def average_metrics(p_occ, labels) -> tuple[float, float]:
+    """Eq. 18-19: (Aacc, AF1) over maps, for (M, N) inputs."""
+    p = np.atleast_2d(np.asarray(p_occ, dtype=np.float64))
+    y = np.atleast_2d(np.asarray(labels))
+    if p.shape[0] == 0:
+        raise UavsearchError("no maps to average over")
+    return float(map_accuracy(p, y).mean()), float(map_f1(p, y).mean())
+
+
+def cell_correct(p_occ, labels) -> np.ndarray:
+    """Per-cell correctness p-bar(y = y_gt) > 0.5, same shape as the inputs."""
+    p = np.asarray(p_occ, dtype=np.float64)
+    y = np.asarray(labels).astype(bool)
+    return np.where(y, p > 0.5, p < 0.5)
