@@ -1,0 +1,341 @@
+"""Per-cell perception (paper Eq. 2-4): a small CNN trained from scratch, pooled under each cell's mask.
+
+The paper runs VGG-19 once per cell on the masked image O ⊙ m_i (Eq. 2): 100 forward passes per view.
+Here the backbone runs ONCE per image and each cell's feature is pooled from the feature map under the
+cell's mask: the label image (H, W) (-1 off the grid, `label == i` is m_i) is reduced to per-cell pixel
+fractions at the feature map's resolution, and the cell feature is [fraction-weighted mean ⊕ fraction-weighted
+max] of the feature map, plus the cell's geometry (log pixel count and image centroid), which tells the
+classifier how large and where the cell is. The literal per-cell masked pass is kept as
+`PerceptionNet.forward_literal` (the reference for correctness and speed: tools/bench_perception.py).
+
+Heads:
+- classifier (Eq. 3): three FC layers, ReLU + dropout after the first two, log-softmax -> l_i = log p(y_i).
+- confidence (Eq. 4): three FC layers, ReLU + dropout after the first two, one raw score s_i per cell (the
+  softmax over views happens in fusion.py). Trained in stage 2 through the learned fusion.
+- image embedding (Eq. 9, F_embedding): the backbone's global feature (mean ⊕ max over the whole feature
+  map, `global_dim`) projected to 512 by `ImageEmbedding`, trained with the policy in stage 2.
+
+Stage 2 freezes the backbone and classifier and caches `PerceptionNet.views_outputs(...)` per
+(scene, lattice position): log-probs, cell features (the confidence net's input) and the global feature.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from uavsearch.errors import UavsearchError
+
+NUM_CELLS = 100
+EMBED_DIM = 512
+GEOMETRY_DIM = 3  # log pixel count, centroid u, centroid v
+# Reference pixel count for the log-area feature: a 5 m cell at 70 m with the default camera is ~190 px.
+AREA_REF_PX = 200.0
+IMAGE_MEAN, IMAGE_STD = 0.5, 0.25
+
+
+@dataclass(frozen=True)
+class PerceptionConfig:
+    """Architecture; stored in every checkpoint so it can be rebuilt without guessing."""
+
+    # Backbone layers as (out_channels, kernel, stride); conv + BatchNorm + ReLU each. The product of the
+    # strides is the feature map's stride. Default: ~0.19 GMAC per 224x224 image, stride 4 (56x56 map), a
+    # 5 m cell (~14 px at 70 m) covers ~3.5 x 3.5 feature pixels; receptive field 19 px (~7 m).
+    layers: tuple[tuple[int, int, int], ...] = ((16, 3, 2), (32, 3, 1), (48, 3, 2), (64, 3, 1))
+    num_cells: int = NUM_CELLS
+    use_geometry: bool = True
+    hidden: tuple[int, int] = (128, 64)
+    dropout: float = 0.3
+    conf_hidden: tuple[int, int] = (64, 32)
+
+    @property
+    def stride(self) -> int:
+        return int(np.prod([s for _, _, s in self.layers]))
+
+    @property
+    def channels(self) -> int:
+        return self.layers[-1][0]
+
+    @property
+    def cell_dim(self) -> int:
+        return 2 * self.channels + (GEOMETRY_DIM if self.use_geometry else 0)
+
+    @property
+    def global_dim(self) -> int:
+        return 2 * self.channels
+
+    @staticmethod
+    def from_dict(d: dict) -> "PerceptionConfig":
+        d = dict(d)
+        d["layers"] = tuple(tuple(x) for x in d["layers"])
+        d["hidden"] = tuple(d["hidden"])
+        d["conf_hidden"] = tuple(d["conf_hidden"])
+        return PerceptionConfig(**d)
+
+
+class CellPooling(NamedTuple):
+    """How label images map onto a feature map, as sparse (image, cell, feature pixel, fraction) entries.
+
+    Each feature pixel overlaps one cell, or a few where cell borders cross it, so the list has about
+    B * h * w entries instead of the dense B * num_cells * h * w.
+    """
+
+    image_cell: torch.Tensor  # (nnz,) long, b * num_cells + cell
+    feature_pixel: torch.Tensor  # (nnz,) long, b * h * w + feature pixel index
+    frac: torch.Tensor  # (nnz,) float32, fraction of the feature pixel's stride x stride block in the cell
+    pixels: torch.Tensor  # (B, num_cells) pixel count of each cell in the full-resolution image
+    centroid: torch.Tensor  # (B, num_cells, 2) mean pixel position (u, v) in [-1, 1]; 0 when unseen
+
+
+class ViewOutputs(NamedTuple):
+    """Frozen per-view perception outputs: what stage 2 caches per (scene, lattice position)."""
+
+    log_probs: torch.Tensor  # (B, num_cells, 2) l_i = [log p(y=0), log p(y=1)]
+    cell_features: torch.Tensor  # (B, num_cells, cell_dim) f_i, the confidence network's input
+    global_feature: torch.Tensor  # (B, global_dim) the image embedding's input
+    cell_pixels: torch.Tensor  # (B, num_cells) pixels of each cell in the image; 0 = not in view
+
+
+def cell_pooling(label: torch.Tensor, stride: int, num_cells: int = NUM_CELLS) -> CellPooling:
+    """Reduce (B, H, W) integer labels (-1 off grid) to sparse per-cell fractions on the stride grid.
+
+    One bincount over (image, cell, feature pixel) keys; exact counts, no per-cell loop.
+    """
+    if label.dim() == 2:
+        label = label.unsqueeze(0)
+    B, H, W = label.shape
+    if H % stride or W % stride:
+        raise UavsearchError(f"image size {H}x{W} is not a multiple of the feature stride {stride}")
+    h, w = H // stride, W // stride
+    lab = label.to(torch.long)
+    if lab.numel() and (lab.max() >= num_cells or lab.min() < -1):
+        raise UavsearchError(f"cell labels must lie in [-1, {num_cells - 1}]")
+    rows = torch.arange(H).div(stride, rounding_mode="floor")
+    cols = torch.arange(W).div(stride, rounding_mode="floor")
+    block = (rows[:, None] * w + cols[None, :]).expand(B, H, W)  # feature pixel of each image pixel
+    keys = (torch.arange(B)[:, None, None] * (num_cells + 1) + (lab + 1)) * (h * w) + block
+    counts = torch.bincount(keys.reshape(-1), minlength=B * (num_cells + 1) * h * w)
+    counts = counts.view(B, num_cells + 1, h * w)[:, 1:]  # drop the off-grid bin
+    b, cell, pix = counts.nonzero(as_tuple=True)
+    c = counts[b, cell, pix].to(torch.float32)
+    pixels = torch.zeros(B * num_cells).index_add_(0, b * num_cells + cell, c).view(B, num_cells)
+    # Centroids from the block centres weighted by counts (exact to within a block; cheap).
+    u = ((pix % w).to(torch.float32) + 0.5) * (2.0 * stride / W) - 1.0
+    v = (pix.div(w, rounding_mode="floor").to(torch.float32) + 0.5) * (2.0 * stride / H) - 1.0
+    mom = torch.zeros(B * num_cells, 2).index_add_(0, b * num_cells + cell, torch.stack([c * u, c * v], -1))
+    centroid = (mom / pixels.view(-1, 1).clamp(min=1.0)).view(B, num_cells, 2)
+    return CellPooling(b * num_cells + cell, b * (h * w) + pix, c / float(stride * stride), pixels, centroid)
+
+
+def pool_cells(fmap: torch.Tensor, pooling: CellPooling, num_cells: int = NUM_CELLS) -> torch.Tensor:
+    """(B, C, h, w) feature map -> (B, num_cells, 2C): fraction-weighted mean ⊕ fraction-weighted max.
+
+    Features are non-negative (after ReLU), so weighting by the fraction before the max damps feature
+    pixels that are mostly outside the cell (a person just across the border) without a threshold.
+    Cells with no pixels get zeros.
+    """
+    B, C, h, w = fmap.shape
+    flat = fmap.permute(0, 2, 3, 1).reshape(B * h * w, C)
+    src = flat.index_select(0, pooling.feature_pixel) * pooling.frac.unsqueeze(-1)  # (nnz, C)
+    idx = pooling.image_cell
+    mass = torch.zeros(B * num_cells, dtype=fmap.dtype).index_add_(0, idx, pooling.frac).clamp(min=1e-6)
+    mean = torch.zeros(B * num_cells, C, dtype=fmap.dtype).index_add(0, idx, src) / mass.unsqueeze(-1)
+    mx = torch.zeros(B * num_cells, C, dtype=fmap.dtype).scatter_reduce(
+        0, idx.unsqueeze(-1).expand(-1, C), src, reduce="amax", include_self=True
+    )
+    return torch.cat([mean, mx], dim=-1).view(B, num_cells, 2 * C)
+
+
+def pool_cells_literal(fmap: torch.Tensor, label: torch.Tensor, stride: int, num_cells: int = NUM_CELLS) -> torch.Tensor:
+    """Reference for pool_cells: one cell at a time from its full-resolution mask m_i (slow, obvious)."""
+    if label.dim() == 2:
+        label = label.unsqueeze(0)
+    B, C, h, w = fmap.shape
+    out = torch.zeros(B, num_cells, 2 * C, dtype=fmap.dtype)
+    for b in range(B):
+        for i in range(num_cells):
+            m = (label[b] == i).to(fmap.dtype)
+            frac = F.avg_pool2d(m[None, None], stride)[0, 0]  # (h, w) fraction of each block in the cell
+            if frac.sum() == 0:
+                continue
+            out[b, i, :C] = (fmap[b] * frac).sum((1, 2)) / frac.sum()
+            out[b, i, C:] = (fmap[b] * frac).amax((1, 2))
+    return out
+
+
+def images_to_tensor(images) -> torch.Tensor:
+    """(B, H, W, 3) uint8 (numpy or torch) -> normalised (B, 3, H, W) float32."""
+    x = torch.as_tensor(np.asarray(images) if not isinstance(images, torch.Tensor) else images)
+    if x.dim() == 3:
+        x = x.unsqueeze(0)
+    if x.shape[-1] != 3:
+        raise UavsearchError(f"images must be (B, H, W, 3) RGB, got {tuple(x.shape)}")
+    return (x.permute(0, 3, 1, 2).to(torch.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD
+
+
+def _mlp(dims: list[int], dropout: float) -> nn.Sequential:
+    """FC layers with ReLU + dropout after every layer but the last."""
+    mods: list[nn.Module] = []
+    for i in range(len(dims) - 1):
+        mods.append(nn.Linear(dims[i], dims[i + 1]))
+        if i < len(dims) - 2:
+            mods += [nn.ReLU(inplace=True), nn.Dropout(dropout)]
+    return nn.Sequential(*mods)
+
+
+class Backbone(nn.Module):
+    """Fully convolutional feature extractor (F_perception before pooling)."""
+
+    def __init__(self, cfg: PerceptionConfig):
+        super().__init__()
+        mods: list[nn.Module] = []
+        c_in = 3
+        for c_out, k, s in cfg.layers:
+            mods += [nn.Conv2d(c_in, c_out, k, s, padding=k // 2, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
+            c_in = c_out
+        self.net = nn.Sequential(*mods)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x)
+
+
+class ConfidenceNet(nn.Module):
+    """Eq. 4: w_i = F_confidence(f_i), one raw score per cell (softmax over views is fusion's job)."""
+
+    def __init__(self, in_dim: int, hidden: tuple[int, int] = (64, 32), dropout: float = 0.3):
+        super().__init__()
+        self.in_dim = in_dim
+        self.mlp = _mlp([in_dim, *hidden, 1], dropout)
+
+    def forward(self, cell_features: torch.Tensor) -> torch.Tensor:
+        return self.mlp(cell_features).squeeze(-1)
+
+
+class ImageEmbedding(nn.Module):
+    """F_embedding's trainable head: the frozen global feature -> a 512-d embedding for the policy."""
+
+    def __init__(self, in_dim: int, out_dim: int = EMBED_DIM):
+        super().__init__()
+        self.fc = nn.Linear(in_dim, out_dim)
+
+    def forward(self, global_feature: torch.Tensor) -> torch.Tensor:
+        return F.relu(self.fc(global_feature))
+
+
+class PerceptionNet(nn.Module):
+    """Backbone + per-cell pooling + classifier (Eq. 2-3). Input: RGB images and cell label images."""
+
+    def __init__(self, cfg: PerceptionConfig | None = None):
+        super().__init__()
+        self.cfg = cfg or PerceptionConfig()
+        self.backbone = Backbone(self.cfg)
+        self.classifier = _mlp([self.cfg.cell_dim, *self.cfg.hidden, 2], self.cfg.dropout)
+
+    # -- pieces ------------------------------------------------------------------------------------
+    def cell_features(self, fmap: torch.Tensor, pooling: CellPooling) -> torch.Tensor:
+        f = pool_cells(fmap, pooling, self.cfg.num_cells)
+        if self.cfg.use_geometry:
+            f = torch.cat([f, self._geometry(pooling.pixels, pooling.centroid)], dim=-1)
+        return f
+
+    @staticmethod
+    def _geometry(pixels: torch.Tensor, centroid: torch.Tensor) -> torch.Tensor:
+        log_area = torch.log1p(pixels) - float(np.log1p(AREA_REF_PX))
+        return torch.cat([log_area.unsqueeze(-1), centroid], dim=-1)
+
+    @staticmethod
+    def global_feature(fmap: torch.Tensor) -> torch.Tensor:
+        return torch.cat([fmap.mean((2, 3)), fmap.amax((2, 3))], dim=-1)
+
+    def classify(self, cell_features: torch.Tensor) -> torch.Tensor:
+        return F.log_softmax(self.classifier(cell_features), dim=-1)
+
+    # -- forward -----------------------------------------------------------------------------------
+    def forward_all(self, images, labels) -> ViewOutputs:
+        """The pooled forward pass: backbone once per image, all cells at once."""
+        x = images if isinstance(images, torch.Tensor) and images.dtype == torch.float32 else images_to_tensor(images)
+        lab = torch.as_tensor(np.asarray(labels) if not isinstance(labels, torch.Tensor) else labels)
+        if lab.dim() == 2:
+            lab = lab.unsqueeze(0)
+        if lab.shape[0] != x.shape[0] or lab.shape[1:] != x.shape[2:]:
+            raise UavsearchError(f"label images {tuple(lab.shape)} do not match images {tuple(x.shape)}")
+        fmap = self.backbone(x)
+        pooling = cell_pooling(lab, self.cfg.stride, self.cfg.num_cells)
+        f = self.cell_features(fmap, pooling)
+        return ViewOutputs(self.classify(f), f, self.global_feature(fmap), pooling.pixels)
+
+    def forward(self, images, labels) -> torch.Tensor:
+        """(B, num_cells, 2) log-probabilities; cells with no pixels get meaningless values (mask them)."""
+        return self.forward_all(images, labels).log_probs
+
+    def forward_literal(self, images, labels, batch_cells: bool = True) -> torch.Tensor:
+        """Eq. 2 as written: run the backbone on O ⊙ m_i for every cell in view, pool under m_i.
+
+        The reference for correctness (equal to `forward` for a pointwise backbone) and speed.
+        `batch_cells` runs all masked copies of an image as one batch, else one pass per cell.
+        """
+        x = images_to_tensor(images) if not (isinstance(images, torch.Tensor) and images.dtype == torch.float32) else images
+        lab = torch.as_tensor(np.asarray(labels) if not isinstance(labels, torch.Tensor) else labels)
+        if lab.dim() == 2:
+            lab = lab.unsqueeze(0)
+        B = x.shape[0]
+        N, s = self.cfg.num_cells, self.cfg.stride
+        out = torch.zeros(B, N, 2)
+        for b in range(B):
+            cells = [i for i in range(N) if bool((lab[b] == i).any())]
+            if not cells:
+                continue
+            masks = torch.stack([(lab[b] == i) for i in cells]).to(x.dtype)  # (n, H, W)
+            # Masked pixels are zero in the raw image (black), i.e. -mean/std after normalisation.
+            zero = (0.0 - IMAGE_MEAN) / IMAGE_STD
+            masked = x[b].unsqueeze(0) * masks.unsqueeze(1) + zero * (1 - masks.unsqueeze(1))
+            if batch_cells:
+                fmaps = self.backbone(masked)
+            else:
+                fmaps = torch.cat([self.backbone(m.unsqueeze(0)) for m in masked])
+            for j, i in enumerate(cells):
+                one = torch.where(lab[b] == i, lab[b], torch.full_like(lab[b], -1))
+                pooling = cell_pooling(one.unsqueeze(0), s, N)
+                f = self.cell_features(fmaps[j : j + 1], pooling)[0, i]
+                out[b, i] = self.classify(f.unsqueeze(0))[0]
+        return out
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints
+
+
+def save_perception(net: PerceptionNet, path, extra: dict | None = None) -> Path:
+    """Weights + architecture + free-form metadata (training args, metrics) in one torch file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+    torch.save({"format": "uavsearch-perception/1", "config": asdict(net.cfg), "state_dict": state,
+                "extra": json.loads(json.dumps(extra or {}, default=str))}, path)
+    return path
+
+
+def load_perception(path, map_location: str = "cpu") -> tuple[PerceptionNet, dict]:
+    """Rebuild the net from a checkpoint (eval mode); returns (net, extra metadata)."""
+    path = Path(path)
+    if not path.is_file():
+        raise UavsearchError(f"perception checkpoint {path} not found (train one: uavsearch train perception)")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+        if ckpt.get("format") != "uavsearch-perception/1":
+            raise KeyError("format")
+        net = PerceptionNet(PerceptionConfig.from_dict(ckpt["config"]))
+        net.load_state_dict(ckpt["state_dict"])
+    except UavsearchError:
+        raise
+    except Exception as e:  # noqa: BLE001 - any corrupt file is one clear line
+        raise UavsearchError(f"{path} is not a uavsearch perception checkpoint ({type(e).__name__}: {e})") from None
+    net.eval()
+    return net, ckpt.get("extra", {})
