@@ -1,0 +1,477 @@
+"""PyBullet camera for a scene spec: RGB, person segmentation, supersampling, optional sensor randomisation.
+
+How the world is built (fast: a scene takes well under a second):
+- the ground is ONE textured quad: roads, markings, sidewalks, grass and plazas are painted into a
+  texture (topdown.paint_ground), so the ground costs one layer of fill and no overdraw;
+- every other static object is merged into a few large meshes textured with a colour palette
+  (one texel per colour, uvs at texel centres), so thousands of objects are a handful of bodies;
+- every person is its own small body, so the segmentation mask gives exact person pixels and ids.
+The camera matches uavsearch.geometry exactly: the view and projection matrices are built from
+CameraPose and CameraIntrinsics (pinhole, principal point at the centre, OpenCV axes), not from
+PyBullet's look-at/FOV helpers; tests/test_render.py checks markers land on project_points' pixels.
+
+Supersampling renders at s times the resolution and averages s x s blocks (area downsampling), so a
+person smaller than a pixel stays a faint blob instead of appearing or vanishing with aliasing.
+person_fraction is the share of a pixel's subpixels showing a person; person_mask is
+person_fraction > 0 (any subpixel), i.e. every pixel whose colour a person contributed to.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import pybullet as pb
+
+from ..geometry import CameraIntrinsics, CameraPose
+from .scene import SceneObject, SceneSpec
+from .topdown import ground_raster, paint_ground
+
+NEAR_M = 1.0
+FAR_M = 1000.0
+PALETTE_SIDE = 64  # texels per side of the palette texture: up to 4096 distinct colours
+MAX_VERTICES = 90_000  # PyBullet refuses meshes of about 131k vertices and more
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How images are made. Randomisation is OFF by default (all zeros): the paper's AirSim frames are
+    clean renders, the difficulty comes from size, occlusion and confusers, and the teleport env caches
+    renders; turn it on (e.g. RenderOptions.randomised()) for training-time augmentation.
+    It is applied only when render() gets an rng."""
+
+    supersample: int = 2
+    noise_std: float = 0.0  # max Gaussian sensor noise, in 0-255 grey levels (the std is drawn in [0, max])
+    blur_sigma_px: float = 0.0  # max Gaussian blur sigma in output pixels (drawn in [0, max])
+    exposure_jitter: float = 0.0  # gain drawn in [1 - j, 1 + j]
+    ambient: float = 0.62
+    diffuse: float = 0.42
+
+    @staticmethod
+    def randomised(supersample: int = 2) -> "RenderOptions":
+        return RenderOptions(supersample=supersample, noise_std=4.0, blur_sigma_px=0.7, exposure_jitter=0.15)
+
+
+@dataclass(frozen=True)
+class Render:
+    rgb: np.ndarray  # (H, W, 3) uint8
+    person_mask: np.ndarray  # (H, W) bool: at least one subpixel shows a person
+    person_fraction: np.ndarray  # (H, W) float32: share of subpixels showing a person
+    person_index: np.ndarray  # (H, W) int16: index into spec.people of the person covering most subpixels, -1 none
+
+
+# --------------------------------------------------------------------------------------------------
+# Camera matrices (OpenGL, column-major), built from the geometry module's camera model
+
+
+def view_matrix(pose: CameraPose) -> list[float]:
+    """World -> OpenGL eye coordinates (x right, y up, looking down -z) for an OpenCV-axes camera pose."""
+    r_cv_from_world = pose.R_enu_from_cam.T
+    r = np.diag([1.0, -1.0, -1.0]) @ r_cv_from_world
+    m = np.eye(4)
+    m[:3, :3] = r
+    m[:3, 3] = -r @ np.asarray(pose.position_enu, dtype=float)
+    return m.T.ravel().tolist()
+
+
+def projection_matrix(intr: CameraIntrinsics, near_m: float = NEAR_M, far_m: float = FAR_M) -> list[float]:
+    """The pinhole K as an OpenGL projection: pixel (u, v) with v down <-> NDC (x, y) with y up."""
+    w, h = intr.width_px, intr.height_px
+    m = np.zeros((4, 4))
+    m[0, 0] = 2.0 * intr.fx / w
+    m[1, 1] = 2.0 * intr.fy / h
+    m[0, 2] = 1.0 - 2.0 * intr.cx / w
+    m[1, 2] = 2.0 * intr.cy / h - 1.0
+    m[2, 2] = -(far_m + near_m) / (far_m - near_m)
+    m[2, 3] = -2.0 * far_m * near_m / (far_m - near_m)
+    m[3, 2] = -1.0
+    return m.T.ravel().tolist()
+
+
+# --------------------------------------------------------------------------------------------------
+# Meshes
+
+
+def _unit_box() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles (T, 3, 3), normals (T, 3, 3) and face group (T,) of a unit cube [-.5,.5]^2 x [0, 1];
+    groups: 0 = sides, 1 = top (no bottom face: nobody looks at it)."""
+    tris, norms, groups = [], [], []
+    faces = [((1, 0, 0), (0, 1, 0), (0, 0, 1), 0), ((-1, 0, 0), (0, -1, 0), (0, 0, 1), 0),
+             ((0, 1, 0), (-1, 0, 0), (0, 0, 1), 0), ((0, -1, 0), (1, 0, 0), (0, 0, 1), 0),
+             ((0, 0, 1), (1, 0, 0), (0, 1, 0), 1)]  # fmt: skip
+    for n, u, v, g in faces:
+        n, u, v = (np.array(a, float) for a in (n, u, v))
+        q = [(n + a * u + b * v) * 0.5 for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        q = [c + np.array([0, 0, 0.5]) for c in q]
+        for tri in ((q[0], q[1], q[2]), (q[0], q[2], q[3])):
+            tris.append(tri)
+            norms.append((n, n, n))
+            groups.append(g)
+    return np.array(tris), np.array(norms), np.array(groups)
+
+
+def _unit_prism(n: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit-diameter n-gon prism from z=0 to 1 (groups: 0 sides, 1 top), smooth side normals."""
+    a = np.arange(n + 1) * 2 * np.pi / n
+    ring = np.stack([0.5 * np.cos(a), 0.5 * np.sin(a)], -1)
+    nrm = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], -1)
+    tris, norms, groups = [], [], []
+    for i in range(n):
+        p0, p1 = ring[i], ring[i + 1]
+        b0, b1, t0, t1 = [*p0, 0], [*p1, 0], [*p0, 1], [*p1, 1]
+        tris += [(b0, b1, t1), (b0, t1, t0)]
+        norms += [(nrm[i], nrm[i + 1], nrm[i + 1]), (nrm[i], nrm[i + 1], nrm[i])]
+        groups += [0, 0]
+        tris.append(([0, 0, 1], t0, t1))
+        norms.append(([0, 0, 1],) * 3)
+        groups.append(1)
+    return np.array(tris, float), np.array(norms, float), np.array(groups)
+
+
+def _unit_sphere(n_lon: int = 8, n_lat: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit-diameter low-poly sphere centred at z=0.5, smooth normals; group = face index mod 3 (shades)."""
+    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)
+    lon = np.linspace(0, 2 * np.pi, n_lon + 1)
+
+    def pt(i, j):
+        return np.array([math.cos(lat[i]) * math.cos(lon[j]), math.cos(lat[i]) * math.sin(lon[j]), math.sin(lat[i])])
+
+    tris, norms = [], []
+    for i in range(n_lat):
+        for j in range(n_lon):
+            a, b, c, d = pt(i, j), pt(i, j + 1), pt(i + 1, j + 1), pt(i + 1, j)
+            for tri in ((a, b, c), (a, c, d)):
+                if np.linalg.norm(np.cross(tri[1] - tri[0], tri[2] - tri[0])) < 1e-9:
+                    continue  # degenerate at the poles
+                tris.append(tri)
+                norms.append(tri)
+    tris = np.array(tris) * 0.5 + np.array([0, 0, 0.5])
+    return tris, np.array(norms), np.arange(len(tris)) % 3
+
+
+BOX, PRISM, SPHERE = _unit_box(), _unit_prism(8), _unit_sphere()
+
+
+def _rot(yaw: float, pitch: float = 0.0) -> np.ndarray:
+    """Rotation about z by yaw after a tilt about the local y axis by pitch."""
+    cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    return rz @ ry
+
+
+class MeshBuilder:
+    """Accumulates coloured primitives into triangle soup with palette uvs."""
+
+    def __init__(self, palette: dict):
+        self.palette = palette
+        self.pos: list[np.ndarray] = []
+        self.nrm: list[np.ndarray] = []
+        self.col: list[np.ndarray] = []
+
+    def colour_index(self, rgb) -> int:
+        key = tuple(int(c) for c in rgb)
+        if key not in self.palette:
+            if len(self.palette) >= PALETTE_SIDE * PALETTE_SIDE:
+                raise ValueError("too many distinct colours for the palette texture")
+            self.palette[key] = len(self.palette)
+        return self.palette[key]
+
+    def add(self, unit, centre, scale, rot: np.ndarray, colours) -> None:
+        """Place a unit primitive: scale (3,), rotation, base centre (3,); colours per face group."""
+        tris, norms, groups = unit
+        scale = np.asarray(scale, float)
+        p = (tris * scale) @ rot.T + np.asarray(centre, float)
+        n = (norms / np.where(scale == 0, 1, scale)) @ rot.T
+        n /= np.linalg.norm(n, axis=-1, keepdims=True) + 1e-12
+        idx = np.array([self.colour_index(colours[min(g, len(colours) - 1)]) for g in range(3)])
+        self.pos.append(p.reshape(-1, 3))
+        self.nrm.append(n.reshape(-1, 3))
+        self.col.append(np.repeat(idx[groups], 3))
+
+    def add_object(self, o: SceneObject) -> None:
+        add_object_parts(self, o)
+
+    def arrays(self):
+        if not self.pos:
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2))
+        pos, nrm, col = np.concatenate(self.pos), np.concatenate(self.nrm), np.concatenate(self.col)
+        uv = np.stack([(col % PALETTE_SIDE + 0.5) / PALETTE_SIDE, 1.0 - (col // PALETTE_SIDE + 0.5) / PALETTE_SIDE], -1)
+        return pos, nrm, uv
+
+
+def _shade(rgb, f: float):
+    return tuple(int(np.clip(c * f, 0, 255)) for c in rgb)
+
+
+def add_object_parts(mb: MeshBuilder, o: SceneObject) -> None:
+    """The 3-D shape of each kind of object, from its footprint, height and colours."""
+    x, y, z, yaw = o.x_m, o.y_m, o.z_m, o.yaw_rad
+    r = _rot(yaw)
+
+    def at(dx, dy, dz=0.0):
+        return np.array([x, y, z]) + r @ np.array([dx, dy, dz])
+
+    if o.kind == "building":
+        mb.add(BOX, (x, y, z), (o.sx_m, o.sy_m, o.sz_m), r, [o.color, o.color2 or o.color])
+        # a parapet rim makes roofs read as roofs from above
+        t = 0.35
+        rim = _shade(o.color2 or o.color, 0.8)
+        for dx, dy, sx, sy in ((0, o.sy_m / 2 - t / 2, o.sx_m, t), (0, -o.sy_m / 2 + t / 2, o.sx_m, t),
+                               (o.sx_m / 2 - t / 2, 0, t, o.sy_m), (-o.sx_m / 2 + t / 2, 0, t, o.sy_m)):  # fmt: skip
+            mb.add(BOX, at(dx, dy, o.sz_m), (sx, sy, 0.5), r, [o.color, rim])
+    elif o.kind == "roof_unit":
+        mb.add(BOX, (x, y, z), (o.sx_m, o.sy_m, o.sz_m), r, [_shade(o.color, 0.85), o.color])
+    elif o.kind == "tree":
+        trunk_h = o.sz_m - o.sx_m * 0.9
+        mb.add(PRISM, (x, y, 0), (0.3, 0.3, max(trunk_h + 0.5, 0.5)), r, [o.color2, o.color2])
+        c1, c2, c3 = o.color, _shade(o.color, 0.85), _shade(o.color, 1.12)
+        canopy_h = o.sz_m - trunk_h
+        mb.add(SPHERE, (x, y, trunk_h), (o.sx_m, o.sy_m, canopy_h), r, [c1, c2, c3])
+    elif o.kind == "car":
+        h = o.sz_m
+        body_h = h * (0.85 if o.variant == "van" else 0.55)
+        mb.add(BOX, at(0, 0, 0.15), (o.sx_m, o.sy_m, body_h), r, [o.color, o.color])
+        if o.variant == "van":
+            mb.add(BOX, at(o.sx_m * 0.36, 0, 0.15 + body_h * 0.45), (o.sx_m * 0.2, o.sy_m * 0.92, body_h * 0.5), r,
+                   [o.color2, o.color])  # fmt: skip
+        else:
+            mb.add(BOX, at(-o.sx_m * 0.05, 0, 0.15 + body_h), (o.sx_m * 0.5, o.sy_m * 0.86, h - body_h - 0.15), r,
+                   [o.color2, o.color])  # fmt: skip
+    elif o.kind == "clutter":
+        v = o.variant
+        if v in ("bin", "bollard", "cone"):
+            top = _shade(o.color, 0.7) if v == "bin" else o.color
+            scale = (o.sx_m, o.sy_m, o.sz_m) if v != "cone" else (o.sx_m, o.sy_m, o.sz_m * 0.15)
+            mb.add(PRISM, (x, y, 0), scale, r, [o.color, top])
+            if v == "cone":
+                mb.add(PRISM, (x, y, 0), (o.sx_m * 0.55, o.sy_m * 0.55, o.sz_m), r, [o.color, (240, 240, 236)])
+        elif v == "bench":
+            mb.add(BOX, at(0, 0, 0.4), (o.sx_m, o.sy_m * 0.8, 0.08), r, [o.color, o.color])
+            mb.add(BOX, at(0, -o.sy_m * 0.45, 0.4), (o.sx_m, 0.08, 0.45), r, [o.color, o.color])
+            for dx in (-o.sx_m * 0.4, o.sx_m * 0.4):
+                mb.add(BOX, at(dx, 0, 0), (0.08, o.sy_m * 0.7, 0.4), r, [(50, 50, 54), (50, 50, 54)])
+        elif v == "planter":
+            mb.add(BOX, (x, y, 0), (o.sx_m, o.sy_m, o.sz_m), r, [o.color, o.color2 or o.color])
+        elif v == "lamp":
+            mb.add(PRISM, (x, y, 0), (o.sx_m, o.sy_m, o.sz_m), r, [o.color, o.color])
+            mb.add(BOX, (x, y, o.sz_m - 0.15), (0.7, 0.35, 0.15), r, [o.color, (230, 230, 200)])
+        elif v == "parasol":
+            mb.add(PRISM, (x, y, 0), (0.08, 0.08, o.sz_m), r, [(200, 200, 200), (200, 200, 200)])
+            mb.add(PRISM, (x, y, o.sz_m - 0.3), (o.sx_m, o.sy_m, 0.3), r, [_shade(o.color, 0.8), o.color])
+        elif v == "fountain":
+            mb.add(PRISM, (x, y, 0), (o.sx_m, o.sy_m, o.sz_m), r, [o.color, o.color2 or o.color])
+        elif v == "kiosk":
+            mb.add(BOX, (x, y, 0), (o.sx_m, o.sy_m, o.sz_m), r, [o.color, o.color2 or o.color])
+        else:
+            mb.add(BOX, (x, y, 0), (o.sx_m, o.sy_m, o.sz_m), r, [o.color, o.color])
+    elif o.kind == "person":
+        add_person_parts(mb, o)
+
+
+def add_person_parts(mb: MeshBuilder, o: SceneObject) -> None:
+    """A blocky pedestrian: legs, torso, arms, head with hair on top; walking swings limbs, crouching folds."""
+    s = o.sz_m / (1.75 * (0.65 if o.variant == "crouching" else 1.0))  # the person's scale
+    r = _rot(o.yaw_rad)
+    base = np.array([o.x_m, o.y_m, o.z_m])
+    shirt, trousers, skin, hair = o.color, o.color2 or o.color, o.color3 or o.color, o.color4 or o.color
+
+    def at(dx, dy, dz):
+        return base + r @ (np.array([dx, dy, dz]) * s)
+
+    swing = 0.35 if o.variant == "walking" else 0.0
+    crouch = o.variant == "crouching"
+    leg_h = 0.5 if crouch else 0.86
+    for side, sgn in ((-1, 1), (1, -1)):
+        pitch = sgn * swing
+        mb.add(BOX, at(0, side * 0.1, 0) + _rot(o.yaw_rad, pitch) @ np.array([0, 0, 0]), (0.15 * s, 0.15 * s, leg_h * s),
+               _rot(o.yaw_rad, pitch), [trousers, trousers])  # fmt: skip
+    torso_z = leg_h
+    torso_pitch = 0.5 if crouch else 0.0
+    rt = _rot(o.yaw_rad, torso_pitch)
+    mb.add(BOX, at(0, 0, torso_z), (0.26 * s, 0.44 * s, 0.6 * s), rt, [shirt, shirt])
+    shoulder = at(0, 0, torso_z) + rt @ np.array([0, 0, 0.6 * s])
+    for side, sgn in ((-1, -1), (1, 1)):
+        ra = _rot(o.yaw_rad, math.pi + sgn * swing + (0.6 if crouch else 0.0))
+        mb.add(BOX, shoulder + r @ np.array([0, side * 0.28 * s, 0]), (0.11 * s, 0.11 * s, 0.6 * s), ra,
+               [shirt, skin])  # fmt: skip
+    neck = shoulder
+    mb.add(BOX, neck, (0.2 * s, 0.19 * s, 0.22 * s), rt, [skin, hair])
+
+
+# --------------------------------------------------------------------------------------------------
+# The renderer
+
+
+def _write_texture(img_rgb: np.ndarray, client: int) -> int:
+    """PyBullet loads textures from files only: write a BMP (no compression: fast), load, delete."""
+    fd, path = tempfile.mkstemp(suffix=".bmp", prefix="uavsearch_tex_")
+    os.close(fd)
+    try:
+        cv2.imwrite(path, np.ascontiguousarray(img_rgb[:, :, ::-1]))
+        tex = pb.loadTexture(path, physicsClientId=client)
+    finally:
+        os.unlink(path)
+    if tex < 0:
+        raise RuntimeError("PyBullet could not load a texture")
+    return tex
+
+
+class SceneRenderer:
+    """One PyBullet DIRECT client holding one scene; render(pose) -> Render. Not thread-safe."""
+
+    def __init__(self, spec: SceneSpec, intrinsics: CameraIntrinsics, options: RenderOptions = RenderOptions()):
+        if int(options.supersample) < 1:
+            raise ValueError("supersample must be >= 1")
+        self.spec = spec
+        self.intrinsics = intrinsics
+        self.options = options
+        self._client = pb.connect(pb.DIRECT)
+        if self._client < 0:
+            raise RuntimeError("cannot start a PyBullet DIRECT client")
+        try:
+            self._build()
+        except Exception:
+            self.close()
+            raise
+
+    # -- building ------------------------------------------------------------------------------------
+
+    def _mesh_body(self, mb: MeshBuilder, tex: int) -> list[int]:
+        pos, nrm, uv = mb.arrays()
+        bodies = []
+        for start in range(0, len(pos), MAX_VERTICES - MAX_VERTICES % 3):
+            sl = slice(start, start + MAX_VERTICES - MAX_VERTICES % 3)
+            n = len(pos[sl])
+            vs = pb.createVisualShape(pb.GEOM_MESH, vertices=pos[sl].tolist(), indices=list(range(n)),
+                                      normals=nrm[sl].tolist(), uvs=uv[sl].tolist(), physicsClientId=self._client)  # fmt: skip
+            body = pb.createMultiBody(0, -1, vs, physicsClientId=self._client)
+            pb.changeVisualShape(body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=self._client)
+            bodies.append(body)
+        return bodies
+
+    def _build(self) -> None:
+        spec, c = self.spec, self._client
+        palette: dict = {}
+        people = spec.people
+        person_meshes = []
+        for o in people:
+            mb = MeshBuilder(palette)
+            add_person_parts(mb, o)
+            person_meshes.append(mb)
+        static = MeshBuilder(palette)
+        for o in spec.objects:  # drawn before the ground: the z-test then skips ground under roofs
+            if o.kind in ("building", "roof_unit", "tree", "car", "clutter"):
+                static.add_object(o)
+        # Plain ground beyond the painted texture: four quads around it (no overlap, no overdraw).
+        gr = ground_raster(spec)
+        base = next(o for o in spec.objects if o.kind == "base")
+        g, t = base.sx_m / 2, gr.half_m
+        for x0, y0, x1, y1 in ((-g, t, g, g), (-g, -g, g, -t), (-g, -t, -t, t), (t, -t, g, t)):
+            static.add(BOX, ((x0 + x1) / 2, (y0 + y1) / 2, -0.02), (x1 - x0, y1 - y0, 0.02), np.eye(3),
+                       [base.color, base.color])  # fmt: skip
+        pal_img = np.zeros((PALETTE_SIDE, PALETTE_SIDE, 3), np.uint8)
+        for rgb, i in palette.items():
+            pal_img[i // PALETTE_SIDE, i % PALETTE_SIDE] = rgb
+        pal_tex = _write_texture(pal_img, c)
+        self._person_bodies = []
+        for mb in person_meshes:
+            self._person_bodies += self._mesh_body(mb, pal_tex)
+        self._static_bodies = self._mesh_body(static, pal_tex)
+        ground_tex = _write_texture(paint_ground(spec, gr), c)
+        vs = pb.createVisualShape(pb.GEOM_MESH, vertices=[[-t, -t, 0], [t, -t, 0], [t, t, 0], [-t, t, 0]],
+                                  indices=[0, 1, 2, 0, 2, 3], normals=[[0, 0, 1]] * 4,
+                                  uvs=[[0, 0], [1, 0], [1, 1], [0, 1]], physicsClientId=c)  # fmt: skip
+        self._ground_body = pb.createMultiBody(0, -1, vs, physicsClientId=c)
+        pb.changeVisualShape(self._ground_body, -1, textureUniqueId=ground_tex, rgbaColor=[1, 1, 1, 1], physicsClientId=c)
+        # segmentation id -> person index (-1 for everything else)
+        ids = np.array(self._person_bodies, dtype=np.int64)
+        self._seg_lut = np.full(int(max([self._ground_body, *self._static_bodies, *ids]) + 2), -1, np.int16)
+        self._seg_lut[ids] = np.arange(len(ids), dtype=np.int16)
+        az, el = math.radians(spec.sun_azimuth_deg), math.radians(spec.sun_elevation_deg)
+        self._light = [math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)]
+        self._proj = projection_matrix(self.intrinsics.scaled(int(self.options.supersample)))
+
+    # -- rendering -----------------------------------------------------------------------------------
+
+    def render(self, pose: CameraPose, rng: np.random.Generator | None = None) -> Render:
+        s = int(self.options.supersample)
+        intr = self.intrinsics
+        w, h = intr.width_px * s, intr.height_px * s
+        _, _, rgba, _, seg = pb.getCameraImage(
+            w, h, view_matrix(pose), self._proj, renderer=pb.ER_TINY_RENDERER, shadow=0,
+            lightDirection=self._light, lightAmbientCoeff=self.options.ambient,
+            lightDiffuseCoeff=self.options.diffuse, lightSpecularCoeff=0.0, physicsClientId=self._client,
+        )  # fmt: skip
+        rgb = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[:, :, :3]
+        seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
+        pidx = self._seg_lut[np.clip(seg, -1, len(self._seg_lut) - 2)]  # -1 (background) maps to the last entry
+        H, W = intr.height_px, intr.width_px
+        if s > 1:
+            img = rgb.reshape(H, s, W, s, 3).astype(np.float32).mean(axis=(1, 3))
+            blocks = pidx.reshape(H, s, W, s).transpose(0, 2, 1, 3).reshape(H, W, s * s)
+            frac = (blocks >= 0).mean(axis=-1).astype(np.float32)
+            person_index = _majority(blocks)
+        else:
+            img = rgb.astype(np.float32)
+            frac = (pidx >= 0).astype(np.float32)
+            person_index = pidx.astype(np.int16)
+        if rng is not None:
+            img = self._randomise(img, rng)
+        out = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        return Render(rgb=out, person_mask=frac > 0, person_fraction=frac, person_index=person_index)
+
+    def _randomise(self, img: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        o = self.options
+        if o.exposure_jitter > 0:
+            img = img * rng.uniform(1 - o.exposure_jitter, 1 + o.exposure_jitter)
+        if o.blur_sigma_px > 0:
+            sigma = rng.uniform(0, o.blur_sigma_px)
+            if sigma > 0.05:
+                img = cv2.GaussianBlur(img, (0, 0), sigma)
+        if o.noise_std > 0:
+            img = img + rng.normal(0, rng.uniform(0, o.noise_std), img.shape).astype(np.float32)
+        return img
+
+    # -- lifetime ------------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        if getattr(self, "_client", -1) >= 0:
+            try:
+                pb.disconnect(physicsClientId=self._client)
+            except pb.error:
+                pass
+            self._client = -1
+
+    def __enter__(self) -> "SceneRenderer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        self.close()
+
+
+def _majority(blocks: np.ndarray) -> np.ndarray:
+    """Per pixel, the person index covering most subpixels (ties: lowest index); -1 where none."""
+    out = np.full(blocks.shape[:2], -1, np.int16)
+    has = (blocks >= 0).any(-1)
+    if not has.any():
+        return out
+    sub = blocks[has]
+    best = np.full(len(sub), -1, np.int16)
+    best_n = np.zeros(len(sub), np.int32)
+    for v in np.unique(sub[sub >= 0]):
+        n = (sub == v).sum(-1)
+        better = n > best_n
+        best[better], best_n[better] = v, n[better]
+    out[has] = best
+    return out
+
+
+__all__ = ["RenderOptions", "Render", "SceneRenderer", "view_matrix", "projection_matrix"]

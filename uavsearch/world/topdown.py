@@ -1,0 +1,148 @@
+"""Top-down pictures of a scene: the painted ground (also the renderer's ground texture) and a map.
+
+paint_ground draws roads, markings, sidewalks, grass, plazas and parking lots into a north-up RGB
+raster with a little grain and a few stains, deterministically from the scene seed. draw_topdown adds
+roofs, trees, cars, clutter, people (dots) and the grid with the occupied cells highlighted.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from .scene import GROUND_KINDS, Raster, SceneObject, SceneSpec, footprint_corners
+
+GROUND_TEXTURE_PX = 2048
+
+
+def ground_raster(spec: SceneSpec, texture_px: int = GROUND_TEXTURE_PX) -> Raster:
+    """The square the ground texture covers: the city plus a 10 m rim."""
+    half = spec.params.city_half_m + 10.0
+    return Raster(half, 2 * half / texture_px)
+
+
+def _stripes(o: SceneObject, width_m: float, period_m: float) -> list[np.ndarray]:
+    """Stripes `width_m` long (along the rectangle's long axis) and as wide as the rectangle, every
+    `period_m`: dashes of a centre line, zebra stripes, parking stall lines."""
+    long_is_x = o.sx_m >= o.sy_m
+    length = max(o.sx_m, o.sy_m)
+    across = min(o.sx_m, o.sy_m)
+    c, s = math.cos(o.yaw_rad), math.sin(o.yaw_rad)
+    rot = np.array([[c, -s], [s, c]])
+    out = []
+    t = -length / 2 + (period_m - width_m) / 2
+    while t + width_m <= length / 2 + 1e-9:
+        a0, a1 = t, t + width_m
+        rect = np.array([[a0, -across / 2], [a1, -across / 2], [a1, across / 2], [a0, across / 2]])
+        if not long_is_x:
+            rect = rect[:, ::-1]
+        out.append(rect @ rot.T + [o.x_m, o.y_m])
+        t += period_m
+    return out
+
+
+def paint_ground(spec: SceneSpec, raster: Raster | None = None, grain: bool = True) -> np.ndarray:
+    """(n, n, 3) uint8 north-up RGB of the ground inside `raster` (default: the renderer's texture)."""
+    raster = raster or ground_raster(spec)
+    img = np.zeros((raster.n, raster.n, 3), np.uint8)
+    rng = np.random.default_rng([spec.seed, 0x6A0])
+    for o in spec.objects:
+        if o.kind not in GROUND_KINDS:
+            continue
+        colour = tuple(int(v) for v in o.color)
+        if o.kind == "base":
+            img[:] = colour
+        elif o.kind != "marking":
+            raster.fill(img, footprint_corners(o), colour)
+        elif o.variant == "dashed":
+            for r in _stripes(o, 3.0, 6.0):
+                raster.fill(img, r, colour)
+        elif o.variant == "crosswalk":
+            for r in _stripes(o, 0.5, 1.0):
+                raster.fill(img, r, colour)
+        elif o.variant.startswith("stalls"):
+            for r in _stripes(o, 0.12, 2.6):
+                raster.fill(img, r, colour)
+        else:
+            raster.fill(img, footprint_corners(o), colour)
+    if grain:
+        _stains(img, spec, raster, rng)
+        noise = rng.normal(0.0, 5.0, (raster.n, raster.n, 1)).astype(np.float32)
+        img = np.clip(img.astype(np.float32) + noise, 0, 255).astype(np.uint8)
+    return img
+
+
+def _stains(img: np.ndarray, spec: SceneSpec, raster: Raster, rng: np.random.Generator) -> None:
+    """Oil stains, manhole covers and worn patches on roads and pavements (dark blobs: confusers)."""
+    paved = [o for o in spec.objects if o.kind in ("road", "sidewalk", "plaza", "parking")]
+    if not paved:
+        return
+    area = sum(o.sx_m * o.sy_m for o in paved)
+    for _ in range(int(area / 120.0)):
+        o = paved[int(rng.integers(len(paved)))]
+        x = o.x_m + rng.uniform(-0.5, 0.5) * o.sx_m
+        y = o.y_m + rng.uniform(-0.5, 0.5) * o.sy_m
+        kind = rng.random()
+        if kind < 0.3:  # manhole
+            raster.disk(img, (x, y), 0.35, (52, 52, 54))
+        else:
+            r = rng.uniform(0.25, 1.2)
+            base = img[int(np.clip(raster.to_px((x, y))[1], 0, raster.n - 1)),
+                       int(np.clip(raster.to_px((x, y))[0], 0, raster.n - 1))].astype(float)  # fmt: skip
+            f = rng.uniform(0.6, 0.9) if kind < 0.85 else rng.uniform(1.08, 1.2)
+            raster.disk(img, (x, y), r, tuple(int(min(255, c * f)) for c in base))
+
+
+def draw_topdown(spec: SceneSpec, ax=None, half_m: float | None = None, m_per_px: float = 0.2):
+    """A north-up map of the scene around the search area; draws into a matplotlib Axes (ENU metres)
+    when `ax` is given, else returns the (n, n, 3) uint8 image."""
+    half = half_m if half_m is not None else spec.grid.half_m + 20.0
+    raster = Raster(half, m_per_px)
+    img = paint_ground(spec, raster, grain=False)
+    for o in spec.objects:
+        if o.kind in ("building", "roof_unit", "car") or (o.kind == "clutter" and o.variant in ("kiosk", "fountain",
+                                                                                                  "bench", "planter")):  # fmt: skip
+            top = o.color2 if o.kind in ("building", "kiosk") or o.variant in ("kiosk", "fountain", "planter") else o.color
+            if o.kind == "car":
+                top = o.color
+            raster.fill(img, footprint_corners(o), tuple(int(v) for v in (top or o.color)))
+            pts = np.round(raster.to_px(footprint_corners(o)) * 16 - 8).astype(np.int32)
+            if o.kind == "building":
+                cv2.polylines(img, [pts], True, (40, 40, 40), 1, cv2.LINE_AA, 4)
+        elif o.kind == "clutter":
+            raster.disk(img, (o.x_m, o.y_m), max(o.sx_m, 0.3) / 2, tuple(int(v) for v in o.color))
+    canopy = img.copy()
+    for o in spec.objects_of("tree"):
+        raster.disk(canopy, (o.x_m, o.y_m), o.sx_m / 2, tuple(int(v) for v in o.color))
+    img = cv2.addWeighted(canopy, 0.7, img, 0.3, 0)
+    # grid and occupied cells
+    occ = spec.occupancy_array()
+    grid = spec.grid
+    overlay = img.copy()
+    for i in np.flatnonzero(occ):
+        raster.fill(overlay, grid.cell_corners_enu(int(i))[:, :2], (255, 220, 0))
+    img = cv2.addWeighted(overlay, 0.45, img, 0.55, 0)
+    for k in range(grid.n + 1):
+        a = -grid.half_m + k * grid.cell_m
+        for p0, p1 in (((a, -grid.half_m), (a, grid.half_m)), ((-grid.half_m, a), (grid.half_m, a))):
+            q0, q1 = (np.round(raster.to_px(np.array(p)) * 16 - 8).astype(int) for p in (p0, p1))
+            cv2.line(img, tuple(int(v) for v in q0), tuple(int(v) for v in q1), (255, 255, 255), 1, cv2.LINE_AA, 4)
+    for i in np.flatnonzero(occ):
+        pts = np.round(raster.to_px(grid.cell_corners_enu(int(i))[:, :2]) * 16 - 8).astype(np.int32)
+        cv2.polylines(img, [pts], True, (255, 200, 0), 2, cv2.LINE_AA, 4)
+    for o in spec.people:
+        raster.disk(img, (o.x_m, o.y_m), 0.55, (255, 255, 255))
+        raster.disk(img, (o.x_m, o.y_m), 0.38, (230, 0, 160) if o.cell >= 0 else (255, 120, 0))
+    if ax is None:
+        return img
+    ax.imshow(img, extent=[raster.centre[0] - half, raster.centre[0] + half, raster.centre[1] - half,
+                           raster.centre[1] + half])  # fmt: skip
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.set_title(f"scene {spec.seed}: K={spec.occupied_cells_k} occupied cells (yellow), people (dots)")
+    return ax
+
+
+__all__ = ["paint_ground", "ground_raster", "draw_topdown", "GROUND_TEXTURE_PX"]
