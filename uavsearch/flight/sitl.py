@@ -1,0 +1,294 @@
+"""`uavsearch sitl`: the simulated vehicle as a MAVLink system, stepped in lockstep on simulation time.
+
+One loop advances the physics one step at a time; the autopilot (commander + navigator) runs at
+`autopilot_hz` and MAVLink I/O (receive, handle, stream) at `io_hz`, both on simulation time, so the
+flight is the same for a given seed whatever the pacing. Pacing only decides how long the loop waits:
+`--speed 1` keeps simulation time on the wall clock (for ground stations), `--speed N` runs N times
+faster, `--speed max` never waits. While waiting, the loop sleeps in select() on the sockets and
+answers packets at once, so a real-time vehicle still acknowledges commands within a millisecond.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+from ..errors import UavsearchError
+from ..geometry import CameraIntrinsics, GeodeticOrigin
+from ..paths import RUNS_DIR
+from .camera import Camera, scene_renderer
+from .commander import Commander, autopilot_params
+from .mavlink_endpoint import LinkConfig, MavlinkEndpoint, parse_signing_key
+from .params import ParamError, ParamStore
+
+
+@dataclass
+class SitlConfig:
+    seed: int = 0  # vehicle noise (sensors, estimator): the same seed flies the same trajectory
+    scene_seed: int | None = 0  # None: no camera rendering (captures fail with capture_result 0)
+    occupied_cells: int = 5
+    home: GeodeticOrigin = field(default_factory=GeodeticOrigin)
+    speed: float = 1.0  # math.inf = as fast as possible
+    api_port: int = 14540  # remote ports: 0 disables the link
+    gcs_port: int = 14550
+    api_local_port: int = 14580  # PX4 SITL's source ports
+    gcs_local_port: int = 18570
+    signing_key: bytes | None = None
+    sign_api_strict: bool = False  # MAVSDK cannot sign: by default the API link signs but accepts unsigned
+    run_dir: Path | None = None
+    autopilot_hz: int = 50
+    io_hz: int = 50
+    params: dict = field(default_factory=dict)
+    start_enu: tuple = (0.0, 0.0, 0.0)
+    start_yaw_rad: float = 0.0
+    intrinsics: CameraIntrinsics = field(default_factory=CameraIntrinsics)
+
+
+def _default_vehicle(params: ParamStore, cfg: SitlConfig):
+    from .multicopter import Multicopter
+
+    return Multicopter(params, cfg.home, cfg.seed, start_enu=cfg.start_enu, start_yaw_rad=cfg.start_yaw_rad)
+
+
+def _vehicle_params():
+    from .multicopter import MC_PARAMS
+
+    return MC_PARAMS
+
+
+class Sitl:
+    """Vehicle + autopilot + camera + MAVLink endpoint, advanced one physics step at a time."""
+
+    def __init__(self, cfg: SitlConfig, vehicle_factory=None, vehicle_params=None, render=None):
+        self.cfg = cfg
+        mc_params = list(vehicle_params if vehicle_params is not None else _vehicle_params())
+        self.params = ParamStore(mc_params, autopilot_params(mc_params))
+        for name, value in cfg.params.items():
+            self.params.set(name, value)
+        self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)
+        self.commander = Commander(self.params, self.vehicle, cfg.home, autopilot_hz=cfg.autopilot_hz)
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+        self.run_dir = Path(cfg.run_dir) if cfg.run_dir else RUNS_DIR / f"sitl__{cfg.seed}__{stamp}"
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._close_render = None
+        if render is None and cfg.scene_seed is not None:
+            render, self._close_render = scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, seed=cfg.seed)
+        self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render)
+        links = []
+        if cfg.api_port:
+            links.append(LinkConfig("api", cfg.api_port, local_port=cfg.api_local_port, signing_key=cfg.signing_key,
+                                    require_signed=cfg.sign_api_strict))
+        if cfg.gcs_port:
+            links.append(LinkConfig("gcs", cfg.gcs_port, local_port=cfg.gcs_local_port, signing_key=cfg.signing_key,
+                                    require_signed=True))
+        try:
+            self.endpoint = MavlinkEndpoint(self.commander, self.params, links, self.camera,
+                                            sysid=int(self.params["MAV_SYS_ID"]))
+        except OSError as e:
+            raise UavsearchError(f"cannot open the MAVLink UDP ports ({e}); is another sitl running? "
+                                 "Choose others with --api-local-port / --gcs-local-port") from None
+        self._ap_period_us = int(1e6 / cfg.autopilot_hz)
+        self._io_period_us = int(1e6 / cfg.io_hz)
+        self._next_ap_us = int(self.vehicle.time_us)
+        self._next_io_us = int(self.vehicle.time_us)
+        self._wall = time.monotonic()
+        self._pace_wall0 = None
+        self._pace_sim0 = 0
+
+    @property
+    def time_s(self) -> float:
+        return self.vehicle.time_us * 1e-6
+
+    def step(self) -> None:
+        """One physics step, then the autopilot and I/O when due (simulation time)."""
+        v = self.vehicle
+        now = v.time_us
+        if now >= self._next_ap_us:
+            self._next_ap_us += self._ap_period_us
+            self.commander.update(self._wall)
+        if now >= self._next_io_us:
+            self._next_io_us += self._io_period_us
+            self._wall = time.monotonic()
+            self.endpoint.poll(self._wall)
+            self.endpoint.send_streams()
+            self._pace()
+        v.step()
+
+    def _pace(self) -> None:
+        speed = self.cfg.speed
+        if not math.isfinite(speed):
+            return
+        if self._pace_wall0 is None:
+            self._pace_wall0, self._pace_sim0 = self._wall, self.vehicle.time_us
+        target = self._pace_wall0 + (self.vehicle.time_us - self._pace_sim0) * 1e-6 / speed
+        while True:
+            remaining = target - time.monotonic()
+            if remaining <= 0:
+                break
+            if self.endpoint.wait_readable(remaining):
+                self._wall = time.monotonic()
+                self.endpoint.poll(self._wall)
+        if time.monotonic() - target > 0.5:  # far behind (a slow machine): do not try to catch up in a burst
+            self._pace_wall0, self._pace_sim0 = time.monotonic(), self.vehicle.time_us
+
+    def run(self, duration_s: float | None = None, stop=None) -> None:
+        end_us = None if duration_s is None else self.vehicle.time_us + int(duration_s * 1e6)
+        while (end_us is None or self.vehicle.time_us < end_us) and not (stop and stop()):
+            self.step()
+
+    def close(self) -> None:
+        self.endpoint.close()
+        if self._close_render:
+            self._close_render()
+            self._close_render = None
+
+    def banner(self) -> str:
+        c = self.cfg
+        speed = "max" if not math.isfinite(c.speed) else f"{c.speed:g}x real time"
+        lines = [
+            f"uavsearch sitl: sysid {int(self.params['MAV_SYS_ID'])}, seed {c.seed}, "
+            f"scene {c.scene_seed if c.scene_seed is not None else 'none'}, speed {speed}",
+            f"  home      lat {c.home.lat_deg:.7f}  lon {c.home.lon_deg:.7f}  alt {c.home.alt_m:.1f} m AMSL",
+        ]
+        for link in self.endpoint.links:
+            hint = "MAVSDK: udpin://0.0.0.0:{p}" if link.cfg.name == "api" else "QGC / MAVProxy: udpin:0.0.0.0:{p}"
+            lines.append(
+                f"  {link.cfg.name.upper()} link  sends to udp {link.cfg.remote_host}:{link.cfg.remote_port} "
+                f"from 127.0.0.1:{link.local_port}   ({hint.format(p=link.cfg.remote_port)})"
+            )
+        sign = "off" if c.signing_key is None else ("required on all links" if c.sign_api_strict
+                                                    else "required on GCS link; API link signs, accepts unsigned")
+        lines.append(f"  signing   {sign}")
+        lines.append(f"  run dir   {self.run_dir}")
+        lines.append("ready; Ctrl-C to stop")
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------------- CLI
+
+
+def _parse_speed(text: str) -> float:
+    if text.lower() == "max":
+        return math.inf
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"speed must be a number or 'max', got {text!r}") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError("speed must be positive")
+    return v
+
+
+def _parse_home(text: str) -> GeodeticOrigin:
+    try:
+        parts = [float(x) for x in text.split(",")]
+    except ValueError:
+        parts = []
+    if len(parts) not in (2, 3) or not (-90 <= parts[0] <= 90 and -180 <= parts[1] <= 180):
+        raise argparse.ArgumentTypeError(f"--home takes LAT,LON[,ALT] in degrees and metres, got {text!r}")
+    return GeodeticOrigin(*parts)
+
+
+def _parse_param(text: str) -> tuple[str, float]:
+    name, sep, value = text.partition("=")
+    try:
+        return name.strip(), float(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--param takes NAME=VALUE, got {text!r}") from None
+
+
+def add_sitl_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser("sitl", help="run the simulated vehicle as a PX4-flavoured MAVLink system",
+                              description="Simulated quadrotor (JSBSim) + PX4-style autopilot + camera, "
+                                          "reachable over MAVLink UDP like PX4 SITL.")
+    add_sitl_arguments(p)
+    p.set_defaults(func=run_sitl_command)
+    return p
+
+
+def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene", type=int, default=0, metavar="SEED", help="scene seed for the camera (default 0)")
+    p.add_argument("--no-camera-scene", action="store_true", help="do not build the scene (faster start; captures fail)")
+    p.add_argument("--cells", type=int, default=5, metavar="K", help="occupied cells in the scene (default 5)")
+    p.add_argument("--seed", type=int, default=0, help="vehicle noise seed (default 0)")
+    p.add_argument("--speed", type=_parse_speed, default=1.0, help="1 (real time, default), N (N x real time) or max")
+    p.add_argument("--home", type=_parse_home, default=GeodeticOrigin(), metavar="LAT,LON[,ALT]",
+                   help="WGS84 position of the scene origin (default PX4 SITL's Zurich home)")
+    p.add_argument("--signing-key", default=None, metavar="HEX", help="32-byte MAVLink 2 signing key, 64 hex digits")
+    p.add_argument("--sign-api-strict", action="store_true", help="also require signed input on the API link")
+    p.add_argument("--out", type=Path, default=None, metavar="RUN_DIR", help="run directory (images, captures.jsonl)")
+    p.add_argument("--api-port", type=int, default=14540, help="UDP port the API link sends to (0: off)")
+    p.add_argument("--gcs-port", type=int, default=14550, help="UDP port the GCS link sends to (0: off)")
+    p.add_argument("--api-local-port", type=int, default=14580, help="source port of the API link (0: any)")
+    p.add_argument("--gcs-local-port", type=int, default=18570, help="source port of the GCS link (0: any)")
+    p.add_argument("--param", type=_parse_param, action="append", default=[], metavar="NAME=VALUE",
+                   help="set a parameter at start (repeatable)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of simulation time")
+
+
+def config_from_args(args) -> SitlConfig:
+    for port in (args.api_port, args.gcs_port, args.api_local_port, args.gcs_local_port):
+        if not 0 <= port <= 65535:
+            raise UavsearchError(f"UDP port {port} out of range")
+    return SitlConfig(
+        seed=args.seed,
+        scene_seed=None if args.no_camera_scene else args.scene,
+        occupied_cells=args.cells,
+        home=args.home,
+        speed=args.speed,
+        api_port=args.api_port,
+        gcs_port=args.gcs_port,
+        api_local_port=args.api_local_port,
+        gcs_local_port=args.gcs_local_port,
+        signing_key=parse_signing_key(args.signing_key) if args.signing_key else None,
+        sign_api_strict=args.sign_api_strict,
+        run_dir=args.out,
+        params=dict(args.param),
+    )
+
+
+def run_sitl_command(args) -> int:
+    cfg = config_from_args(args)
+    try:
+        sitl = Sitl(cfg)
+    except ParamError as e:
+        raise UavsearchError(str(e)) from None
+    print(sitl.banner(), flush=True)
+    wall0 = time.monotonic()
+    sim0 = sitl.time_s
+    try:
+        sitl.run(args.duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sitl.close()
+        wall = time.monotonic() - wall0
+        sim = sitl.time_s - sim0
+        ep = sitl.endpoint
+        print(
+            f"\nstopped: {sim:.1f} s simulated in {wall:.1f} s wall ({sim / max(wall, 1e-9):.1f}x real time); "
+            f"packets in {sum(l.rx_packets for l in ep.links)}, out {sum(l.tx_packets for l in ep.links)}, "
+            f"dropped {ep.rx_dropped}; images {sitl.camera.image_count}",
+            flush=True,
+        )
+    return 0
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="uavsearch sitl")
+    add_sitl_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run_sitl_command(args)
+    except UavsearchError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
