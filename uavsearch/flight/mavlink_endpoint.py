@@ -15,6 +15,7 @@ TIMESYNC, and MAVLink 2 signing per link. Malformed or badly signed packets are 
 
 from __future__ import annotations
 
+import logging
 import math
 import select
 import socket
@@ -30,6 +31,7 @@ from .mission import MissionItem
 from .params import ParamError, ParamStore
 
 AUTOPILOT_COMPID = 1
+log = logging.getLogger(__name__)
 M = mavlink
 
 # Default stream rates (Hz) per link; SET_MESSAGE_INTERVAL changes them per link.
@@ -282,6 +284,7 @@ class MavlinkEndpoint:
                     self._handle(link, m)
                 except Exception as e:  # a packet must never take the vehicle down
                     link.rx_dropped += 1
+                    log.debug("dropped %s", m, exc_info=True)
                     self.cmd.text(3, f"dropped {m.get_type()}: {type(e).__name__}")
             self._mission_retry(link)
         self._flush_events()

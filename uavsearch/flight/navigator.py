@@ -185,6 +185,8 @@ class Land(Mode):
 class ReturnToLaunch(Mode):
     """Climb to RTL_RETURN_ALT, fly home, descend to RTL_DESCEND_ALT, wait RTL_LAND_DELAY, land."""
 
+    phase = "climb"
+
     def on_activation(self, s: NavState) -> None:
         p = s.local.position_ned_m
         home = self.nav.home_ned
