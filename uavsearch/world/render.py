@@ -78,14 +78,24 @@ def view_matrix(pose: CameraPose) -> list[float]:
     return m.T.ravel().tolist()
 
 
-def projection_matrix(intr: CameraIntrinsics, near_m: float = NEAR_M, far_m: float = FAR_M) -> list[float]:
-    """The pinhole K as an OpenGL projection: pixel (u, v) with v down <-> NDC (x, y) with y up."""
+# TinyRenderer rasterises at pixel corners, not centres: without a correction its image sits half a pixel
+# right of and above the pinhole model (measured: +0.5 px in u, -0.5 px in v, at every resolution).
+TINY_RENDERER_SHIFT_PX = (0.5, -0.5)
+
+
+def projection_matrix(
+    intr: CameraIntrinsics, near_m: float = NEAR_M, far_m: float = FAR_M, shift_px=TINY_RENDERER_SHIFT_PX
+) -> list[float]:
+    """The pinhole K as an OpenGL projection: pixel (u, v) with v down <-> NDC (x, y) with y up.
+
+    `shift_px` is the renderer's own offset, cancelled so that rendered pixels agree with project_points.
+    """
     w, h = intr.width_px, intr.height_px
     m = np.zeros((4, 4))
     m[0, 0] = 2.0 * intr.fx / w
     m[1, 1] = 2.0 * intr.fy / h
-    m[0, 2] = 1.0 - 2.0 * intr.cx / w
-    m[1, 2] = 2.0 * intr.cy / h - 1.0
+    m[0, 2] = 1.0 - 2.0 * intr.cx / w + 2.0 * shift_px[0] / w
+    m[1, 2] = 2.0 * intr.cy / h - 1.0 - 2.0 * shift_px[1] / h
     m[2, 2] = -(far_m + near_m) / (far_m - near_m)
     m[2, 3] = -2.0 * far_m * near_m / (far_m - near_m)
     m[3, 2] = -1.0

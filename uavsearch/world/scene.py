@@ -541,8 +541,10 @@ def _person(b: _Builder, x, y, cell: int) -> None:
 
 
 def _sample_point(rng, weights: np.ndarray, raster: Raster) -> tuple[float, float]:
-    flat = weights.ravel().astype(np.float64)
-    i = int(rng.choice(flat.size, p=flat / flat.sum()))
+    flat = weights.ravel()
+    nz = np.flatnonzero(flat > 0)
+    cum = np.cumsum(flat[nz], dtype=np.float64)
+    i = int(nz[min(int(np.searchsorted(cum, rng.uniform(0.0, cum[-1]), side="right")), len(nz) - 1)])
     row, col = divmod(i, weights.shape[1])
     xy = raster.to_m(col + rng.uniform(-0.5, 0.5), row + rng.uniform(-0.5, 0.5))
     return float(xy[0]), float(xy[1])

@@ -1,0 +1,125 @@
+"""The PyBullet camera agrees with geometry's camera model, is deterministic and sees people."""
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from uavsearch.geometry import (
+    CameraIntrinsics,
+    GeodeticOrigin,
+    Grid,
+    camera_pose_from_vehicle,
+    nadir_camera_pose,
+    project_points,
+)
+from uavsearch.world.render import RenderOptions, SceneRenderer
+from uavsearch.world.scene import GENERATOR_VERSION, SceneObject, SceneParams, SceneSpec, generate_scene
+
+MARKERS = [(0.0, 0.0), (7.3, -4.1), (-12.0, 9.5), (15.0, 15.0), (-6.0, -13.0)]
+MARKER_TOP_M = 0.02
+
+
+def _marker_scene() -> SceneSpec:
+    objs = [SceneObject(kind="base", x_m=0, y_m=0, sx_m=800, sy_m=800, color=(90, 120, 60))]
+    objs += [
+        SceneObject(kind="roof_unit", x_m=x, y_m=y, sx_m=0.8, sy_m=0.8, sz_m=MARKER_TOP_M, color=(255, 0, 0))
+        for x, y in MARKERS
+    ]
+    return SceneSpec(generator_version=GENERATOR_VERSION, seed=0, occupied_cells_k=0, params=SceneParams(),
+                     grid=Grid(), home=GeodeticOrigin(), objects=objs, occupancy=[0] * 100)  # fmt: skip
+
+
+POSES = {
+    "nadir centre": nadir_camera_pose((0.0, 0.0, 40.0)),
+    "off-centre, yaw 0.6": nadir_camera_pose((3.0, -2.0, 35.0), yaw_rad=0.6),
+    "off-centre, yaw -2.5": nadir_camera_pose((-4.0, 5.0, 45.0), yaw_rad=-2.5),
+    "hard-mounted, tilted": camera_pose_from_vehicle((1.0, 2.0, 30.0), 0.1, -0.15, 0.3, gimbal_stabilised=False),
+}
+
+
+@pytest.mark.parametrize("supersample", [1, 2])
+def test_markers_land_on_projected_pixels(supersample):
+    intr = CameraIntrinsics(224, 160, 60.0)  # non-square on purpose
+    with SceneRenderer(_marker_scene(), intr, RenderOptions(supersample=supersample)) as r:
+        for name, pose in POSES.items():
+            img = r.render(pose).rgb.astype(int)
+            redness = np.clip(img[:, :, 0] - img[:, :, 1] - 40, 0, None).astype(float)
+            labels, n = ndimage.label(redness > 0)
+            uv, _ = project_points(np.array([[x, y, MARKER_TOP_M] for x, y in MARKERS]), intr, pose)
+            inside = (uv[:, 0] > 4) & (uv[:, 0] < intr.width_px - 4) & (uv[:, 1] > 4) & (uv[:, 1] < intr.height_px - 4)
+            assert inside.sum() >= 3, name
+            centres = ndimage.center_of_mass(redness, labels, range(1, n + 1))
+            for u, v in uv[inside]:  # every marker fully in view is seen where project_points puts it
+                d = min(np.hypot(u - (col + 0.5), v - (row + 0.5)) for row, col in centres)
+                assert d < 0.5, f"{name}: marker {d:.2f} px from its projection"
+
+
+@pytest.fixture(scope="module")
+def city():
+    return generate_scene(5, 10)
+
+
+def test_same_scene_same_images_and_no_interference(city):
+    intr = CameraIntrinsics()
+    pose_a, pose_b = nadir_camera_pose((0, 0, 70)), nadir_camera_pose((20, -10, 70))
+    r1 = SceneRenderer(city, intr)
+    r2 = SceneRenderer(generate_scene(5, 10), intr)
+    other = SceneRenderer(generate_scene(6, 2), intr)  # a different scene in the same process
+    try:
+        a1 = r1.render(pose_a)
+        o = other.render(pose_a)
+        b2 = r2.render(pose_b)
+        a2 = r2.render(pose_a)
+        b1 = r1.render(pose_b)
+    finally:
+        for r in (r1, r2, other):
+            r.close()
+    assert np.array_equal(a1.rgb, a2.rgb) and np.array_equal(b1.rgb, b2.rgb)
+    assert np.array_equal(a1.person_mask, a2.person_mask)
+    assert not np.array_equal(a1.rgb, o.rgb)
+    assert a1.rgb.shape == (224, 224, 3) and a1.rgb.dtype == np.uint8
+
+
+def test_person_mask_where_people_are(city):
+    intr = CameraIntrinsics()
+    pose = nadir_camera_pose((0, 0, 70))
+    with SceneRenderer(city, intr) as r:
+        out = r.render(pose)
+    assert out.person_mask.any()
+    assert np.array_equal(out.person_mask, out.person_fraction > 0)
+    assert out.person_fraction.min() >= 0 and out.person_fraction.max() <= 1
+    assert np.array_equal(out.person_index >= 0, out.person_mask)
+    # every person pixel lies within a couple of pixels of the projection of the person it belongs to
+    people = city.people
+    rows, cols = np.nonzero(out.person_mask)
+    for i in np.unique(out.person_index[out.person_mask]):
+        p = people[int(i)]
+        uv, _ = project_points(np.array([[p.x_m, p.y_m, 0.0], [p.x_m, p.y_m, p.sz_m]]), intr, pose)
+        sel = out.person_index[rows, cols] == i
+        d = np.hypot(cols[sel] + 0.5 - uv[:, 0].mean(), rows[sel] + 0.5 - uv[:, 1].mean())
+        assert d.max() < 4.0
+    # people in occupied cells near the image centre are seen (no tree happens to hide them all)
+    seen = {int(people[i].cell) for i in np.unique(out.person_index[out.person_mask])}
+    assert len(seen & set(np.flatnonzero(city.occupancy_array()).tolist())) >= 5
+
+
+def test_randomisation_only_with_rng(city):
+    intr = CameraIntrinsics(96, 96, 60.0)
+    pose = nadir_camera_pose((0, 0, 70))
+    with SceneRenderer(city, intr, RenderOptions.randomised()) as r:
+        clean1, clean2 = r.render(pose), r.render(pose)
+        n1 = r.render(pose, np.random.default_rng(1))
+        n1b = r.render(pose, np.random.default_rng(1))
+        n2 = r.render(pose, np.random.default_rng(2))
+    assert np.array_equal(clean1.rgb, clean2.rgb)
+    assert np.array_equal(n1.rgb, n1b.rgb)
+    assert not np.array_equal(n1.rgb, clean1.rgb) and not np.array_equal(n1.rgb, n2.rgb)
+    assert np.array_equal(n1.person_mask, clean1.person_mask)  # ground truth is not perturbed
+
+
+def test_closed_renderer_releases_client(city):
+    r = SceneRenderer(city, CameraIntrinsics(32, 32, 60.0))
+    r.close()
+    r.close()  # idempotent
+    with pytest.raises(ValueError):
+        SceneRenderer(city, CameraIntrinsics(), RenderOptions(supersample=0))
