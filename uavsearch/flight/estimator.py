@@ -1,0 +1,243 @@
+"""The navigation filter: a 15-state error-state EKF on filterpy fusing IMU, GPS, baro and magnetometer.
+
+Why this shape: a multicopter's accelerometer does not see gravity's direction in flight (it reads the
+thrust axis), so tilt is not measured directly; as in PX4's EKF2 it becomes observable through GPS
+velocity, which an INS-style filter gets for free. The attitude lives in a nominal quaternion and the
+filter carries only its small world-frame error (3 states), folded back after every update, so no
+Euler singularity and small matrices.
+
+State x (filterpy column vector): position NED (3), velocity NED (3), attitude error NED (3, zero
+between updates), gyro bias FRD (3), accelerometer bias FRD (3). The IMU is the prediction input,
+averaged over each filter period (delta angle / delta velocity, as EKF2 does).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from .params import ParamDef
+
+EKF_PARAMS: list[ParamDef] = [
+    ParamDef("EKF2_GYR_NOISE", 0.015, 0.0001, 0.1, "rad/s", description="gyro process noise"),
+    ParamDef("EKF2_ACC_NOISE", 0.35, 0.01, 1.0, "m/s^2", description="accelerometer process noise"),
+    ParamDef("EKF2_GYR_B_NOISE", 1e-4, 0.0, 0.01, "rad/s^2", description="gyro bias process noise"),
+    ParamDef("EKF2_ACC_B_NOISE", 3e-3, 0.0, 0.01, "m/s^3", description="accelerometer bias process noise"),
+    ParamDef("EKF2_GPS_P_NOISE", 0.5, 0.01, 10.0, "m", description="GPS position measurement noise"),
+    ParamDef("EKF2_GPS_V_NOISE", 0.3, 0.01, 5.0, "m/s", description="GPS velocity measurement noise"),
+    ParamDef("EKF2_BARO_NOISE", 0.3, 0.01, 15.0, "m", description="barometric height measurement noise"),
+    ParamDef("EKF2_HEAD_NOISE", 0.1, 0.01, 1.0, "rad", description="magnetic heading measurement noise"),
+]
+
+
+def quat_multiply(a, b) -> tuple:
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
+def quat_from_rotvec(x: float, y: float, z: float) -> tuple:
+    a = math.sqrt(x * x + y * y + z * z)
+    if a < 1e-9:
+        return (1.0, 0.5 * x, 0.5 * y, 0.5 * z)
+    s = math.sin(0.5 * a) / a
+    return (math.cos(0.5 * a), x * s, y * s, z * s)
+
+
+def quat_normalize(q) -> tuple:
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """Body FRD -> NED rotation matrix of a [w, x, y, z] quaternion."""
+    w, x, y, z = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quat_to_euler(q) -> tuple:
+    """(roll, pitch, yaw) ZYX of a [w, x, y, z] quaternion."""
+    w, x, y, z = q
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple:
+    cr, sr = math.cos(0.5 * roll), math.sin(0.5 * roll)
+    cp, sp = math.cos(0.5 * pitch), math.sin(0.5 * pitch)
+    cy, sy = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+    return (
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    )
+
+
+def _skew(v) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def mag_heading(mag_frd, roll: float, pitch: float) -> float:
+    """Tilt-compensated magnetic heading (declination 0) from a body-frame field vector."""
+    mx, my, mz = mag_frd
+    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    # undo roll then pitch: the field in the heading-only (yawed) frame
+    y1 = cr * my - sr * mz
+    z1 = sr * my + cr * mz
+    x2 = cp * mx + sp * z1
+    return -math.atan2(y1, x2)
+
+
+class NavigationEkf:
+    """Error-state EKF. Call `initialize` once, then `predict` each period and the `fuse_*` as data comes."""
+
+    N = 15
+
+    def __init__(self, params, gravity_m_s2: float = 9.80665):
+        self.params = params
+        self.g = gravity_m_s2
+        self.kf = ExtendedKalmanFilter(dim_x=self.N, dim_z=1)
+        self.q = (1.0, 0.0, 0.0, 0.0)  # nominal attitude, body FRD -> NED
+        self.initialized = False
+        self._F = np.eye(self.N)
+        self._Q = np.zeros((self.N, self.N))
+        self._H_gps = np.zeros((6, self.N))
+        self._H_gps[:, :6] = np.eye(6)
+        self._H_baro = np.zeros((1, self.N))
+        self._H_baro[0, 2] = 1.0
+        self._H_head = np.zeros((1, self.N))
+        self._H_head[0, 8] = 1.0
+        self._R = np.eye(3)
+        self.last_specific_force = (0.0, 0.0, -self.g)
+
+    # ------------------------------------------------------------------ life cycle
+    def initialize(self, position_ned, velocity_ned, accel_frd, mag_frd) -> None:
+        """Level from the accelerometer (at rest it reads -g along body down), heading from the magnetometer."""
+        ax, ay, az = accel_frd
+        roll = math.atan2(-ay, -az)
+        pitch = math.atan2(ax, math.hypot(ay, az))
+        yaw = mag_heading(mag_frd, roll, pitch)
+        self.q = quat_from_euler(roll, pitch, yaw)
+        self._R = quat_to_matrix(self.q)
+        kf = self.kf
+        kf.x = np.zeros((self.N, 1))
+        kf.x[0:3, 0] = position_ned
+        kf.x[3:6, 0] = velocity_ned
+        kf.P = np.diag([1.0, 1.0, 1.0, 0.2, 0.2, 0.2, 0.03, 0.03, 0.1, 0.005, 0.005, 0.005, 0.1, 0.1, 0.1]) ** 2
+        self.initialized = True
+
+    def predict(self, gyro_frd, accel_frd, dt: float) -> None:
+        """Propagate with IMU averages over dt (gyro rad/s, specific force m/s^2, both FRD)."""
+        kf = self.kf
+        x = kf.x
+        bg = (x[9, 0], x[10, 0], x[11, 0])
+        ba = (x[12, 0], x[13, 0], x[14, 0])
+        w = (gyro_frd[0] - bg[0], gyro_frd[1] - bg[1], gyro_frd[2] - bg[2])
+        f = np.array([accel_frd[0] - ba[0], accel_frd[1] - ba[1], accel_frd[2] - ba[2]])
+        self.last_specific_force = (f[0], f[1], f[2])
+        R = self._R
+        a_ned = R @ f
+        a_ned[2] += self.g
+        x[0:3, 0] += x[3:6, 0] * dt + 0.5 * dt * dt * a_ned
+        x[3:6, 0] += a_ned * dt
+        # attitude: body-frame increment, right-multiplied
+        self.q = quat_normalize(quat_multiply(self.q, quat_from_rotvec(w[0] * dt, w[1] * dt, w[2] * dt)))
+        F = self._F
+        F[0:3, 3:6] = np.eye(3) * dt
+        F[3:6, 6:9] = -_skew(R @ f) * dt
+        F[3:6, 12:15] = -R * dt
+        F[6:9, 9:12] = -R * dt
+        p = self.params
+        Q = self._Q
+        qv = (p["EKF2_ACC_NOISE"] * dt) ** 2
+        qa = (p["EKF2_GYR_NOISE"] * dt) ** 2
+        qbg = (p["EKF2_GYR_B_NOISE"] * dt) ** 2
+        qba = (p["EKF2_ACC_B_NOISE"] * dt) ** 2
+        for i in range(3):
+            Q[3 + i, 3 + i] = qv
+            Q[6 + i, 6 + i] = qa
+            Q[9 + i, 9 + i] = qbg
+            Q[12 + i, 12 + i] = qba
+        kf.F = F
+        kf.Q = Q
+        kf.P = F @ kf.P @ F.T + Q  # the nominal state moved above; filterpy's predict_x would redo it
+        self._R = quat_to_matrix(self.q)
+
+    # ------------------------------------------------------------------ measurements
+    def _fold_attitude_error(self) -> None:
+        x = self.kf.x
+        dq = quat_from_rotvec(x[6, 0], x[7, 0], x[8, 0])
+        self.q = quat_normalize(quat_multiply(dq, self.q))  # world-frame error: left-multiplied
+        x[6:9, 0] = 0.0
+        self._R = quat_to_matrix(self.q)
+
+    def fuse_gps(self, position_ned, velocity_ned) -> None:
+        p = self.params
+        sp, sv = p["EKF2_GPS_P_NOISE"], p["EKF2_GPS_V_NOISE"]
+        R = np.diag([sp * sp, sp * sp, (1.5 * sp) ** 2, sv * sv, sv * sv, (1.5 * sv) ** 2])
+        z = np.array([[*position_ned, *velocity_ned]], dtype=float).T
+        H = self._H_gps
+        self.kf.update(z, lambda _x: H, lambda x: x[0:6], R=R)
+        self._fold_attitude_error()
+
+    def fuse_baro(self, height_above_home_m: float) -> None:
+        s = self.params["EKF2_BARO_NOISE"]
+        H = self._H_baro
+        self.kf.update(np.array([[-height_above_home_m]]), lambda _x: H, lambda x: x[2:3], R=np.array([[s * s]]))
+        self._fold_attitude_error()
+
+    def fuse_heading(self, mag_frd) -> None:
+        roll, pitch, yaw = quat_to_euler(self.q)
+        meas = mag_heading(mag_frd, roll, pitch)
+        s = self.params["EKF2_HEAD_NOISE"]
+        H = self._H_head
+        innov = _wrap(meas - yaw)
+        # residual computed on the circle; Hx returns the zero-error prediction
+        self.kf.update(
+            np.array([[innov]]), lambda _x: H, lambda x: x[8:9], R=np.array([[s * s]])
+        )
+        self._fold_attitude_error()
+
+    # ------------------------------------------------------------------ outputs
+    @property
+    def position_ned(self) -> np.ndarray:
+        return self.kf.x[0:3, 0]
+
+    @property
+    def velocity_ned(self) -> np.ndarray:
+        return self.kf.x[3:6, 0]
+
+    @property
+    def gyro_bias(self) -> np.ndarray:
+        return self.kf.x[9:12, 0]
+
+    @property
+    def accel_bias(self) -> np.ndarray:
+        return self.kf.x[12:15, 0]
+
+    @property
+    def position_std(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.kf.P)[0:3])
+
+    def euler(self) -> tuple:
+        return quat_to_euler(self.q)
