@@ -214,8 +214,9 @@ class Commander:
 
     def inside_fence(self, p_ned) -> bool:
         hor, ver = self.params["GF_MAX_HOR_DIST"], self.params["GF_MAX_VER_DIST"]
-        d = float(np.hypot(p_ned[0] - self.home_ned[0], p_ned[1] - self.home_ned[1]))
-        alt = float(self.home_ned[2] - p_ned[2])
+        h = self.home_ned
+        d = math.hypot(float(p_ned[0]) - float(h[0]), float(p_ned[1]) - float(h[1]))
+        alt = float(h[2]) - float(p_ned[2])
         return not ((hor > 0 and d > hor) or (ver > 0 and alt > ver))
 
     def _elapsed_link_s(self, stamp: tuple[int, float] | None) -> float:

@@ -50,6 +50,17 @@ DEFAULT_RATES_HZ = {
     M.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
     M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 2.0,
 }
+# Ground stations get PX4's lighter "normal" profile: half the position/attitude rates.
+GCS_RATES_HZ = {
+    **DEFAULT_RATES_HZ,
+    M.MAVLINK_MSG_ID_ATTITUDE: 5.0,
+    M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 0.0,
+    M.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 5.0,
+    M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 5.0,
+    M.MAVLINK_MSG_ID_GPS_RAW_INT: 2.0,
+    M.MAVLINK_MSG_ID_VFR_HUD: 2.0,
+    M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 0.0,
+}
 
 CAMERA_COMMANDS = {
     M.MAV_CMD_IMAGE_START_CAPTURE,
@@ -129,6 +140,7 @@ class LinkConfig:
     local_port: int = 0  # 0: any free port; replies come from it
     signing_key: bytes | None = None
     require_signed: bool = True  # False: sign output but accept unsigned input (MAVSDK cannot sign)
+    rates_hz: dict | None = None  # default stream rates; None = DEFAULT_RATES_HZ
 
 
 class _Writer:
@@ -167,7 +179,8 @@ class Link:
             if not cfg.require_signed:
                 # Accept unsigned frames, but a signed frame must carry the right signature.
                 self.mav.signing.allow_unsigned_callback = lambda mav, msgid: not self._frame_signed
-        self.intervals_us = {mid: int(1e6 / hz) for mid, hz in DEFAULT_RATES_HZ.items()}
+        self.default_rates_hz = cfg.rates_hz or DEFAULT_RATES_HZ
+        self.intervals_us = {mid: int(1e6 / hz) if hz > 0 else 0 for mid, hz in self.default_rates_hz.items()}
         self.next_due_us = {mid: 0 for mid in self.intervals_us}
         self.rx_packets = 0
         self.rx_dropped = 0
@@ -241,6 +254,7 @@ class MavlinkEndpoint:
         self.wall_s = 0.0
         self._sent_state = None
         self._tlog = open(tlog_path, "ab") if tlog_path else None
+        self._snap: dict = {}
 
     # ------------------------------------------------------------------ plumbing
     def fileno_list(self) -> list[int]:
@@ -276,6 +290,7 @@ class MavlinkEndpoint:
     def poll(self, wall_s: float) -> int:
         """Handle every waiting packet on every link; returns how many were handled."""
         self.wall_s = wall_s
+        self._snap.clear()
         n = 0
         for link in self.links:
             for m in link.receive():
@@ -292,18 +307,20 @@ class MavlinkEndpoint:
 
     def send_streams(self) -> None:
         now = int(self.vehicle.time_us)
+        self._snap.clear()  # vehicle outputs are built once per call, shared by every message and link
         state = (self.cmd.armed, self.cmd.custom_mode)
         if self.cmd.state_changed or state != self._sent_state:
             self.cmd.state_changed = False
             self._sent_state = state
             self._broadcast(self._heartbeat())
             self._broadcast(self._extended_sys_state())
+        built: dict = {}  # one message object per id and tick, packed per link (own sequence, signing)
         for link in self.links:
             for mid, interval in link.intervals_us.items():
                 if interval <= 0 or now < link.next_due_us.get(mid, 0):
                     continue
                 link.next_due_us[mid] = now + interval
-                msg = self._build(mid)
+                msg = built[mid] if mid in built else built.setdefault(mid, self._build(mid))
                 if msg is not None:
                     link.send(msg)
             if self.camera is not None and now >= link.next_due_us.get("camera_hb", 0):
@@ -342,7 +359,7 @@ class MavlinkEndpoint:
         return M.MAVLink_extended_sys_state_message(M.MAV_VTOL_STATE_UNDEFINED, self.cmd.landed_state)
 
     def _sys_status(self):
-        h = self.vehicle.sensor_health
+        h = self._v("sensor_health")
         present = ALWAYS_OK_BITS | M.MAV_SYS_STATUS_PREARM_CHECK
         health = ALWAYS_OK_BITS
         for name, bit in HEALTH_BITS.items():
@@ -351,34 +368,43 @@ class MavlinkEndpoint:
                 health |= bit
         if not self.cmd.arming_failures() or self.cmd.armed:
             health |= M.MAV_SYS_STATUS_PREARM_CHECK
-        b = self.vehicle.battery
+        b = self._v("battery")
         return M.MAVLink_sys_status_message(
             present, present, health, 0, int(b.voltage_v * 1000), int(b.current_a * 100), int(round(b.remaining * 100)),
             0, min(self.rx_dropped, 65535), 0, 0, 0, 0, 0, 0, 0,
         )
 
-    def _attitude(self):
-        from ..geometry import euler_from_quaternion
+    def _v(self, name: str):
+        """A vehicle output, read once per send_streams() call."""
+        try:
+            return self._snap[name]
+        except KeyError:
+            value = self._snap[name] = getattr(self.vehicle, name)
+            return value
 
-        a = self.vehicle.attitude
-        r, p, y = euler_from_quaternion(a.q_wxyz)
+    def _attitude(self):
+        a = self._v("attitude")
+        w0, x, y_, z = (float(q) for q in a.q_wxyz)
+        r = math.atan2(2.0 * (w0 * x + y_ * z), 1.0 - 2.0 * (x * x + y_ * y_))
+        p = math.asin(max(-1.0, min(1.0, 2.0 * (w0 * y_ - z * x))))
+        y = math.atan2(2.0 * (w0 * z + x * y_), 1.0 - 2.0 * (y_ * y_ + z * z))
         w = a.angular_velocity_frd_rad_s
         return M.MAVLink_attitude_message(self._time_boot_ms(), r, p, y, float(w[0]), float(w[1]), float(w[2]))
 
     def _attitude_quaternion(self):
-        a = self.vehicle.attitude
+        a = self._v("attitude")
         q = [float(x) for x in a.q_wxyz]
         w = a.angular_velocity_frd_rad_s
         return M.MAVLink_attitude_quaternion_message(self._time_boot_ms(), *q, float(w[0]), float(w[1]), float(w[2]), [0.0] * 4)
 
     def _local_position(self):
-        lp = self.vehicle.local_position
+        lp = self._v("local_position")
         p, v = lp.position_ned_m, lp.velocity_ned_m_s
         return M.MAVLink_local_position_ned_message(self._time_boot_ms(), *(float(x) for x in p), *(float(x) for x in v))
 
     def _global_position(self):
-        gp = self.vehicle.global_position
-        lp = self.vehicle.local_position
+        gp = self._v("global_position")
+        lp = self._v("local_position")
         v = lp.velocity_ned_m_s
         hdg = int(round(math.degrees(lp.heading_rad) % 360.0 * 100)) % 36000
         return M.MAVLink_global_position_int_message(
@@ -387,30 +413,29 @@ class MavlinkEndpoint:
         )
 
     def _gps_raw(self):
-        gp = self.vehicle.global_position
-        lp = self.vehicle.local_position
-        v = lp.velocity_ned_m_s
-        fix = self.vehicle.gps_fix
-        fix_type = int(getattr(fix, "fix_type", fix if isinstance(fix, (int, np.integer)) else (3 if fix else 0)))
-        sats = int(getattr(fix, "satellites", 12))
-        speed = float(np.hypot(v[0], v[1]))
-        cog = int(round(math.degrees(math.atan2(v[1], v[0])) % 360.0 * 100)) if speed > 0.2 else 65535
+        """The raw GPS solution (not the estimate), as a GPS receiver reports it."""
+        fix = self._v("gps_fix")
+        if fix is None or not hasattr(fix, "lat_deg"):
+            return None
+        v = fix.velocity_ned_m_s
+        speed = math.hypot(v[0], v[1])
+        cog = int(round(math.degrees(math.atan2(v[1], v[0])) % 360.0 * 100)) % 36000 if speed > 0.2 else 65535
         return M.MAVLink_gps_raw_int_message(
-            int(self.vehicle.time_us), fix_type, int(round(gp.lat_deg * 1e7)), int(round(gp.lon_deg * 1e7)),
-            int(round(gp.alt_amsl_m * 1000)), int(min(lp.eph_m * 100, 65534)) or 100, int(min(lp.epv_m * 100, 65534)) or 150,
-            int(speed * 100), cog, sats,
+            int(fix.time_us), int(fix.fix_type), int(round(fix.lat_deg * 1e7)), int(round(fix.lon_deg * 1e7)),
+            int(round(fix.alt_amsl_m * 1000)), int(min(fix.eph_m * 100, 65534)), int(min(fix.epv_m * 100, 65534)),
+            int(speed * 100), cog, int(fix.satellites_visible),
         )
 
     def _vfr_hud(self):
-        lp = self.vehicle.local_position
+        lp = self._v("local_position")
         v = lp.velocity_ned_m_s
         gs = float(np.hypot(v[0], v[1]))
         hdg = int(round(math.degrees(lp.heading_rad))) % 360
-        thr = int(np.clip(getattr(self.vehicle, "throttle", 0.0) * 100, 0, 100))
-        return M.MAVLink_vfr_hud_message(gs, gs, hdg, thr, float(self.vehicle.global_position.alt_amsl_m), float(-v[2]))
+        thr = int(np.clip(getattr(self.vehicle, "thrust_setpoint", 0.0) * 100, 0, 100))
+        return M.MAVLink_vfr_hud_message(gs, gs, hdg, thr, float(self._v("global_position").alt_amsl_m), float(-v[2]))
 
     def _battery_status(self):
-        b = self.vehicle.battery
+        b = self._v("battery")
         volts = [min(int(b.voltage_v * 1000), 65534)] + [65535] * 9
         return M.MAVLink_battery_status_message(
             0, M.MAV_BATTERY_FUNCTION_ALL, M.MAV_BATTERY_TYPE_LIPO, 32767, volts, int(b.current_a * 100),
@@ -577,7 +602,13 @@ class MavlinkEndpoint:
             link.send(M.MAVLink_message_interval_message(mid, iv if iv > 0 else -1))
             return self._ack(link, m, command, Result.ACCEPTED)
         if command == M.MAV_CMD_REQUEST_MESSAGE:
-            return self._ack(link, m, command, self._request_message(link, int(p[0])))
+            mid = int(p[0]) if math.isfinite(p[0]) else -1
+            msg = self._build(mid) if mid != M.MAVLINK_MSG_ID_HOME_POSITION or self.cmd.home_set else None
+            if msg is None:
+                result = Result.TEMPORARILY_REJECTED if mid == M.MAVLINK_MSG_ID_HOME_POSITION else Result.UNSUPPORTED
+                return self._ack(link, m, command, result)
+            self._ack(link, m, command, Result.ACCEPTED)  # the ACK first, then the message (as PX4)
+            return link.send(msg)
         if command == M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             self._ack(link, m, command, Result.ACCEPTED)
             return link.send(self._autopilot_version())
@@ -594,10 +625,10 @@ class MavlinkEndpoint:
 
     def _set_interval(self, link: Link, p) -> Result:
         mid, iv = int(p[0]), p[1]
-        if self._build(mid) is None and mid not in DEFAULT_RATES_HZ and mid != M.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
-            return Result.UNSUPPORTED if mid not in (M.MAVLINK_MSG_ID_HOME_POSITION,) else Result.ACCEPTED
+        if mid not in DEFAULT_RATES_HZ:
+            return Result.UNSUPPORTED
         if iv == 0:
-            hz = DEFAULT_RATES_HZ.get(mid, 0.0)
+            hz = link.default_rates_hz.get(mid, 0.0)
             link.intervals_us[mid] = int(1e6 / hz) if hz > 0 else 0
         elif iv < 0:
             link.intervals_us[mid] = 0
@@ -606,24 +637,16 @@ class MavlinkEndpoint:
         link.next_due_us[mid] = 0
         return Result.ACCEPTED
 
-    def _request_message(self, link: Link, mid: int) -> Result:
-        if mid == M.MAVLINK_MSG_ID_HOME_POSITION and not self.cmd.home_set:
-            return Result.TEMPORARILY_REJECTED
-        msg = self._build(mid)
-        if msg is None:
-            return Result.UNSUPPORTED
-        link.send(msg)
-        return Result.ACCEPTED
-
     def _camera_command(self, link, m, command: int, p) -> Result | None:
         """None when the command was already acknowledged."""
         c = self.camera
         if command == M.MAV_CMD_REQUEST_MESSAGE:
-            msg = self._camera_message(int(p[0]))
+            msg = self._camera_message(int(p[0]) if math.isfinite(p[0]) else -1)
             if msg is None:
                 return Result.UNSUPPORTED
+            self._ack(link, m, command, Result.ACCEPTED, CAMERA_COMPID)
             link.send(msg, CAMERA_COMPID)
-            return Result.ACCEPTED
+            return None
         if command == M.MAV_CMD_IMAGE_START_CAPTURE:
             if not c.available:
                 return Result.FAILED
@@ -648,8 +671,9 @@ class MavlinkEndpoint:
             M.MAV_CMD_REQUEST_CAMERA_CAPTURE_STATUS: M.MAVLINK_MSG_ID_CAMERA_CAPTURE_STATUS,
         }.get(command)
         if req is not None:
+            self._ack(link, m, command, Result.ACCEPTED, CAMERA_COMPID)
             link.send(self._camera_message(req), CAMERA_COMPID)
-            return Result.ACCEPTED
+            return None
         return Result.UNSUPPORTED
 
     # ---- params
@@ -824,15 +848,15 @@ class MavlinkEndpoint:
         yawrate = nan if mask & 2048 else float(m.yaw_rate)
         frame = m.coordinate_frame
         if frame == M.MAV_FRAME_BODY_NED or frame == M.MAV_FRAME_BODY_OFFSET_NED:
-            hdg = float(self.vehicle.local_position.heading_rad)
+            hdg = float(self._v("local_position").heading_rad)
             c, s = math.cos(hdg), math.sin(hdg)
             rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
             v = rot @ v if np.all(np.isfinite(v[:2])) else v
             a = rot @ a if np.all(np.isfinite(a[:2])) else a
             if frame == M.MAV_FRAME_BODY_OFFSET_NED and np.all(np.isfinite(p)):
-                p = self.vehicle.local_position.position_ned_m + rot @ p
+                p = self._v("local_position").position_ned_m + rot @ p
         elif frame == M.MAV_FRAME_LOCAL_OFFSET_NED and np.all(np.isfinite(p)):
-            p = self.vehicle.local_position.position_ned_m + p
+            p = self._v("local_position").position_ned_m + p
         elif frame != M.MAV_FRAME_LOCAL_NED:
             self.cmd.text(4, f"offboard frame {frame} not supported")
             return

@@ -50,8 +50,16 @@ _FALLBACKS = {
 }
 
 
+_ALIASES = {"MPC_Z_V_AUTO_UP": "MPC_Z_VEL_MAX_UP", "MPC_Z_V_AUTO_DN": "MPC_Z_VEL_MAX_DN"}
+
+
 def param(params: ParamStore, name: str) -> float:
-    return params[name] if name in params else _FALLBACKS[name]
+    if name in params:
+        return params[name]
+    alias = _ALIASES.get(name)
+    if alias is not None and alias in params:
+        return params[alias]
+    return _FALLBACKS[name]
 
 
 @dataclass
@@ -70,41 +78,55 @@ class NavEvent:
 
 
 class Carrot:
-    """A position setpoint that travels to a target with speed and acceleration limits."""
+    """A position setpoint that travels to a target with speed and acceleration limits.
+
+    Plain floats, not numpy: this runs on every autopilot tick and 3-vectors are cheaper as floats.
+    """
 
     def __init__(self):
-        self.pos = np.zeros(3)
-        self.speed_xy = 0.0
-        self.speed_z = 0.0
-        self.vel = np.zeros(3)
+        self.reset((0.0, 0.0, 0.0))
+
+    @property
+    def pos(self) -> np.ndarray:
+        return np.array(self._p)
+
+    @property
+    def vel(self) -> np.ndarray:
+        return np.array(self._v)
 
     def reset(self, pos_ned, vel_ned=None) -> None:
-        self.pos = np.array(pos_ned, dtype=float)
-        self.vel = np.zeros(3) if vel_ned is None else np.array(vel_ned, dtype=float)
-        self.speed_xy = float(np.hypot(self.vel[0], self.vel[1]))
-        self.speed_z = abs(float(self.vel[2]))
+        self._p = [float(pos_ned[0]), float(pos_ned[1]), float(pos_ned[2])]
+        self._v = [0.0, 0.0, 0.0] if vel_ned is None else [float(vel_ned[0]), float(vel_ned[1]), float(vel_ned[2])]
+        self.speed_xy = math.hypot(self._v[0], self._v[1])
+        self.speed_z = abs(self._v[2])
 
     def step(self, target_ned, dt: float, v_xy: float, v_up: float, v_down: float, a_xy: float, a_z: float):
-        tgt = np.asarray(target_ned, dtype=float)
-        d = tgt[:2] - self.pos[:2]
-        dist = float(np.hypot(*d))
+        p, v = self._p, self._v
+        tx, ty, tz = float(target_ned[0]), float(target_ned[1]), float(target_ned[2])
+        dx, dy = tx - p[0], ty - p[1]
+        dist = math.hypot(dx, dy)
         self.speed_xy = min(v_xy, self.speed_xy + a_xy * dt, math.sqrt(2.0 * a_xy * dist))
         if dist > 1e-9:
             move = min(dist, self.speed_xy * dt)
-            self.pos[:2] += d / dist * move
-            self.vel[:2] = d / dist * self.speed_xy if move < dist else 0.0
+            ux, uy = dx / dist, dy / dist
+            p[0] += ux * move
+            p[1] += uy * move
+            if move < dist:
+                v[0], v[1] = ux * self.speed_xy, uy * self.speed_xy
+            else:
+                v[0] = v[1] = 0.0
         else:
-            self.vel[:2] = 0.0
+            v[0] = v[1] = 0.0
             self.speed_xy = 0.0
-        dz = float(tgt[2] - self.pos[2])
+        dz = tz - p[2]
         vmax = v_down if dz > 0 else v_up
         self.speed_z = min(vmax, self.speed_z + a_z * dt, math.sqrt(2.0 * a_z * abs(dz)))
         move = min(abs(dz), self.speed_z * dt)
-        self.pos[2] += math.copysign(move, dz)
-        self.vel[2] = math.copysign(self.speed_z, dz) if move < abs(dz) else 0.0
+        p[2] += math.copysign(move, dz)
+        v[2] = math.copysign(self.speed_z, dz) if move < abs(dz) else 0.0
 
     def arrived(self, target_ned) -> bool:
-        return bool(np.allclose(self.pos, target_ned, atol=1e-6))
+        return all(abs(a - float(b)) <= 1e-6 for a, b in zip(self._p, target_ned))
 
 
 class Mode:

@@ -23,7 +23,7 @@ from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import RUNS_DIR
 from .camera import Camera, scene_renderer
 from .commander import Commander, autopilot_params
-from .mavlink_endpoint import LinkConfig, MavlinkEndpoint, parse_signing_key
+from .mavlink_endpoint import GCS_RATES_HZ, LinkConfig, MavlinkEndpoint, parse_signing_key
 from .params import ParamError, ParamStore
 
 
@@ -61,6 +61,14 @@ def _vehicle_params():
     return MC_PARAMS
 
 
+def _next_tick(due_us: int, period_us: int, now_us: int) -> int:
+    """The next due time on the fixed grid, skipping ticks missed (e.g. after stepping the vehicle directly)."""
+    due_us += period_us
+    if due_us <= now_us:
+        due_us += ((now_us - due_us) // period_us + 1) * period_us
+    return due_us
+
+
 class Sitl:
     """Vehicle + autopilot + camera + MAVLink endpoint, advanced one physics step at a time."""
 
@@ -85,7 +93,7 @@ class Sitl:
                                     require_signed=cfg.sign_api_strict))
         if cfg.gcs_port:
             links.append(LinkConfig("gcs", cfg.gcs_port, local_port=cfg.gcs_local_port, signing_key=cfg.signing_key,
-                                    require_signed=True))
+                                    require_signed=True, rates_hz=GCS_RATES_HZ))
         try:
             self.endpoint = MavlinkEndpoint(self.commander, self.params, links, self.camera,
                                             sysid=int(self.params["MAV_SYS_ID"]))
@@ -109,10 +117,10 @@ class Sitl:
         v = self.vehicle
         now = v.time_us
         if now >= self._next_ap_us:
-            self._next_ap_us += self._ap_period_us
+            self._next_ap_us = _next_tick(self._next_ap_us, self._ap_period_us, now)
             self.commander.update(self._wall)
         if now >= self._next_io_us:
-            self._next_io_us += self._io_period_us
+            self._next_io_us = _next_tick(self._next_io_us, self._io_period_us, now)
             self._wall = time.monotonic()
             self.endpoint.poll(self._wall)
             self.endpoint.send_streams()
