@@ -313,31 +313,37 @@ def polygon_area(poly: np.ndarray) -> float:
 NEAR_PLANE_M = 0.05
 
 
+def _clip_to_view(pc: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
+    """A camera-frame polygon clipped to the near plane, projected and clipped to the image."""
+    inside = pc if np.all(pc[:, 2] > NEAR_PLANE_M) else _clip_polygon(pc, 2, NEAR_PLANE_M, keep_greater=True)
+    if len(inside) < 3:
+        return np.zeros((0, 2))
+    uv = np.stack(
+        [intr.fx * inside[:, 0] / inside[:, 2] + intr.cx, intr.fy * inside[:, 1] / inside[:, 2] + intr.cy], axis=-1
+    )
+    uv = _clip_polygon(uv, 0, 0.0, True)
+    uv = _clip_polygon(uv, 0, float(intr.width_px), False)
+    uv = _clip_polygon(uv, 1, 0.0, True)
+    uv = _clip_polygon(uv, 1, float(intr.height_px), False)
+    return uv if len(uv) >= 3 else np.zeros((0, 2))
+
+
 def cell_image_polygons(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> list[np.ndarray]:
     """Each cell's image polygon, clipped to the camera's near plane and the image (never wrapped).
 
     Returns one (k, 2) array of pixel coordinates per cell (k = 0 when the cell is out of view).
+    Cells wholly in front of the camera and inside the image (the common case) skip the clipping.
     """
-    polys = []
-    for corners in grid.all_corners_enu:
-        pc = pose.world_to_camera(corners)
-        if np.all(pc[:, 2] > NEAR_PLANE_M):
-            inside = pc
-        else:
-            inside = _clip_polygon(pc, 2, NEAR_PLANE_M, keep_greater=True)
-        if len(inside) < 3:
-            polys.append(np.zeros((0, 2)))
-            continue
-        uv = np.stack(
-            [intr.fx * inside[:, 0] / inside[:, 2] + intr.cx, intr.fy * inside[:, 1] / inside[:, 2] + intr.cy],
-            axis=-1,
-        )
-        uv = _clip_polygon(uv, 0, 0.0, True)
-        uv = _clip_polygon(uv, 0, float(intr.width_px), False)
-        uv = _clip_polygon(uv, 1, 0.0, True)
-        uv = _clip_polygon(uv, 1, float(intr.height_px), False)
-        polys.append(uv if len(uv) >= 3 else np.zeros((0, 2)))
-    return polys
+    pc = pose.world_to_camera(grid.all_corners_enu)  # (cells, 4, 3)
+    z = pc[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([intr.fx * pc[..., 0] / z + intr.cx, intr.fy * pc[..., 1] / z + intr.cy], axis=-1)
+    whole = (
+        np.all(z > NEAR_PLANE_M, axis=1)
+        & np.all((uv[..., 0] >= 0) & (uv[..., 0] <= intr.width_px), axis=1)
+        & np.all((uv[..., 1] >= 0) & (uv[..., 1] <= intr.height_px), axis=1)
+    )
+    return [uv[i] if whole[i] else _clip_to_view(pc[i], intr) for i in range(grid.num_cells)]
 
 
 def cell_pixel_areas(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> np.ndarray:

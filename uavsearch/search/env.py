@@ -97,7 +97,7 @@ class ActiveSearchEnv(gym.Env):
         self.observation_space = spaces.Dict(
             {
                 "image": spaces.Box(0, 255, (h, w, 3), np.uint8),
-                "position_enu": spaces.Box(-np.inf, np.inf, (3,), np.float32),
+                "position_enu": spaces.Box(-1000.0, 1000.0, (3,), np.float32),
                 "cell_label": spaces.Box(-1, n_cells - 1, (h, w), np.int16),
                 "cell_area_px": spaces.Box(0.0, float(h * w), (n_cells,), np.float32),
                 "cells_in_view": spaces.MultiBinary(n_cells),
@@ -147,10 +147,11 @@ class ActiveSearchEnv(gym.Env):
 
     def _obs(self, view: View) -> dict[str, Any]:
         return {
-            "image": view.image,
+            # copies: views are cached per position, and users keep what they are given
+            "image": view.image.copy(),
             "position_enu": view.position_enu.astype(np.float32),
-            "cell_label": view.cell_label,
-            "cell_area_px": view.cell_area_px,
+            "cell_label": view.cell_label.copy(),
+            "cell_area_px": view.cell_area_px.copy(),
             "cells_in_view": view.cells_in_view.astype(np.int8),
             "step": self._t,
         }
@@ -163,7 +164,7 @@ class ActiveSearchEnv(gym.Env):
             "occupied_cells": int(self.scene.occupied_cells_k),
             "lattice_index": self._visited[-1],
             "visited": list(self._visited),
-            "person_mask": self._last_view.person_mask,
+            "person_mask": None if self._last_view.person_mask is None else self._last_view.person_mask.copy(),
         }
 
     def _capture(self) -> View:

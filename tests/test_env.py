@@ -1,0 +1,99 @@
+"""The teleport environment: gymnasium conformance, determinism, lattice moves and revisits."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import uavsearch  # noqa: F401  (registers the env)
+from uavsearch.errors import SceneError
+from uavsearch.search.config import SearchConfig, lattice_index, lattice_positions
+from uavsearch.search.env import ActiveSearchEnv
+
+NORTH, EAST, WEST, SOUTH = 0, 1, 2, 3
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = ActiveSearchEnv(setting=1)
+    yield e
+    e.close()
+
+
+def test_lattice_is_the_paper_one():
+    cfg = SearchConfig()
+    pos = lattice_positions(cfg)
+    assert pos.shape == (25, 3)
+    assert set(np.unique(pos[:, 0])) == {-20.0, -10.0, 0.0, 10.0, 20.0}
+    assert np.all(pos[:, 2] == 70.0)
+    assert pos[lattice_index(cfg, (0, 0))] == pytest.approx([0, 0, 70])
+    assert pos[lattice_index(cfg, (2, 2))] == pytest.approx([20, 20, 70])  # NE corner
+    assert lattice_index(cfg, (-2, 2)) == 0  # NW corner first, like the cell grid
+
+
+def test_check_env_passes():
+    e = gym.make("uavsearch/ActiveSearch-v0", setting=1)
+    check_env(e.unwrapped, skip_render_check=True)
+    e.close()
+
+
+def test_reset_starts_above_centre_and_step_moves_10m(env):
+    obs, info = env.reset(seed=1)
+    assert obs["position_enu"] == pytest.approx([0, 0, 70])
+    assert obs["step"] == 0 and obs["image"].shape == (224, 224, 3)
+    assert info["occupancy"].sum() == 2 and not info["revisit"]
+    obs, r, term, trunc, info = env.step(EAST)
+    assert obs["position_enu"] == pytest.approx([10, 0, 70]) and r == 0.0 and not term and not trunc
+    obs, r, *_ = env.step(NORTH)
+    assert obs["position_enu"] == pytest.approx([10, 10, 70])
+
+
+def test_budget_terminates_after_T_views(env):
+    env.reset(seed=2)
+    terms = [env.step(EAST)[2] for _ in range(env.config.budget_T - 1)]
+    assert terms == [False] * (env.config.budget_T - 2) + [True]
+    with pytest.raises(gym.error.ResetNeeded):
+        env.step(EAST)
+
+
+def test_leaving_the_lattice_stays_and_counts_as_revisit(env):
+    env.reset(seed=3)
+    env.step(WEST)
+    obs, r, _, _, info = env.step(WEST)
+    assert obs["position_enu"] == pytest.approx([-20, 0, 70]) and not info["revisit"]
+    obs, r, _, _, info = env.step(WEST)  # would leave the area
+    assert obs["position_enu"] == pytest.approx([-20, 0, 70])
+    assert info["revisit"] and r == env.r_revisit
+
+
+def test_going_back_is_a_revisit(env):
+    env.reset(seed=4)
+    env.step(NORTH)
+    _, r, _, _, info = env.step(SOUTH)
+    assert info["revisit"] and r == -1.0
+
+
+def test_same_seed_same_scene_and_images():
+    a, b = ActiveSearchEnv(setting=2), ActiveSearchEnv(setting=2)
+    oa, ia = a.reset(seed=7)
+    ob, ib = b.reset(seed=7)
+    assert ia["scene_seed"] == ib["scene_seed"]
+    assert np.array_equal(oa["image"], ob["image"])
+    assert np.array_equal(a.step(EAST)[0]["image"], b.step(EAST)[0]["image"])
+    a.close(), b.close()
+
+
+def test_cells_in_view_and_labels_agree(env):
+    obs, _ = env.reset(seed=5)
+    labels = np.unique(obs["cell_label"])
+    seen = set(labels[labels >= 0].tolist())
+    # at the centre the whole grid is in view: every cell has pixels and a positive area
+    assert seen == set(range(100))
+    assert np.all(obs["cells_in_view"] == 1) and np.all(obs["cell_area_px"] > 50)
+
+
+def test_reset_options_choose_the_scene(env):
+    _, info = env.reset(seed=0, options={"occupied_cells": 7, "scene_seed": 123})
+    assert info["occupancy"].sum() == 7 and info["scene_seed"] == 123
+    with pytest.raises(SceneError):
+        env.reset(options={"setting": 9})
