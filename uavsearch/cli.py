@@ -89,6 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"uavsearch {__version__}")
     sub = parser.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     _add_scene_parser(sub)
+    from .flight.sitl import add_sitl_parser
+
+    add_sitl_parser(sub)
     return parser
 
 
