@@ -22,11 +22,11 @@ from .params import ParamDef
 
 EKF_PARAMS: list[ParamDef] = [
     ParamDef("EKF2_GYR_NOISE", 0.015, 0.0001, 0.1, "rad/s", description="gyro process noise"),
-    ParamDef("EKF2_ACC_NOISE", 0.35, 0.01, 1.0, "m/s^2", description="accelerometer process noise"),
+    ParamDef("EKF2_ACC_NOISE", 0.2, 0.01, 1.0, "m/s^2", description="accelerometer process noise"),
     ParamDef("EKF2_GYR_B_NOISE", 1e-4, 0.0, 0.01, "rad/s^2", description="gyro bias process noise"),
     ParamDef("EKF2_ACC_B_NOISE", 3e-3, 0.0, 0.01, "m/s^3", description="accelerometer bias process noise"),
-    ParamDef("EKF2_GPS_P_NOISE", 0.5, 0.01, 10.0, "m", description="GPS position measurement noise"),
-    ParamDef("EKF2_GPS_V_NOISE", 0.3, 0.01, 5.0, "m/s", description="GPS velocity measurement noise"),
+    ParamDef("EKF2_GPS_P_NOISE", 1.5, 0.01, 10.0, "m", description="GPS position measurement noise"),
+    ParamDef("EKF2_GPS_V_NOISE", 0.6, 0.01, 5.0, "m/s", description="GPS velocity measurement noise"),
     ParamDef("EKF2_BARO_NOISE", 0.3, 0.01, 15.0, "m", description="barometric height measurement noise"),
     ParamDef("EKF2_HEAD_NOISE", 0.1, 0.01, 1.0, "rad", description="magnetic heading measurement noise"),
 ]
@@ -108,6 +108,17 @@ def mag_heading(mag_frd, roll: float, pitch: float) -> float:
     return -math.atan2(y1, x2)
 
 
+class _FilterpyEkf(ExtendedKalmanFilter):
+    """filterpy's EKF with the nominal-state propagation of an INS in place of x = Fx + Bu."""
+
+    def __init__(self, owner: "NavigationEkf"):
+        super().__init__(dim_x=NavigationEkf.N, dim_z=1)
+        self._owner = owner
+
+    def predict_x(self, u=0):
+        self._owner._propagate_nominal(*u)
+
+
 class NavigationEkf:
     """Error-state EKF. Call `initialize` once, then `predict` each period and the `fuse_*` as data comes."""
 
@@ -116,19 +127,27 @@ class NavigationEkf:
     def __init__(self, params, gravity_m_s2: float = 9.80665):
         self.params = params
         self.g = gravity_m_s2
-        self.kf = ExtendedKalmanFilter(dim_x=self.N, dim_z=1)
+        self.kf = _FilterpyEkf(self)
         self.q = (1.0, 0.0, 0.0, 0.0)  # nominal attitude, body FRD -> NED
         self.initialized = False
-        self._F = np.eye(self.N)
-        self._Q = np.zeros((self.N, self.N))
+        self.kf.F = np.eye(self.N)
+        self.kf.Q = np.zeros((self.N, self.N))
+        self._dt_F = None
         self._H_gps = np.zeros((6, self.N))
         self._H_gps[:, :6] = np.eye(6)
-        self._H_baro = np.zeros((1, self.N))
-        self._H_baro[0, 2] = 1.0
-        self._H_head = np.zeros((1, self.N))
-        self._H_head[0, 8] = 1.0
+        self._H_baro_head = np.zeros((2, self.N))
+        self._H_baro_head[0, 2] = 1.0
+        self._H_baro_head[1, 8] = 1.0
         self._R = np.eye(3)
-        self.last_specific_force = (0.0, 0.0, -self.g)
+        self.configure(params)
+
+    def configure(self, p) -> None:
+        """Copy the noise parameters (called again whenever a parameter changes)."""
+        self._q_noise = (p["EKF2_ACC_NOISE"], p["EKF2_GYR_NOISE"], p["EKF2_GYR_B_NOISE"], p["EKF2_ACC_B_NOISE"])
+        sp, sv = p["EKF2_GPS_P_NOISE"], p["EKF2_GPS_V_NOISE"]
+        self._R_gps = np.diag([sp * sp, sp * sp, (1.5 * sp) ** 2, sv * sv, sv * sv, (1.5 * sv) ** 2])
+        self._R_baro_head = np.diag([p["EKF2_BARO_NOISE"] ** 2, p["EKF2_HEAD_NOISE"] ** 2])
+        self._dt_F = None  # rebuild Q
 
     # ------------------------------------------------------------------ life cycle
     def initialize(self, position_ned, velocity_ned, accel_frd, mag_frd) -> None:
@@ -149,38 +168,34 @@ class NavigationEkf:
     def predict(self, gyro_frd, accel_frd, dt: float) -> None:
         """Propagate with IMU averages over dt (gyro rad/s, specific force m/s^2, both FRD)."""
         kf = self.kf
+        if dt != self._dt_F:
+            self._set_dt(dt)
         x = kf.x
-        bg = (x[9, 0], x[10, 0], x[11, 0])
-        ba = (x[12, 0], x[13, 0], x[14, 0])
-        w = (gyro_frd[0] - bg[0], gyro_frd[1] - bg[1], gyro_frd[2] - bg[2])
-        f = np.array([accel_frd[0] - ba[0], accel_frd[1] - ba[1], accel_frd[2] - ba[2]])
-        self.last_specific_force = (f[0], f[1], f[2])
+        f = np.array([accel_frd[0] - x[12, 0], accel_frd[1] - x[13, 0], accel_frd[2] - x[14, 0]])
         R = self._R
-        a_ned = R @ f
+        F = kf.F
+        Rdt = R * -dt
+        F[3:6, 6:9] = -_skew(R @ f) * dt
+        F[3:6, 12:15] = Rdt
+        F[6:9, 9:12] = Rdt
+        kf.predict(u=(gyro_frd, f, dt))  # nominal state via predict_x, then P = F P F' + Q
+
+    def _set_dt(self, dt: float) -> None:
+        kf = self.kf
+        kf.F[0:3, 3:6] = np.eye(3) * dt
+        qv, qa, qbg, qba = ((n * dt) ** 2 for n in self._q_noise)
+        kf.Q = np.diag([0.0, 0.0, 0.0, qv, qv, qv, qa, qa, qa, qbg, qbg, qbg, qba, qba, qba])
+        self._dt_F = dt
+
+    def _propagate_nominal(self, gyro_frd, f: np.ndarray, dt: float) -> None:
+        x = self.kf.x
+        a_ned = self._R @ f
         a_ned[2] += self.g
         x[0:3, 0] += x[3:6, 0] * dt + 0.5 * dt * dt * a_ned
         x[3:6, 0] += a_ned * dt
+        wx, wy, wz = gyro_frd[0] - x[9, 0], gyro_frd[1] - x[10, 0], gyro_frd[2] - x[11, 0]
         # attitude: body-frame increment, right-multiplied
-        self.q = quat_normalize(quat_multiply(self.q, quat_from_rotvec(w[0] * dt, w[1] * dt, w[2] * dt)))
-        F = self._F
-        F[0:3, 3:6] = np.eye(3) * dt
-        F[3:6, 6:9] = -_skew(R @ f) * dt
-        F[3:6, 12:15] = -R * dt
-        F[6:9, 9:12] = -R * dt
-        p = self.params
-        Q = self._Q
-        qv = (p["EKF2_ACC_NOISE"] * dt) ** 2
-        qa = (p["EKF2_GYR_NOISE"] * dt) ** 2
-        qbg = (p["EKF2_GYR_B_NOISE"] * dt) ** 2
-        qba = (p["EKF2_ACC_B_NOISE"] * dt) ** 2
-        for i in range(3):
-            Q[3 + i, 3 + i] = qv
-            Q[6 + i, 6 + i] = qa
-            Q[9 + i, 9 + i] = qbg
-            Q[12 + i, 12 + i] = qba
-        kf.F = F
-        kf.Q = Q
-        kf.P = F @ kf.P @ F.T + Q  # the nominal state moved above; filterpy's predict_x would redo it
+        self.q = quat_normalize(quat_multiply(self.q, quat_from_rotvec(wx * dt, wy * dt, wz * dt)))
         self._R = quat_to_matrix(self.q)
 
     # ------------------------------------------------------------------ measurements
@@ -192,30 +207,19 @@ class NavigationEkf:
         self._R = quat_to_matrix(self.q)
 
     def fuse_gps(self, position_ned, velocity_ned) -> None:
-        p = self.params
-        sp, sv = p["EKF2_GPS_P_NOISE"], p["EKF2_GPS_V_NOISE"]
-        R = np.diag([sp * sp, sp * sp, (1.5 * sp) ** 2, sv * sv, sv * sv, (1.5 * sv) ** 2])
         z = np.array([[*position_ned, *velocity_ned]], dtype=float).T
         H = self._H_gps
-        self.kf.update(z, lambda _x: H, lambda x: x[0:6], R=R)
+        self.kf.update(z, lambda _x: H, lambda x: x[0:6], R=self._R_gps)
         self._fold_attitude_error()
 
-    def fuse_baro(self, height_above_home_m: float) -> None:
-        s = self.params["EKF2_BARO_NOISE"]
-        H = self._H_baro
-        self.kf.update(np.array([[-height_above_home_m]]), lambda _x: H, lambda x: x[2:3], R=np.array([[s * s]]))
-        self._fold_attitude_error()
-
-    def fuse_heading(self, mag_frd) -> None:
+    def fuse_baro_heading(self, height_above_home_m: float, mag_frd) -> None:
+        """Baro height and magnetic heading in one update (one filterpy call instead of two)."""
         roll, pitch, yaw = quat_to_euler(self.q)
-        meas = mag_heading(mag_frd, roll, pitch)
-        s = self.params["EKF2_HEAD_NOISE"]
-        H = self._H_head
-        innov = _wrap(meas - yaw)
-        # residual computed on the circle; Hx returns the zero-error prediction
-        self.kf.update(
-            np.array([[innov]]), lambda _x: H, lambda x: x[8:9], R=np.array([[s * s]])
-        )
+        innov = _wrap(mag_heading(mag_frd, roll, pitch) - yaw)
+        # the heading residual is taken on the circle: z carries it and Hx is the zero attitude error
+        z = np.array([[-height_above_home_m], [innov]])
+        H = self._H_baro_head
+        self.kf.update(z, lambda _x: H, lambda x: np.array([[x[2, 0]], [x[8, 0]]]), R=self._R_baro_head)
         self._fold_attitude_error()
 
     # ------------------------------------------------------------------ outputs

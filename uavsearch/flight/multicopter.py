@@ -9,7 +9,7 @@ Rates (all in simulated time; each must divide the one above it):
   physics_hz  JSBSim step                           (default 200)
   ctrl_hz     IMU sample, attitude + rate control   (default 100)
   ekf_hz      EKF prediction, position control,     (default 50; GPS fused at 5 Hz, baro and
-              land detector, battery                 magnetometer at 25 Hz)
+              land detector, battery                 magnetometer at 10 Hz)
 
 Ground handling (PX4's takeoff / land states): armed on the ground the rotors idle and nothing
 integrates; a setpoint asking to climb (position above, or upward velocity) starts the flight; the land
@@ -45,7 +45,7 @@ from .sensors import SENSOR_PARAMS, GpsFix, SensorSuite
 MC_PARAMS: list[ParamDef] = [*CONTROL_PARAMS, *EKF_PARAMS, *SENSOR_PARAMS, *LAND_PARAMS, *BATTERY_PARAMS]
 
 GPS_HZ = 5
-BARO_MAG_HZ = 25
+BARO_MAG_HZ = 10
 IDLE_THRUST = 0.05
 TAKEOFF_CLIMB_M = 0.3  # a position setpoint this far above the vehicle (or an upward velocity) means "take off"
 
@@ -127,6 +127,7 @@ class Multicopter:
         self.pos_ctrl.configure(p)
         self.att_ctrl.configure(p)
         self.rate_ctrl.configure(p)
+        self.ekf.configure(p)
 
     def set_cruise_speed(self, speed_m_s: float | None) -> None:
         """Override MPC_XY_CRUISE for position setpoints (MAV_CMD_DO_CHANGE_SPEED); None goes back to the param."""
@@ -221,8 +222,7 @@ class Multicopter:
             self._acc_n = 0
             if k % self._baro_div == 0:
                 alt = sens.baro(pos[2], 1.0 / BARO_MAG_HZ)
-                ekf.fuse_baro(alt - self.home.alt_m)
-                ekf.fuse_heading(sens.mag(*fdm.euler_rad()))
+                ekf.fuse_baro_heading(alt - self.home.alt_m, sens.mag(*fdm.euler_rad()))
             if k % self._gps_div == 0:
                 fix = sens.gps(self.time_us, pos, fdm.velocity_ned_m_s(), 1.0 / GPS_HZ)
                 ekf.fuse_gps(fix.position_ned_m, fix.velocity_ned_m_s)

@@ -1,0 +1,224 @@
+"""Controller cores, mixer, EKF, battery and land detector alone: no JSBSim, no MAVLink."""
+
+import math
+
+import numpy as np
+import pytest
+
+from uavsearch.errors import UavsearchError
+from uavsearch.flight.battery import Battery
+from uavsearch.flight.control import (
+    AttitudeControl,
+    PositionControl,
+    QuadXMixer,
+    RateControl,
+    attitude_from_thrust,
+)
+from uavsearch.flight.estimator import NavigationEkf, quat_to_euler, quat_to_matrix
+from uavsearch.flight.fdm import QUADX
+from uavsearch.flight.land_detector import LandDetector
+from uavsearch.flight.multicopter import MC_PARAMS, _check_rates
+from uavsearch.flight.params import ParamStore
+from uavsearch.geometry import quaternion_from_euler
+
+NAN = math.nan
+G = 9.81
+
+
+@pytest.fixture
+def params():
+    return ParamStore(MC_PARAMS)
+
+
+def _pos_ctrl(params):
+    pc = PositionControl(G)
+    pc.configure(params)
+    return pc
+
+
+def test_hover_at_setpoint_gives_hover_thrust_and_level_attitude(params):
+    pc = _pos_ctrl(params)
+    pc.set_state((1.0, 2.0, -10.0), (0.0, 0.0, 0.0), 0.3)
+    pc.set_setpoint((1.0, 2.0, -10.0), (NAN,) * 3, (NAN,) * 3, 0.3, NAN)
+    sp = pc.update(0.02)
+    assert sp.thrust == pytest.approx(params["MPC_THR_HOVER"], abs=1e-9)
+    roll, pitch, yaw = quat_to_euler(sp.q_d)
+    assert abs(roll) < 1e-9 and abs(pitch) < 1e-9 and yaw == pytest.approx(0.3)
+
+
+def test_velocity_setpoint_respects_cruise_speed_and_acceleration(params):
+    params.set("MPC_XY_CRUISE", 4.0)
+    pc = _pos_ctrl(params)
+    pc.set_state((0.0, 0.0, -10.0), (0.0, 0.0, 0.0), 0.0)
+    pc.set_setpoint((100.0, 0.0, -10.0), (NAN,) * 3, (NAN,) * 3, 0.0, NAN)
+    dt, prev = 0.02, 0.0
+    for _ in range(300):
+        pc.update(dt)
+        vn = pc.v_sp[0]
+        assert vn - prev <= params["MPC_ACC_HOR"] * dt + 1e-9  # slew-limited
+        prev = vn
+    assert prev == pytest.approx(4.0, abs=1e-6)  # capped by the cruise speed
+    pc.cruise_override_m_s = 2.0  # DO_CHANGE_SPEED
+    for _ in range(200):
+        pc.update(dt)
+    assert pc.v_sp[0] == pytest.approx(2.0, abs=1e-6)
+
+
+def test_tilt_limit_holds_for_huge_velocity_error(params):
+    params.set("MPC_TILTMAX_AIR", 25.0)
+    pc = _pos_ctrl(params)
+    pc.set_state((0.0, 0.0, -10.0), (-15.0, 10.0, 0.0), 0.0)
+    pc.set_setpoint((NAN,) * 3, (15.0, -10.0, 0.0), (NAN,) * 3, 0.0, NAN)
+    for _ in range(200):
+        sp = pc.update(0.02)
+    R = quat_to_matrix(sp.q_d)
+    tilt = math.degrees(math.acos(R[2, 2]))
+    assert 20.0 < tilt <= 25.0 + 1e-6
+
+
+def test_nan_position_falls_back_to_velocity_and_both_nan_holds_still(params):
+    pc = _pos_ctrl(params)
+    pc.set_state((0.0, 0.0, -10.0), (0.0, 0.0, 0.0), 0.0)
+    pc.set_setpoint((NAN, NAN, -10.0), (1.0, -0.5, NAN), (NAN,) * 3, 0.0, NAN)
+    for _ in range(100):
+        pc.update(0.02)
+    assert pc.v_sp[:2] == pytest.approx([1.0, -0.5])
+    pc.set_setpoint((NAN,) * 3, (NAN,) * 3, (NAN,) * 3, NAN, NAN)
+    for _ in range(100):
+        sp = pc.update(0.02)
+    assert pc.v_sp == pytest.approx([0.0, 0.0, 0.0])
+    assert sp.yaw_rad == pytest.approx(0.0)  # NaN yaw holds the current heading
+
+
+def test_climb_speed_limits(params):
+    pc = _pos_ctrl(params)
+    pc.set_state((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
+    pc.set_setpoint((0.0, 0.0, -70.0), (NAN,) * 3, (NAN,) * 3, 0.0, NAN)
+    for _ in range(200):
+        pc.update(0.02)
+    assert pc.v_sp[2] == pytest.approx(-params["MPC_Z_VEL_MAX_UP"])
+    pc.set_setpoint((0.0, 0.0, 70.0), (NAN,) * 3, (NAN,) * 3, 0.0, NAN)
+    for _ in range(300):
+        pc.update(0.02)
+    assert pc.v_sp[2] == pytest.approx(params["MPC_Z_VEL_MAX_DN"])
+
+
+def test_landing_limit_levels_and_idles(params):
+    pc = _pos_ctrl(params)
+    pc.set_state((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
+    pc.set_setpoint((3.0, 0.0, NAN), (NAN, NAN, 0.7), (NAN,) * 3, 0.0, NAN)
+    pc.ground_contact = pc.maybe_landed = True
+    sp = pc.update(0.02)
+    roll, pitch, _ = quat_to_euler(sp.q_d)
+    assert abs(roll) < 1e-9 and abs(pitch) < 1e-9
+    assert sp.thrust == pytest.approx(params["MPC_THR_MIN"])
+
+
+@pytest.mark.parametrize("yaw", [0.0, 1.0, -2.5, math.pi - 0.01])
+def test_attitude_from_thrust_points_body_z_against_thrust(yaw):
+    t = np.array([0.2, -0.3, -1.0])
+    t /= np.linalg.norm(t)
+    q = attitude_from_thrust(*t, yaw)
+    R = quat_to_matrix(q)
+    assert R[:, 2] == pytest.approx(-t)  # body down = -thrust
+    # the heading of body x projected on the horizontal plane is the yaw
+    assert math.atan2(R[1, 0], R[0, 0]) == pytest.approx(yaw, abs=0.2)
+
+
+def test_attitude_control_commands_rates_towards_setpoint(params):
+    ac = AttitudeControl()
+    ac.configure(params)
+    ac.set_state(tuple(quaternion_from_euler(0.0, 0.0, 0.0)))
+    ac.set_setpoint(tuple(quaternion_from_euler(0.1, -0.05, 0.0)))
+    p, q, r = ac.update()
+    assert p == pytest.approx(params["MC_ROLL_P"] * 0.1, rel=0.05)
+    assert q == pytest.approx(params["MC_PITCH_P"] * -0.05, rel=0.1)
+    ac.set_setpoint(tuple(quaternion_from_euler(0.0, 0.0, 0.2)))
+    assert ac.update()[2] == pytest.approx(params["MC_YAW_P"] * 0.2, rel=0.05)
+    ac.set_setpoint(tuple(quaternion_from_euler(1.5, 0.0, 0.0)))
+    assert ac.update()[0] == pytest.approx(math.radians(params["MC_ROLLRATE_MAX"]))  # rate limit
+
+
+def test_rate_control_pid_and_integrator_limit(params):
+    rc = RateControl()
+    rc.configure(params)
+    rc.set_state((0.0, 0.0, 0.0))
+    rc.set_setpoint((1.0, -1.0, 0.5))
+    out = rc.update(0.01)
+    assert out[0] > 0 and out[1] < 0 and out[2] > 0
+    for _ in range(10000):
+        rc.update(0.01)
+    assert abs(rc.integ[0]) == pytest.approx(params["MC_RR_INT_LIM"])
+    assert rc.update(0.01, integrate=False)[0] <= 1.0
+
+
+def test_mixer_signs_and_saturation():
+    mx = QuadXMixer(QUADX.rotors, idle=0.05)
+    assert mx.mix(0.5, (0.0, 0.0, 0.0)) == pytest.approx([0.5] * 4)
+    m = mx.mix(0.5, (0.2, 0.0, 0.0))  # roll right: left rotors (1 rear-left, 2 front-left) push harder
+    assert m[1] > m[0] and m[2] > m[3]
+    m = mx.mix(0.5, (0.0, 0.2, 0.0))  # pitch up: front rotors (0, 2) push harder
+    assert m[0] > m[1] and m[2] > m[3]
+    m = mx.mix(0.5, (0.0, 0.0, 0.2))  # yaw right: the CCW rotors (0, 1) push harder
+    assert m[0] > m[2] and m[1] > m[3]
+    m = mx.mix(0.9, (0.6, 0.0, 1.0))  # saturated: yaw gives way, roll kept, outputs in range
+    assert all(0.05 <= v <= 1.0 for v in m)
+    assert (m[1] - m[0]) == pytest.approx(0.6, abs=1e-9)  # full roll differential kept
+    assert mx.mix(0.0, (0.0, 0.0, 0.0)) == pytest.approx([0.05] * 4)  # never below idle
+
+
+def test_ekf_static_convergence_with_noisy_gps(params):
+    """A resting vehicle with accelerometer bias and noisy GPS: position, tilt and bias converge."""
+    rng = np.random.default_rng(3)
+    ekf = NavigationEkf(params, gravity_m_s2=G)
+    truth = np.array([5.0, -3.0, -20.0])
+    acc_bias = np.array([0.0, 0.0, 0.15])
+    accel = np.array([0.0, 0.0, -G]) + acc_bias
+    mag = (0.21, 0.0, 0.42)
+    ekf.initialize(truth + rng.normal(0, 1.0, 3), (0.0, 0.0, 0.0), accel, mag)
+    dt = 0.02
+    for k in range(50 * 60):
+        ekf.predict((0.0, 0.0, 0.0), accel + rng.normal(0, 0.05, 3), dt)
+        if k % 5 == 0:
+            ekf.fuse_baro_heading(-truth[2] + rng.normal(0, 0.1), mag)
+        if k % 10 == 0:
+            ekf.fuse_gps(truth + rng.normal(0, 0.5, 3), rng.normal(0, 0.1, 3))
+    assert np.linalg.norm(ekf.position_ned[:2] - truth[:2]) < 0.5
+    assert abs(ekf.position_ned[2] - truth[2]) < 0.3
+    assert np.linalg.norm(ekf.velocity_ned) < 0.1
+    roll, pitch, yaw = ekf.euler()
+    assert abs(roll) < 0.01 and abs(pitch) < 0.01 and abs(yaw) < 0.05
+    assert ekf.accel_bias[2] == pytest.approx(0.15, abs=0.05)
+
+
+def test_battery_drains_faster_with_more_thrust(params):
+    hover, climb = Battery(params), Battery(params)
+    for _ in range(600):
+        hover.update([3.7] * 4, 0.1, armed=True)
+        climb.update([6.0] * 4, 0.1, armed=True)
+    assert 0.0 < climb.remaining < hover.remaining < 1.0
+    assert 10.0 < hover.current_a < 15.0  # about 12 A at hover on 4S
+    assert hover.voltage_v < 4 * 4.2
+
+
+def test_land_detector_needs_time_and_low_thrust(params):
+    ld = LandDetector(params)
+    ld.reset_flying()
+    args = dict(thrust_hover=0.49, thrust_min=0.12, descend_commanded=True)
+    for _ in range(50):  # 1 s at 50 Hz, thrust still high: no landing
+        assert not ld.update(0.02, (0, 0, 0.0), (0, 0, 0), thrust=0.45, **args)
+    t = 0.0
+    while not ld.update(0.02, (0, 0, 0.0), (0, 0, 0), thrust=0.12, **args):
+        t += 0.02
+        assert t < 3.0
+    assert t >= params["LNDMC_TRIG_TIME"]
+
+
+@pytest.mark.parametrize(
+    "rates",
+    [(200, 30, 10), (200, 100, 30), (250, 125, 50), (200, 0, 50), (200.0, 100, 50), (50, 50, 50)],
+)
+def test_rates_that_do_not_divide_are_refused(rates):
+    with pytest.raises(UavsearchError):
+        _check_rates(*rates)
+    _check_rates(200, 100, 50)  # the default passes

@@ -1,0 +1,139 @@
+"""The real vehicle (JSBSim + sensors + EKF + control) flown in simulated time; bounds set from measurements.
+
+Measured with `python tools/flight_step_response.py` (seeds 0-3 at 15 m: estimate-based 10 m move
+settle 4.6-6.6 s, climb to 90 % in 5.0-5.2 s, touchdown 0.71-0.75 m/s, EKF horizontal error RMS
+0.39-0.54 m, max 0.74-1.14 m); the bounds leave margin for other seeds but catch a broken loop.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from uavsearch.errors import UavsearchError
+from uavsearch.flight.messages import TrajectorySetpoint
+from uavsearch.flight.multicopter import MC_PARAMS, Multicopter
+from uavsearch.flight.params import ParamStore
+from uavsearch.flight.step_response import Flight, mission_profile
+from uavsearch.geometry import GeodeticOrigin
+
+NAN = math.nan
+
+
+@pytest.fixture(scope="module")
+def profile():
+    res, flight = mission_profile(seed=0, alt_m=15.0, hover_s=10.0, move_window_s=12.0)
+    return res, flight
+
+
+def test_climb_is_fast_and_does_not_overshoot(profile):
+    res, _ = profile
+    assert 4.0 < res["climb_time_to_90pct_s"] < 7.0  # 13.5 m at MPC_Z_VEL_MAX_UP = 3 m/s
+    assert res["climb_overshoot_m"] < 0.5
+
+
+def test_ten_metre_moves_settle_within_seconds(profile):
+    res, _ = profile
+    assert all(t < 8.0 for t in res["move_settle_est_s"]), res["move_settle_est_s"]
+    assert all(o < 0.5 for o in res["move_overshoot_est_m"]), res["move_overshoot_est_m"]
+    assert all(o < 1.5 for o in res["move_overshoot_m"]), res["move_overshoot_m"]  # truth: + GPS error
+
+
+def test_hover_hold_and_estimation_error(profile):
+    res, _ = profile
+    assert res["hover_err_h_rms_m"] < 1.0
+    assert res["hover_err_v_rms_m"] < 0.5
+    assert res["ekf_pos_err_h_rms_m"] < 0.8
+    assert res["ekf_pos_err_h_max_m"] < 2.0
+    assert res["ekf_pos_err_v_rms_m"] < 0.5
+    assert res["ekf_vel_err_rms_m_s"] < 0.2
+    assert res["ekf_tilt_err_rms_deg"] < 2.0
+    assert res["ekf_yaw_err_rms_deg"] < 3.0
+
+
+def test_landing_is_gentle_and_detected(profile):
+    res, flight = profile
+    assert res["touchdown_speed_m_s"] < 1.0
+    assert res["land_detect_s"] < 15.0
+    v = flight.vehicle
+    assert v.land_detected.landed and not v.flying
+    assert v.true_state.position_enu_m[2] < 0.2  # on its feet
+    assert v.motor_outputs == pytest.approx([0.05] * 4)  # armed on the ground: idle
+    assert 0.0 < v.battery.remaining < 1.0 and v.battery.discharged_mah > 100.0
+
+
+def test_telemetry_is_the_estimate_not_the_truth(profile):
+    _, flight = profile
+    a = flight.trace.arrays()
+    diff = np.abs(a["est_pos"] - a["true_pos"])
+    assert diff.max() > 0.05  # noisy sensors: not a copy of the truth
+    v = flight.vehicle
+    gp = v.global_position
+    back = v.home.geodetic_to_enu([gp.lat_deg, gp.lon_deg, gp.alt_amsl_m])
+    lp = v.local_position.position_ned_m
+    assert back == pytest.approx([lp[1], lp[0], -lp[2]], abs=1e-6)
+
+
+def _short_flight(seed: int) -> np.ndarray:
+    f = Flight(seed=seed)
+    f.vehicle.arm()
+    f.goto(3.0, -2.0, -5.0)
+    f.run(6.0)
+    return f.trace.arrays()["true_pos"]
+
+
+def test_same_seed_same_trajectory_different_seed_differs():
+    a, b, c = _short_flight(7), _short_flight(7), _short_flight(8)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_sits_on_its_contacts_until_asked_to_climb():
+    v = Multicopter(ParamStore(MC_PARAMS), GeodeticOrigin(), seed=0)
+    v.run_for(2.0)
+    z0 = v.true_state.position_enu_m[2]
+    assert 0.05 < z0 < 0.2 and v.land_detected.landed
+    v.arm()
+    v.set_setpoint(TrajectorySetpoint(v.time_us, np.array([NAN, NAN, NAN]), np.array([0.0, 0.0, 0.5])))
+    v.run_for(2.0)
+    assert not v.flying and abs(v.true_state.position_enu_m[2] - z0) < 0.01
+    assert np.linalg.norm(v.true_state.velocity_enu_m_s) < 0.01
+    v.disarm()
+    assert v.motor_outputs == (0.0, 0.0, 0.0, 0.0)
+
+
+def test_param_change_takes_effect_in_flight():
+    f = Flight(seed=1)
+    v = f.vehicle
+    v.arm()
+    f.goto(0.0, 0.0, -10.0)
+    f.run(8.0)
+    f.params.set("MPC_XY_CRUISE", 1.5)  # as a PARAM_SET would
+    i0 = len(f.trace.t)
+    f.goto(20.0, 0.0, -10.0)
+    f.run(8.0)
+    vn = f.trace.arrays()["true_vel"][i0:, 0]
+    assert 1.2 < vn.max() < 2.0
+    f.params.set("MPC_XY_CRUISE", 5.0)
+    i0 = len(f.trace.t)
+    f.goto(0.0, 0.0, -10.0)
+    f.run(8.0)
+    assert f.trace.arrays()["true_vel"][i0:, 0].min() < -3.0
+
+
+def test_bad_construction_is_a_clear_error():
+    with pytest.raises(UavsearchError, match="does not divide"):
+        Multicopter(ParamStore(MC_PARAMS), GeodeticOrigin(), seed=0, physics_hz=200, ctrl_hz=30)
+    with pytest.raises(UavsearchError, match="MC_PARAMS"):
+        Multicopter(ParamStore([]), GeodeticOrigin(), seed=0)
+    v = Multicopter(ParamStore(MC_PARAMS), GeodeticOrigin(), seed=0)
+    with pytest.raises(UavsearchError):
+        v.set_setpoint(TrajectorySetpoint(0, np.array([math.inf, 0.0, 0.0])))
+
+
+@pytest.mark.slow
+def test_full_mission_profile_at_70_m():
+    res, _ = mission_profile(seed=0)
+    assert res["climb_time_to_90pct_s"] < 25.0 and res["climb_overshoot_m"] < 0.5
+    assert all(t < 8.0 for t in res["move_settle_est_s"])
+    assert res["ekf_pos_err_h_rms_m"] < 0.8
