@@ -67,6 +67,9 @@ class Client:
     def __init__(self, port: int, sysid: int = 255, compid: int = 190):
         self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=sysid, source_component=compid,
                                                dialect="common")
+        # At --speed max the vehicle streams telemetry tens of times faster than real time: a big receive
+        # buffer keeps a busy test process from losing an ACK behind the telemetry backlog.
+        self.conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
         hb = self.wait_heartbeat()
         assert hb is not None, "no heartbeat from the vehicle"
         self.conn.target_system, self.conn.target_component = hb.get_srcSystem(), 1

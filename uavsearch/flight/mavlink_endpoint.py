@@ -20,6 +20,7 @@ import math
 import select
 import socket
 import struct
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -99,6 +100,7 @@ ALWAYS_OK_BITS = (
 )
 
 MISSION_RETRY_WALL_S = 0.25
+SIGNING_EPOCH = 1420070400  # 2015-01-01 UTC
 MISSION_MAX_RETRIES = 8
 PX4_VERSION = (1 << 24) | (15 << 16) | (0 << 8) | 255  # reported as PX4 v1.15.0 (official release)
 
@@ -175,7 +177,9 @@ class Link:
             self.mav.signing.secret_key = cfg.signing_key
             self.mav.signing.link_id = 0
             self.mav.signing.sign_outgoing = True
-            self.mav.signing.timestamp = 0
+            # MAVLink 2 signing timestamps count 10 us since 2015-01-01 on the wall clock: receivers drop
+            # a new stream that starts more than a minute behind their own clock.
+            self.mav.signing.timestamp = int((max(time.time(), SIGNING_EPOCH) - SIGNING_EPOCH) * 1e5)
             if not cfg.require_signed:
                 # Accept unsigned frames, but a signed frame must carry the right signature.
                 self.mav.signing.allow_unsigned_callback = lambda mav, msgid: not self._frame_signed
