@@ -25,6 +25,12 @@ from uavsearch.flight.params import ParamStore
 from uavsearch.flight.step_response import Flight
 from uavsearch.geometry import GeodeticOrigin
 
+try:  # the MAVLink section (whole vehicle with streams, ACK latency, MAVLink episode) lives beside this file
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
+    from bench_mavlink import bench_mavlink  # noqa: F401
+except ImportError:
+    pass
+
 
 def _timed(fn):
     w0, c0 = time.perf_counter(), time.process_time()

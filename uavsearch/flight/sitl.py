@@ -42,7 +42,8 @@ class SitlConfig:
     sign_api_strict: bool = False  # MAVSDK cannot sign: by default the API link signs but accepts unsigned
     run_dir: Path | None = None
     autopilot_hz: int = 50
-    io_hz: int = 50
+    io_hz: int = 100  # receive + handle packets (non-blocking)
+    stream_hz: int = 50  # telemetry scheduling (each message keeps its own interval)
     params: dict = field(default_factory=dict)
     start_enu: tuple = (0.0, 0.0, 0.0)
     start_yaw_rad: float = 0.0
@@ -104,6 +105,8 @@ class Sitl:
         self._io_period_us = int(1e6 / cfg.io_hz)
         self._next_ap_us = int(self.vehicle.time_us)
         self._next_io_us = int(self.vehicle.time_us)
+        self._stream_period_us = int(1e6 / cfg.stream_hz)
+        self._next_stream_us = int(self.vehicle.time_us)
         self._wall = time.monotonic()
         self._pace_wall0 = None
         self._pace_sim0 = 0
@@ -123,7 +126,9 @@ class Sitl:
             self._next_io_us = _next_tick(self._next_io_us, self._io_period_us, now)
             self._wall = time.monotonic()
             self.endpoint.poll(self._wall)
-            self.endpoint.send_streams()
+            if now >= self._next_stream_us:
+                self._next_stream_us = _next_tick(self._next_stream_us, self._stream_period_us, now)
+                self.endpoint.send_streams()
             self._pace()
         v.step()
 
