@@ -13,7 +13,15 @@ from uavsearch.geometry import (
     project_points,
 )
 from uavsearch.world.render import RenderOptions, SceneRenderer
-from uavsearch.world.scene import GENERATOR_VERSION, SceneObject, SceneParams, SceneSpec, generate_scene
+from uavsearch.world.scene import (
+    GENERATOR_VERSION,
+    SceneObject,
+    SceneParams,
+    SceneSpec,
+    generate_scene,
+    scene_from_json,
+    scene_to_json,
+)
 
 MARKERS = [(0.0, 0.0), (7.3, -4.1), (-12.0, 9.5), (15.0, 15.0), (-6.0, -13.0)]
 MARKER_TOP_M = 0.02
@@ -62,9 +70,9 @@ def city():
 def test_same_scene_same_images_and_no_interference(city):
     intr = CameraIntrinsics()
     pose_a, pose_b = nadir_camera_pose((0, 0, 70)), nadir_camera_pose((20, -10, 70))
-    r1 = SceneRenderer(city, intr)
-    r2 = SceneRenderer(generate_scene(5, 10), intr)
-    other = SceneRenderer(generate_scene(6, 2), intr)  # a different scene in the same process
+    r1 = SceneRenderer(city, intr)  # in a worker process (the default)
+    r2 = SceneRenderer(scene_from_json(scene_to_json(city)), intr, RenderOptions(isolate=False))  # in this process
+    other = SceneRenderer(_marker_scene(), intr, RenderOptions(isolate=False))  # another client in this process
     try:
         a1 = r1.render(pose_a)
         o = other.render(pose_a)

@@ -18,10 +18,15 @@ person_fraction > 0 (any subpixel), i.e. every pixel whose colour a person contr
 
 from __future__ import annotations
 
+import atexit
 import math
 import os
+import pickle
+import subprocess
+import sys
 import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -50,10 +55,12 @@ class RenderOptions:
     exposure_jitter: float = 0.0  # gain drawn in [1 - j, 1 + j]
     ambient: float = 0.62
     diffuse: float = 0.42
+    isolate: bool = True  # build the PyBullet world in a recycled worker process (PyBullet leaks memory)
 
     @staticmethod
-    def randomised(supersample: int = 2) -> "RenderOptions":
-        return RenderOptions(supersample=supersample, noise_std=4.0, blur_sigma_px=0.7, exposure_jitter=0.15)
+    def randomised(supersample: int = 2, isolate: bool = True) -> "RenderOptions":
+        return RenderOptions(supersample=supersample, noise_std=4.0, blur_sigma_px=0.7, exposure_jitter=0.15,
+                             isolate=isolate)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -142,7 +149,7 @@ def _unit_prism(n: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.array(tris, float), np.array(norms, float), np.array(groups)
 
 
-def _unit_sphere(n_lon: int = 8, n_lat: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _unit_sphere(n_lon: int = 7, n_lat: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unit-diameter low-poly sphere centred at z=0.5, smooth normals; group = face index mod 3 (shades)."""
     lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)
     lon = np.linspace(0, 2 * np.pi, n_lon + 1)
@@ -331,12 +338,10 @@ def _write_texture(img_rgb: np.ndarray, client: int) -> int:
     return tex
 
 
-class SceneRenderer:
-    """One PyBullet DIRECT client holding one scene; render(pose) -> Render. Not thread-safe."""
+class _World:
+    """The PyBullet world of one scene in THIS process: one DIRECT client, built once, rendered often."""
 
-    def __init__(self, spec: SceneSpec, intrinsics: CameraIntrinsics, options: RenderOptions = RenderOptions()):
-        if int(options.supersample) < 1:
-            raise ValueError("supersample must be >= 1")
+    def __init__(self, spec: SceneSpec, intrinsics: CameraIntrinsics, options: RenderOptions):
         self.spec = spec
         self.intrinsics = intrinsics
         self.options = options
@@ -349,13 +354,12 @@ class SceneRenderer:
             self.close()
             raise
 
-    # -- building ------------------------------------------------------------------------------------
-
     def _mesh_body(self, mb: MeshBuilder, tex: int) -> list[int]:
         pos, nrm, uv = mb.arrays()
         bodies = []
-        for start in range(0, len(pos), MAX_VERTICES - MAX_VERTICES % 3):
-            sl = slice(start, start + MAX_VERTICES - MAX_VERTICES % 3)
+        step = MAX_VERTICES - MAX_VERTICES % 3
+        for start in range(0, len(pos), step):
+            sl = slice(start, start + step)
             n = len(pos[sl])
             vs = pb.createVisualShape(pb.GEOM_MESH, vertices=pos[sl].tolist(), indices=list(range(n)),
                                       normals=nrm[sl].tolist(), uvs=uv[sl].tolist(), physicsClientId=self._client)  # fmt: skip
@@ -367,9 +371,8 @@ class SceneRenderer:
     def _build(self) -> None:
         spec, c = self.spec, self._client
         palette: dict = {}
-        people = spec.people
         person_meshes = []
-        for o in people:
+        for o in spec.people:
             mb = MeshBuilder(palette)
             add_person_parts(mb, o)
             person_meshes.append(mb)
@@ -388,27 +391,27 @@ class SceneRenderer:
         for rgb, i in palette.items():
             pal_img[i // PALETTE_SIDE, i % PALETTE_SIDE] = rgb
         pal_tex = _write_texture(pal_img, c)
-        self._person_bodies = []
+        person_bodies = []
         for mb in person_meshes:
-            self._person_bodies += self._mesh_body(mb, pal_tex)
-        self._static_bodies = self._mesh_body(static, pal_tex)
+            person_bodies += self._mesh_body(mb, pal_tex)
+        static_bodies = self._mesh_body(static, pal_tex)
         ground_tex = _write_texture(paint_ground(spec, gr), c)
         vs = pb.createVisualShape(pb.GEOM_MESH, vertices=[[-t, -t, 0], [t, -t, 0], [t, t, 0], [-t, t, 0]],
                                   indices=[0, 1, 2, 0, 2, 3], normals=[[0, 0, 1]] * 4,
                                   uvs=[[0, 0], [1, 0], [1, 1], [0, 1]], physicsClientId=c)  # fmt: skip
-        self._ground_body = pb.createMultiBody(0, -1, vs, physicsClientId=c)
-        pb.changeVisualShape(self._ground_body, -1, textureUniqueId=ground_tex, rgbaColor=[1, 1, 1, 1], physicsClientId=c)
-        # segmentation id -> person index (-1 for everything else)
-        ids = np.array(self._person_bodies, dtype=np.int64)
-        self._seg_lut = np.full(int(max([self._ground_body, *self._static_bodies, *ids]) + 2), -1, np.int16)
+        ground = pb.createMultiBody(0, -1, vs, physicsClientId=c)
+        pb.changeVisualShape(ground, -1, textureUniqueId=ground_tex, rgbaColor=[1, 1, 1, 1], physicsClientId=c)
+        # segmentation id -> person index (-1 for everything else, including background -1 = last entry)
+        ids = np.array(person_bodies, dtype=np.int64)
+        self._seg_lut = np.full(int(max([ground, *static_bodies, *person_bodies]) + 2), -1, np.int16)
         self._seg_lut[ids] = np.arange(len(ids), dtype=np.int16)
         az, el = math.radians(spec.sun_azimuth_deg), math.radians(spec.sun_elevation_deg)
         self._light = [math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)]
         self._proj = projection_matrix(self.intrinsics.scaled(int(self.options.supersample)))
 
-    # -- rendering -----------------------------------------------------------------------------------
-
-    def render(self, pose: CameraPose, rng: np.random.Generator | None = None) -> Render:
+    def render(self, position_enu, r_enu_from_cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Clean float image (H, W, 3), person fraction (H, W) and person index (H, W)."""
+        pose = CameraPose(np.asarray(position_enu, float), np.asarray(r_enu_from_cam, float))
         s = int(self.options.supersample)
         intr = self.intrinsics
         w, h = intr.width_px * s, intr.height_px * s
@@ -419,17 +422,139 @@ class SceneRenderer:
         )  # fmt: skip
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[:, :, :3]
         seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
-        pidx = self._seg_lut[np.clip(seg, -1, len(self._seg_lut) - 2)]  # -1 (background) maps to the last entry
+        pidx = self._seg_lut[np.clip(seg, -1, len(self._seg_lut) - 2)]
         H, W = intr.height_px, intr.width_px
         if s > 1:
             img = rgb.reshape(H, s, W, s, 3).astype(np.float32).mean(axis=(1, 3))
             blocks = pidx.reshape(H, s, W, s).transpose(0, 2, 1, 3).reshape(H, W, s * s)
-            frac = (blocks >= 0).mean(axis=-1).astype(np.float32)
-            person_index = _majority(blocks)
+            return img, (blocks >= 0).mean(axis=-1).astype(np.float32), _majority(blocks)
+        return rgb.astype(np.float32), (pidx >= 0).astype(np.float32), pidx.astype(np.int16)
+
+    def close(self) -> None:
+        if getattr(self, "_client", -1) >= 0:
+            try:
+                pb.disconnect(physicsClientId=self._client)
+            except pb.error:
+                pass
+            self._client = -1
+
+
+# --------------------------------------------------------------------------------------------------
+# Worker processes: PyBullet never gives back a client's meshes and textures, not even on disconnect
+# (measured: about 30 MB per 90k-vertex mesh, 30 MB per 2048^2 texture, 35 MB per client). A world
+# is therefore built in a worker process that is recycled after RECYCLE_AFTER_SCENES scenes, which
+# bounds the leak; idle workers are kept (up to MAX_IDLE_WORKERS) so the start-up cost is paid rarely.
+
+RECYCLE_AFTER_SCENES = 8
+MAX_IDLE_WORKERS = 2
+_IDLE: list["_Worker"] = []
+
+
+class _Worker:
+    def __init__(self):
+        pkg_parent = str(Path(__file__).resolve().parents[2])
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (pkg_parent, os.environ.get("PYTHONPATH")) if p))
+        code = "import os; fd = os.dup(1); os.dup2(2, 1); from uavsearch.world.render import _worker_main; _worker_main(fd)"
+        self.proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.DEVNULL, env=env)  # fmt: skip
+        self.scenes = 0
+
+    def call(self, *msg):
+        try:
+            pickle.dump(msg, self.proc.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            self.proc.stdin.flush()
+            status, value = pickle.load(self.proc.stdout)
+        except (EOFError, BrokenPipeError, OSError, pickle.UnpicklingError):
+            self.kill()
+            raise RuntimeError("the render worker process died") from None
+        if status == "error":
+            raise RuntimeError(f"render worker: {value}")
+        return value
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.proc.stdin.close()
+                self.proc.wait(timeout=5)
+            except (OSError, subprocess.TimeoutExpired):
+                self.proc.kill()
+                self.proc.wait()
+
+
+def _worker_main(out_fd: int) -> None:
+    """Serve ('load', spec_json, intrinsics, options) / ('render', position, R) / ('unload',) until EOF."""
+    from .scene import scene_from_json
+
+    out = os.fdopen(out_fd, "wb")
+    inp = sys.stdin.buffer
+    world = None
+    while True:
+        try:
+            msg = pickle.load(inp)
+        except EOFError:
+            break
+        try:
+            if msg[0] == "load":
+                if world is not None:
+                    world.close()
+                world = _World(scene_from_json(msg[1]), msg[2], msg[3])
+                reply = ("ok", None)
+            elif msg[0] == "render":
+                reply = ("ok", world.render(msg[1], msg[2]))
+            elif msg[0] == "unload":
+                if world is not None:
+                    world.close()
+                world = None
+                reply = ("ok", None)
+            else:
+                reply = ("error", f"unknown request {msg[0]!r}")
+        except Exception as e:  # reported to the parent, which raises it
+            reply = ("error", f"{type(e).__name__}: {e}")
+        pickle.dump(reply, out, protocol=pickle.HIGHEST_PROTOCOL)
+        out.flush()
+
+
+@atexit.register
+def _stop_idle_workers() -> None:
+    while _IDLE:
+        _IDLE.pop().kill()
+
+
+class SceneRenderer:
+    """The camera of one scene: render(pose) -> Render. One PyBullet DIRECT client per renderer, in a
+    worker process by default (options.isolate), so renderers never share state and memory is bounded."""
+
+    def __init__(self, spec: SceneSpec, intrinsics: CameraIntrinsics, options: RenderOptions = RenderOptions()):
+        if int(options.supersample) < 1:
+            raise ValueError("supersample must be >= 1")
+        self.spec = spec
+        self.intrinsics = intrinsics
+        self.options = options
+        self._world: _World | None = None
+        self._worker: _Worker | None = None
+        if options.isolate:
+            from .scene import scene_to_json
+
+            worker = _IDLE.pop() if _IDLE else _Worker()
+            try:
+                worker.call("load", scene_to_json(spec), intrinsics, options)
+            except Exception:
+                worker.kill()
+                raise
+            worker.scenes += 1
+            self._worker = worker
         else:
-            img = rgb.astype(np.float32)
-            frac = (pidx >= 0).astype(np.float32)
-            person_index = pidx.astype(np.int16)
+            self._world = _World(spec, intrinsics, options)
+
+    def render(self, pose: CameraPose, rng: np.random.Generator | None = None) -> Render:
+        """The view from `pose`; `rng` draws the sensor randomisation (none when rng is None)."""
+        if self._world is not None:
+            img, frac, person_index = self._world.render(pose.position_enu, pose.R_enu_from_cam)
+        elif self._worker is not None:
+            img, frac, person_index = self._worker.call("render", np.asarray(pose.position_enu, float),
+                                                        np.asarray(pose.R_enu_from_cam, float))  # fmt: skip
+        else:
+            raise RuntimeError("render() on a closed SceneRenderer")
         if rng is not None:
             img = self._randomise(img, rng)
         out = np.clip(np.rint(img), 0, 255).astype(np.uint8)
@@ -447,15 +572,20 @@ class SceneRenderer:
             img = img + rng.normal(0, rng.uniform(0, o.noise_std), img.shape).astype(np.float32)
         return img
 
-    # -- lifetime ------------------------------------------------------------------------------------
-
     def close(self) -> None:
-        if getattr(self, "_client", -1) >= 0:
+        if self._world is not None:
+            self._world.close()
+            self._world = None
+        worker, self._worker = self._worker, None
+        if worker is not None:
             try:
-                pb.disconnect(physicsClientId=self._client)
-            except pb.error:
-                pass
-            self._client = -1
+                worker.call("unload")
+            except RuntimeError:
+                return
+            if worker.scenes >= RECYCLE_AFTER_SCENES or len(_IDLE) >= MAX_IDLE_WORKERS:
+                worker.kill()
+            else:
+                _IDLE.append(worker)
 
     def __enter__(self) -> "SceneRenderer":
         return self
@@ -464,7 +594,10 @@ class SceneRenderer:
         self.close()
 
     def __del__(self) -> None:
-        self.close()
+        try:
+            self.close()
+        except Exception:
+            pass
 
 
 def _majority(blocks: np.ndarray) -> np.ndarray:

@@ -74,6 +74,7 @@ class SceneParams(BaseModel):
         },  # fmt: skip
         description="relative chance that a person stands on each ground kind",
     )
+    shade_weight: float = Field(3.0, description="people prefer shade: weight multiplier under tree canopies and parasols")
     cell_margin_m: float = Field(0.35, description="a person's position lies at least this far inside its cell")
     outside_margin_m: float = 0.6
     person_clearance_m: float = Field(0.55, description="distance kept from obstacles and other people")
@@ -583,6 +584,11 @@ def generate_scene(seed: int, occupied_cells: int, params: SceneParams | None = 
     weights = p.surface_weight
     raster = Raster(h, 0.2)
     surface = surface_raster(b.ground, raster, weights)
+    shade = np.zeros_like(surface, dtype=np.uint8)
+    for o in b.solids:
+        if o.kind == "tree" or (o.kind == "clutter" and o.variant == "parasol"):
+            raster.disk(shade, (o.x_m, o.y_m), 0.45 * (o.sx_m + o.sy_m) / 2, 1)
+    surface = np.where(shade > 0, surface * p.shade_weight, surface).astype(np.float32)
     occupied = _choose_cells(b, grid, raster, surface, k)
     blocked = obstacle_raster(b.solids, raster)
     cell_img = _cell_raster(grid, raster, p.cell_margin_m)

@@ -14,7 +14,7 @@ import numpy as np
 
 from .scene import GROUND_KINDS, Raster, SceneObject, SceneSpec, footprint_corners
 
-GROUND_TEXTURE_PX = 2048
+GROUND_TEXTURE_PX = 1536
 
 
 def ground_raster(spec: SceneSpec, texture_px: int = GROUND_TEXTURE_PX) -> Raster:
