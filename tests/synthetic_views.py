@@ -1,0 +1,39 @@
+"""A synthetic view cache for fast search tests: per-view cell estimates that are better near nadir.
+
+A cell's estimate is correct with a margin that decays with its ground distance from the camera, and
+the cell feature carries that distance (plus noise), so a confidence net can learn whom to trust and a
+policy can learn where to fly. No rendering, no perception net.
+"""
+
+import numpy as np
+import torch
+
+from uavsearch.search.config import SearchConfig
+from uavsearch.search.search_loop import lattice_cell_distances
+from uavsearch.search.view_cache import ViewCache
+
+
+def synthetic_cache(num_scenes: int = 4, k: int = 5, seed: int = 0, cell_dim: int = 6, global_dim: int = 16) -> ViewCache:
+    rng = np.random.default_rng(seed)
+    config = SearchConfig()
+    dist = lattice_cell_distances(config).numpy()  # (P, N)
+    P, N = dist.shape
+    occ = np.zeros((num_scenes, N), bool)
+    for s in range(num_scenes):
+        occ[s, rng.choice(N, k, replace=False)] = True
+    quality = np.exp(-dist / 15.0)[None]  # (1, P, N)
+    noise = rng.normal(0, 1.0, (num_scenes, P, N))
+    logit = np.where(occ[:, None, :], 1.0, -1.0) * (4.0 * quality - 0.8) + noise - 1.0
+    p1 = 1.0 / (1.0 + np.exp(-logit))
+    log_probs = np.log(np.stack([1 - p1, p1], -1).clip(1e-6, 1))
+    feats = np.concatenate([quality.repeat(num_scenes, 0)[..., None],
+                            rng.normal(0, 0.1, (num_scenes, P, N, cell_dim - 1))], -1)
+    glob = rng.normal(0, 1, (num_scenes, P, global_dim))
+    return ViewCache(
+        scene_seed=np.arange(num_scenes, dtype=np.int64), occupied_cells=np.full(num_scenes, k, np.int64),
+        occupancy=torch.as_tensor(occ), log_probs=torch.as_tensor(log_probs, dtype=torch.float32),
+        cell_features=torch.as_tensor(feats, dtype=torch.float32),
+        global_feature=torch.as_tensor(glob, dtype=torch.float32).relu(),
+        cell_area_px=torch.full((num_scenes, P, N), 192.0), valid=torch.ones(num_scenes, P, N, dtype=torch.bool),
+        perception_tag="synthetic",
+    )

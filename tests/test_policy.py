@@ -1,0 +1,195 @@
+"""Policies, the shared search loop and the view cache: move rules, routes, gradients, checkpoints."""
+
+import numpy as np
+import pytest
+import torch
+
+from synthetic_views import synthetic_cache
+from uavsearch.errors import UavsearchError
+from uavsearch.search.config import SearchConfig, lattice_index
+from uavsearch.search.fusion import fuse
+from uavsearch.search.perception import ConfidenceNet
+from uavsearch.search.policy import (
+    ArgmaxPolicy,
+    CoverageRoute,
+    GreedyUncertainty,
+    PolicyConfig,
+    PolicyNet,
+    RandomPolicy,
+    coverage_route,
+    load_search_model,
+    round_trip_half,
+    save_search_model,
+)
+from uavsearch.search.search_loop import (
+    Agent,
+    CachedViews,
+    PolicyInput,
+    lattice_cell_distances,
+    lattice_moves,
+    run_search,
+    start_index,
+)
+
+CONFIG = SearchConfig()
+AHEAD, RIGHT, LEFT, BACK = range(4)
+
+
+class Fixed:
+    """Always the same action."""
+
+    def __init__(self, a):
+        self.a = a
+
+    def act(self, inp, generator=None):
+        return torch.full((inp.lattice_idx.shape[0],), self.a), None, None
+
+
+def _inp(B=3, fused=None, idx=None, visited=None, g=16):
+    P = 25
+    idx = torch.full((B,), 12) if idx is None else idx
+    if visited is None:
+        visited = torch.zeros(B, P, dtype=torch.bool)
+        visited[torch.arange(B), idx] = True
+    return PolicyInput(torch.rand(B, g), torch.ones(B, 100), torch.full((B, 100), 0.05) if fused is None else fused,
+                       idx, visited, 0, 5)
+
+
+def test_lattice_moves_follow_the_env_rules():
+    m = lattice_moves(CONFIG)
+    c = start_index(CONFIG)
+    assert c == lattice_index(CONFIG, (0, 0)) == 12
+    assert m[c, AHEAD] == lattice_index(CONFIG, (0, 1))
+    assert m[c, RIGHT] == lattice_index(CONFIG, (1, 0))
+    assert m[c, LEFT] == lattice_index(CONFIG, (-1, 0))
+    assert m[c, BACK] == lattice_index(CONFIG, (0, -1))
+    nw = lattice_index(CONFIG, (-2, 2))
+    assert m[nw, AHEAD] == nw and m[nw, LEFT] == nw  # leaving the lattice keeps the camera in place
+    assert m[nw, RIGHT] == lattice_index(CONFIG, (-1, 2))
+
+
+def test_run_search_revisits_and_start_view():
+    cache = synthetic_cache(3)
+    ep = run_search(CachedViews(cache, [0, 1, 2]), Agent("average", Fixed(AHEAD)))
+    north = [12, 7, 2, 2, 2]
+    assert ep.lattice_idx.tolist() == [north] * 3
+    assert ep.revisit.tolist() == [[False, False, False, True, True]] * 3
+    # The first fused map is the start view's own estimate (every cell is in view).
+    assert torch.allclose(ep.maps[:, 0], cache.log_probs[:3, 12, :, 1].exp().double().float(), atol=1e-6)
+    # And the last one is the average over the five views taken.
+    p = cache.log_probs[0, north, :, 1].exp()
+    assert torch.allclose(ep.maps[0, -1].float(), p.mean(0), atol=1e-6)
+
+
+def test_learned_fusion_backpropagates_into_the_confidence_net():
+    cache = synthetic_cache(2)
+    conf = ConfidenceNet(cache.cell_features.shape[-1])
+    ep = run_search(CachedViews(cache, [0, 1]), Agent("learned", RandomPolicy(), conf), generator=torch.Generator().manual_seed(0))
+    ep.maps[:, -1].sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in conf.parameters())
+
+
+def test_learned_fusion_needs_a_confidence_net_and_oracle_the_truth():
+    cache = synthetic_cache(1)
+    with pytest.raises(UavsearchError):
+        run_search(CachedViews(cache, [0]), Agent("learned", RandomPolicy()))
+    src = CachedViews(cache, [0])
+    src.labels = None
+    with pytest.raises(UavsearchError, match="ground truth"):
+        run_search(src, Agent("oracle", RandomPolicy()))
+
+
+def test_policy_net_samples_reproducibly_and_gives_log_probs():
+    torch.manual_seed(0)
+    net = PolicyNet(PolicyConfig(global_dim=16))
+    inp = _inp(B=64)
+    a1, lp, ent = net.act(inp, torch.Generator().manual_seed(3))
+    a2, _, _ = net.act(inp, torch.Generator().manual_seed(3))
+    assert torch.equal(a1, a2) and a1.shape == (64,)
+    logits = net.logits(inp)
+    assert torch.allclose(lp, torch.log_softmax(logits, -1).gather(1, a1[:, None])[:, 0])
+    assert (ent > 0).all() and (ent <= np.log(4) + 1e-6).all()
+    ag, _, _ = ArgmaxPolicy(net).act(inp)
+    assert torch.equal(ag, logits.argmax(-1))
+    # The state grows by the extras (position, visited, step) only when asked.
+    assert PolicyConfig(global_dim=16).state_in == 512 + 200 + 55
+    assert PolicyConfig(global_dim=16, extras=False).state_in == 712
+
+
+def test_random_policy_is_uniform_and_seeded():
+    r = RandomPolicy()
+    a, lp, _ = r.act(_inp(B=4000), torch.Generator().manual_seed(1))
+    assert lp is None
+    counts = torch.bincount(a, minlength=4).float() / 4000
+    assert (counts - 0.25).abs().max() < 0.03
+    assert torch.equal(a, r.act(_inp(B=4000), torch.Generator().manual_seed(1))[0])
+
+
+def test_coverage_route_never_revisits_and_sees_every_cell_closer():
+    route = coverage_route(CONFIG)
+    assert len(route) == CONFIG.budget_T - 1
+    m, pos = lattice_moves(CONFIG), [start_index(CONFIG)]
+    for a in route:
+        pos.append(int(m[pos[-1], a]))
+    assert len(set(pos)) == len(pos)
+    d = lattice_cell_distances(CONFIG)
+    assert d[pos].amin(0).sum() < d[[12, 7, 2, 2, 2]].amin(0).sum()  # beats flying straight into the edge
+    ep = run_search(CachedViews(synthetic_cache(2), [0, 1]), Agent("average", CoverageRoute(CONFIG)))
+    assert ep.lattice_idx[0].tolist() == pos == ep.lattice_idx[1].tolist()
+
+
+def test_greedy_moves_toward_uncertain_cells_and_avoids_revisits():
+    g = GreedyUncertainty(CONFIG)
+    fused = torch.full((1, 100), 0.01)
+    fused[0, [7, 8, 9, 17, 18, 19]] = 0.5  # uncertain cells in the north-east corner
+    a, _, _ = g.act(_inp(B=1, fused=fused))
+    assert a.item() in (AHEAD, RIGHT)
+    # From the centre with north and east already visited it must take a new position.
+    visited = torch.zeros(1, 25, dtype=torch.bool)
+    visited[0, [12, 7, 13]] = True
+    a, _, _ = g.act(_inp(B=1, fused=fused, visited=visited))
+    assert a.item() in (LEFT, BACK)
+
+
+def test_search_model_round_trip(tmp_path):
+    torch.manual_seed(0)
+    net, conf = PolicyNet(PolicyConfig(global_dim=16)), ConfidenceNet(6)
+    round_trip_half(net), round_trip_half(conf)
+    path = save_search_model(tmp_path / "m.pt", "learned", net, conf, {"note": 1})
+    fusion, net2, conf2, extra = load_search_model(path)
+    assert fusion == "learned" and extra == {"note": 1}
+    inp = _inp()
+    net.eval(), conf.eval()
+    assert torch.equal(net.logits(inp), net2.logits(inp))
+    x = torch.rand(5, 6)
+    assert torch.equal(conf(x), conf2(x))
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(UavsearchError):
+        load_search_model(tmp_path / "bad.pt")
+    with pytest.raises(UavsearchError):
+        load_search_model(tmp_path / "missing.pt")
+
+
+def test_view_cache_matches_live_perception_on_the_teleport_vehicle(tmp_path):
+    """The cached outputs of a scene equal running perception on a fresh capture (the flight path)."""
+    from uavsearch.search.perception import PerceptionNet
+    from uavsearch.search.search_loop import LiveViews
+    from uavsearch.search.view_cache import CacheKey, build_view_cache, load_view_cache
+    from uavsearch.search.views import TeleportVehicle
+    from uavsearch.world.scene import generate_scene
+
+    torch.manual_seed(0)
+    net = PerceptionNet().eval()
+    key = CacheKey(1, "paper", "test")
+    seed, k = key.scenes()[0]
+    path = build_view_cache(net, key, scenes=[(seed, k)], cache_dir=tmp_path, workers=1, progress=False)
+    cache = load_view_cache(path)
+    assert cache.log_probs.shape[:3] == (1, 25, 100) and cache.occupancy.sum() == k
+    assert build_view_cache(net, key, scenes=[(seed, k)], cache_dir=tmp_path, progress=False) == path  # reused
+    with TeleportVehicle(generate_scene(seed, k), CONFIG) as vehicle:
+        live = LiveViews(vehicle, net, labels=cache.occupancy[0].numpy())
+        ep_live = run_search(live, Agent("bayes", Fixed(RIGHT)))
+        ep_cache = run_search(CachedViews(cache, [0]), Agent("bayes", Fixed(RIGHT)))
+    assert torch.equal(ep_live.lattice_idx, ep_cache.lattice_idx)
+    assert torch.allclose(ep_live.maps, ep_cache.maps, atol=1e-5)
+    assert len(live.views) == CONFIG.budget_T

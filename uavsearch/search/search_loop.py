@@ -1,0 +1,258 @@
+"""One search loop, two vehicles: observe -> fuse -> choose the next view, for T views.
+
+`run_search(source, agent, T, generator)` is the whole episode of the paper's method (Fig. 2) and of
+every baseline. It is batched over B episodes and differentiable where it must be (the confidence
+scores through learned fusion, the policy's log-probabilities), so stage-2 training, the Table II
+evaluation and the flying mission controller all run this same function:
+
+- training / evaluation: `CachedViews(view_cache, scene_rows)` looks up the frozen perception's
+  outputs per (scene, lattice position); nothing is rendered;
+- one live episode (B = 1): `LiveViews(vehicle, perception)` asks any `views.Vehicle` (teleport, or
+  the MAVLink vehicle that flies) to capture at the lattice position and runs perception on the image
+  against the REPORTED pose's cell labels.
+
+Moves follow the teleport env (env.py) exactly: a move that would leave the lattice keeps the camera
+where it is, the view is re-taken and counts as a revisit.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple, Protocol
+
+import numpy as np
+import torch
+
+from uavsearch.errors import UavsearchError
+
+from .config import SearchConfig, lattice_positions
+from .fusion import fuse
+
+
+# --------------------------------------------------------------------------------------------------
+# Lattice tables (pure functions of the config)
+
+
+@functools.lru_cache(maxsize=8)
+def lattice_moves(config: SearchConfig) -> torch.Tensor:
+    """(P, A) long: the lattice index reached from position p by action a (itself if it leaves the lattice)."""
+    h, L = config.lattice_half_steps, config.lattice_size
+    moves = config.action_vectors()
+    table = np.zeros((L * L, len(moves)), dtype=np.int64)
+    for p in range(L * L):
+        row, col = divmod(p, L)
+        i, j = col - h, h - row  # east, north steps
+        for a, (di, dj) in enumerate(moves):
+            ni, nj = i + di, j + dj
+            if abs(ni) > h or abs(nj) > h:
+                ni, nj = i, j
+            table[p, a] = (h - nj) * L + (ni + h)
+    return torch.as_tensor(table)
+
+
+@functools.lru_cache(maxsize=8)
+def lattice_cell_areas(config: SearchConfig) -> torch.Tensor:
+    """(P, N) float: each cell's pixel area (F_size) in the nadir view from each lattice position."""
+    from uavsearch.geometry import cell_pixel_areas, nadir_camera_pose
+
+    return torch.as_tensor(np.stack([
+        cell_pixel_areas(config.grid, config.intrinsics, nadir_camera_pose(p)) for p in lattice_positions(config)
+    ]), dtype=torch.float32)
+
+
+@functools.lru_cache(maxsize=8)
+def lattice_cell_distances(config: SearchConfig) -> torch.Tensor:
+    """(P, N) float: horizontal distance in metres from each lattice position to each cell centre.
+
+    With a nadir camera over flat ground every cell has the same pixel area wherever it is in the image;
+    what changes with the view is how far off-nadir the cell is (parallax, people hidden by buildings
+    and trees), which is this distance.
+    """
+    pos = lattice_positions(config)[:, None, :2]
+    return torch.as_tensor(np.linalg.norm(pos - config.grid.centers_enu[None, :, :2], axis=-1), dtype=torch.float32)
+
+
+def start_index(config: SearchConfig) -> int:
+    """The lattice centre: the start position above the middle of the search area."""
+    return (config.lattice_size * config.lattice_size) // 2
+
+
+# --------------------------------------------------------------------------------------------------
+# Views in, per-view perception outputs out
+
+
+class Observation(NamedTuple):
+    """What the frozen perception says about one view, batched over episodes."""
+
+    log_probs: torch.Tensor  # (B, N, 2)
+    cell_features: torch.Tensor  # (B, N, D) the confidence network's input
+    global_feature: torch.Tensor  # (B, G) the image embedding's input
+    cell_area_px: torch.Tensor  # (B, N) F_size
+    valid: torch.Tensor  # (B, N) bool: the view measured the cell (c^t)
+
+
+class ViewSource(Protocol):
+    """Where views come from: cached perception outputs, or a vehicle plus a perception net."""
+
+    config: SearchConfig
+    batch_size: int
+    labels: torch.Tensor | None  # (B, N) bool ground truth if known (oracle fusion and scoring only)
+
+    def observe(self, lattice_idx: torch.Tensor) -> Observation: ...
+
+
+class CachedViews:
+    """B episodes over cached scenes: `scene_rows[b]` is episode b's row in the view cache."""
+
+    def __init__(self, cache, scene_rows, config: SearchConfig | None = None):
+        self.cache = cache
+        self.rows = torch.as_tensor(np.asarray(scene_rows), dtype=torch.long)
+        self.config = config or SearchConfig()
+        self.batch_size = int(self.rows.numel())
+        self.labels = cache.occupancy[self.rows]
+        if cache.num_positions != self.config.lattice_size ** 2:
+            raise UavsearchError(f"view cache has {cache.num_positions} positions, the config's lattice "
+                                 f"{self.config.lattice_size ** 2}")
+
+    def observe(self, lattice_idx: torch.Tensor) -> Observation:
+        r, p = self.rows, lattice_idx
+        c = self.cache
+        return Observation(c.log_probs[r, p], c.cell_features[r, p], c.global_feature[r, p], c.cell_area_px[r, p],
+                           c.valid[r, p])
+
+
+class LiveViews:
+    """One episode on a vehicle: capture at the lattice position, run perception on the image (B = 1).
+
+    The cell labels come from the pose the vehicle REPORTS, so pose error becomes projection error.
+    `views` keeps every captured View (the flight log records them).
+    """
+
+    def __init__(self, vehicle, perception, labels=None):
+        self.vehicle, self.perception = vehicle, perception.eval()
+        self.config: SearchConfig = vehicle.config
+        self.batch_size = 1
+        self.labels = None if labels is None else torch.as_tensor(np.asarray(labels)).bool().reshape(1, -1)
+        self._lattice = lattice_positions(self.config)
+        self.views: list = []
+
+    @torch.no_grad()
+    def observe(self, lattice_idx: torch.Tensor) -> Observation:
+        view = self.vehicle.capture(self._lattice[int(lattice_idx.reshape(-1)[0])])
+        self.views.append(view)
+        o = self.perception.forward_all(view.image[None], view.cell_label[None])
+        valid = torch.as_tensor(view.cells_in_view).reshape(1, -1) & (o.cell_pixels > 0)
+        return Observation(o.log_probs, o.cell_features, o.global_feature,
+                           torch.as_tensor(view.cell_area_px, dtype=torch.float32).reshape(1, -1), valid)
+
+
+# --------------------------------------------------------------------------------------------------
+# The loop
+
+
+class PolicyInput(NamedTuple):
+    """Everything a policy may look at before choosing the move after view t (Eq. 9's s^t, unencoded)."""
+
+    global_feature: torch.Tensor  # (B, G) of the current view
+    cells_in_view: torch.Tensor  # (B, N) float c^t
+    fused: torch.Tensor  # (B, N) M-bar^t, fused p(y=1) over views 0..t (detached)
+    lattice_idx: torch.Tensor  # (B,) current position
+    visited: torch.Tensor  # (B, P) bool, positions visited so far
+    step: int  # t, 0 for the start view
+    budget_T: int
+
+
+class Policy(Protocol):
+    def act(self, inp: PolicyInput, generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor | None,
+                                                                                 torch.Tensor | None]:
+        """(actions (B,) long, log p(a) (B,) or None, entropy (B,) or None)."""
+
+
+class Agent(NamedTuple):
+    """A row of Table II: a fusion method, its confidence net (learned fusion only) and a policy."""
+
+    fusion: str
+    policy: Policy
+    confidence: torch.nn.Module | None = None
+
+
+class Episode(NamedTuple):
+    """B episodes of T views."""
+
+    lattice_idx: torch.Tensor  # (B, T) position of each view
+    actions: torch.Tensor  # (B, T-1)
+    log_prob: torch.Tensor | None  # (B, T-1) log p(a^t | s^t), with grad, for learned policies
+    entropy: torch.Tensor | None  # (B, T-1)
+    revisit: torch.Tensor  # (B, T) bool, view t re-visits a position (False for t = 0)
+    maps: torch.Tensor  # (B, T, N) fused p(y=1) after views 0..t; [:, -1] carries grad for learned fusion
+    labels: torch.Tensor | None  # (B, N) bool ground truth when the source knows it
+
+
+def fuse_views(agent: Agent, obs: list[Observation], scores: list[torch.Tensor | None],
+               labels: torch.Tensor | None) -> torch.Tensor:
+    """M-bar over the views so far with the agent's fusion method: (B, N)."""
+    p = torch.stack([o.log_probs[..., 1].exp() for o in obs], dim=1)
+    valid = torch.stack([o.valid for o in obs], dim=1)
+    kw = {}
+    if agent.fusion == "size":
+        kw["area_px"] = torch.stack([o.cell_area_px for o in obs], dim=1)
+    elif agent.fusion == "learned":
+        kw["scores"] = torch.stack(scores, dim=1)
+    elif agent.fusion == "oracle":
+        if labels is None:
+            raise UavsearchError("oracle fusion needs the ground truth, which this view source does not know")
+        kw["labels"] = labels
+    return fuse(agent.fusion, p, valid, **kw)
+
+
+def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
+               generator: torch.Generator | None = None, start_idx: int | None = None) -> Episode:
+    """Run B episodes of `budget_T` views (default config.budget_T) from the lattice centre.
+
+    Gradients flow where autograd is enabled: the last fused map w.r.t. the confidence net and the
+    log-probabilities w.r.t. a learned policy. Wrap in torch.no_grad() to evaluate.
+    """
+    config = source.config
+    T = int(budget_T or config.budget_T)
+    if agent.fusion == "learned" and agent.confidence is None:
+        raise UavsearchError("learned fusion needs a confidence network")
+    moves = lattice_moves(config)
+    B, P = source.batch_size, config.lattice_size ** 2
+    idx = torch.full((B,), start_index(config) if start_idx is None else int(start_idx), dtype=torch.long)
+    visited = torch.zeros(B, P, dtype=torch.bool)
+    arange = torch.arange(B)
+    obs: list[Observation] = []
+    scores: list[torch.Tensor | None] = []
+    positions, actions, logps, ents, revisits, maps = [], [], [], [], [], []
+    for t in range(T):
+        revisits.append(visited[arange, idx].clone())
+        visited[arange, idx] = True
+        positions.append(idx)
+        o = source.observe(idx)
+        obs.append(o)
+        scores.append(agent.confidence(o.cell_features) if agent.fusion == "learned" else None)
+        fused = fuse_views(agent, obs, scores, source.labels)
+        maps.append(fused)
+        if t == T - 1:
+            break
+        inp = PolicyInput(o.global_feature, o.valid.float(), fused.detach().float(), idx, visited.clone(), t, T)
+        a, lp, ent = agent.policy.act(inp, generator)
+        actions.append(a)
+        if lp is not None:
+            logps.append(lp)
+            ents.append(ent)
+        idx = moves[idx, a]
+    empty = torch.zeros(B, 0)
+    return Episode(
+        lattice_idx=torch.stack(positions, 1),
+        actions=torch.stack(actions, 1) if actions else empty.long(),
+        log_prob=torch.stack(logps, 1) if logps else None,
+        entropy=torch.stack(ents, 1) if ents else None,
+        revisit=torch.stack(revisits, 1),
+        maps=torch.stack(maps, 1),
+        labels=source.labels,
+    )
+
+
+__all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
+           "fuse_views", "lattice_cell_areas", "lattice_cell_distances", "lattice_moves", "run_search", "start_index"]

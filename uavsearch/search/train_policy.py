@@ -1,0 +1,319 @@
+"""Stage 2 (paper Sec. V-B): the confidence net by backprop through learned fusion, the policy by REINFORCE.
+
+CleanRL-style: `Args`, then `train(args)` does everything. Perception (backbone + classifier) is frozen:
+its per-view outputs for every (scene, lattice position) come from the view cache (view_cache.py), so
+a batch of episodes is a few tensor gathers and nothing is rendered.
+
+Per iteration: `scenes_per_batch` training scenes x `episodes_per_scene` episodes of T views each
+(search_loop.run_search), then
+- confidence net (learned fusion only), Eq. 11: the softmax (binary NLL) loss of the final fused map
+  M-bar^T against the ground truth, backpropagated through the fusion's softmax over views;
+- policy + state + embedding, Eq. 12: REINFORCE, sum_t log p(a^t | s^t) (R^t - b^t), where R^t is the
+  return from step t: the revisit penalties still to come (Eq. 15, R_re per revisit) plus the
+  classification reward at T (Eq. 14, N_tp R_tp + N_fp R_fp of the final map). Baseline b^t
+  (`baseline`): "loo" = the mean return of the other episodes of the SAME scene in the batch (the
+  scene decides most of the reward, so this removes most of the variance), or "ema" = a moving average
+  per step. Advantages are normalised over the batch; an entropy bonus keeps early exploration.
+
+For the "+ policy" baselines, `fusion` is the fusion the policy sees (M-bar^t in its state) and is
+rewarded with; only learned fusion has a confidence net to train. (For oracle fusion M-bar^t uses the
+ground truth, as the oracle does: that row is a bound, not a method.)
+
+Output: runs/<name>__<seed>__<unix time>/ with args.json (first), metrics.csv (losses/, charts/, eval/),
+learning_curve.png and model.pt, the checkpoint with the best validation AF1 (validation scenes of the
+same setting, never the test scenes); copied to `out` when given.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from uavsearch.errors import UavsearchError
+from uavsearch.paths import MODELS_DIR, RUNS_DIR
+
+from .config import SearchConfig
+from .eval_search import evaluate_agent
+from .fusion import FUSION_METHODS, fuse
+from .perception import ConfidenceNet
+from .policy import PolicyConfig, PolicyNet, round_trip_half, save_search_model
+from .search_loop import Agent, CachedViews, run_search
+from .train_perception import seed_everything
+
+
+@dataclass
+class Args:
+    setting: int = 2  # paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)
+    fusion: str = "learned"  # fusion the policy is trained with: learned | average | bayes | size | oracle
+    split: str = "paper"  # scene split: train on its train part, select on its val part
+    perception: str = str(MODELS_DIR / "perception.pt")  # frozen stage-1 checkpoint
+    out: str | None = None  # copy the best checkpoint here (e.g. models/search_s2_learned.pt)
+    name: str | None = None  # run name (default policy_s<setting>_<fusion>)
+    seed: int = 0  # seeds random, numpy, torch and the episode sampling
+    iterations: int = 600  # optimiser steps
+    scenes_per_batch: int = 16  # training scenes per batch (drawn with replacement)
+    episodes_per_scene: int = 8  # episodes per scene per batch (>= 2 for the "loo" baseline)
+    lr_policy: float = 1e-3  # Adam, policy + state + embedding
+    lr_confidence: float = 1e-3  # Adam, confidence net
+    weight_decay: float = 1e-6  # Adam L2 (the paper's alpha)
+    r_tp: float = 1.0  # R_tp, reward per true positive cell at T (Eq. 14)
+    r_fp: float = -1.0  # R_fp, reward per false positive cell at T (Eq. 14)
+    r_re: float = -0.5  # R_re, reward per revisit (Eq. 15)
+    baseline: str = "loo"  # loo (other episodes of the same scene) | ema (moving average per step)
+    ema_decay: float = 0.95  # decay of the "ema" baseline
+    entropy_coef: float = 0.01  # entropy bonus weight
+    conf_pos_weight: float = 1.0  # weight of occupied cells in the confidence loss
+    conf_episodes: int = 32  # episodes of each batch the confidence loss is taken over (dropout is costly)
+    state_extras: bool = True  # position / visited / step in the policy state (see policy.py)
+    eval_every: int = 50  # iterations between validations
+    eval_episodes: int = 8  # episodes per validation scene
+    threads: int = 1  # torch CPU threads
+    cache_dir: str | None = None  # view cache root (default cache/)
+    runs_dir: str = str(RUNS_DIR)  # parent of the run directory
+    workers: int = 2  # rendering processes when a view cache must be built
+    progress: bool = True  # tqdm bar
+    plot: bool = True  # write learning_curve.png at the end
+
+
+class TrainResult(NamedTuple):
+    run_dir: Path
+    checkpoint: Path
+    best: dict  # validation metrics of the saved checkpoint
+    seconds: float
+    steps_per_s: float  # policy steps (episodes x moves) per second of training
+
+
+def check_args(args: Args) -> None:
+    if args.fusion not in FUSION_METHODS:
+        raise UavsearchError(f"unknown fusion {args.fusion!r}; choose one of {', '.join(FUSION_METHODS)}")
+    if args.baseline not in ("loo", "ema"):
+        raise UavsearchError(f"unknown baseline {args.baseline!r}; choose loo or ema")
+    if args.baseline == "loo" and args.episodes_per_scene < 2:
+        raise UavsearchError("the loo baseline needs --episodes-per-scene >= 2")
+    if min(args.iterations, args.scenes_per_batch, args.episodes_per_scene, args.eval_every, args.eval_episodes) < 1:
+        raise UavsearchError("iterations, batch sizes, eval_every and eval_episodes must be positive")
+
+
+def load_caches(args: Args):
+    from .perception import load_perception
+    from .view_cache import get_view_cache
+
+    net, _ = load_perception(args.perception)
+    kw = dict(cache_dir=args.cache_dir, workers=args.workers, progress=args.progress)
+    return get_view_cache(net, args.setting, args.split, "train", **kw), get_view_cache(net, args.setting, args.split, "val", **kw)
+
+
+def returns(ep, final_map, labels, args: Args) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, T-1) return from each move (Eq. 13-15, undiscounted) and the (B,) classification reward."""
+    pred = final_map.detach() > 0.5
+    tp = (pred & labels).sum(1).float()
+    fp = (pred & ~labels).sum(1).float()
+    r_cls = args.r_tp * tp + args.r_fp * fp
+    r = args.r_re * ep.revisit[:, 1:].float()  # move t lands on view t + 1
+    r[:, -1] += r_cls
+    return r.flip(1).cumsum(1).flip(1), r_cls
+
+
+class _EvalScores(torch.nn.Module):
+    """The confidence net in eval mode without grad: what the rollout's M-bar^t (and reward) use."""
+
+    def __init__(self, conf: ConfidenceNet):
+        super().__init__()
+        self.conf = conf
+
+    def forward(self, x):
+        was = self.conf.training
+        self.conf.eval()
+        with torch.no_grad():
+            s = self.conf(x)
+        self.conf.train(was)
+        return s
+
+
+def confidence_loss(conf: ConfidenceNet, cache, rows, lattice_idx, pos_weight: float) -> torch.Tensor:
+    """Eq. 11: binary NLL of the learned-fusion map at T, re-fused with the net in train mode (dropout)."""
+    r = rows[:, None]
+    p = cache.log_probs[r, lattice_idx][..., 1].exp()  # (B, T, N)
+    valid = cache.valid[r, lattice_idx]
+    fused = fuse("learned", p, valid, scores=conf(cache.cell_features[r, lattice_idx])).clamp(1e-6, 1 - 1e-6)
+    y = cache.occupancy[rows]
+    w = torch.where(y, torch.full_like(fused, pos_weight), torch.ones_like(fused))
+    return -(w * torch.where(y, fused.log(), (1 - fused).log())).sum() / w.sum()
+
+
+def _plot(rows: list[dict], path: Path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    it = [r["iteration"] for r in rows]
+    ev = [r for r in rows if r.get("eval/af1") is not None]
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
+    ax[0].plot(it, [r["charts/return"] for r in rows], lw=0.8)
+    ax[0].set_title("training return (R_cls + revisits)")
+    ax[1].plot(it, [r["charts/train_af1"] for r in rows], lw=0.8, label="train AF1 (batch)")
+    ax[1].plot([r["iteration"] for r in ev], [r["eval/af1"] for r in ev], "o-", label="validation AF1")
+    ax[1].set_title("AF1 at T")
+    ax[1].legend(fontsize=8)
+    ax[2].plot(it, [r["charts/revisit_rate"] for r in rows], lw=0.8, label="revisit rate")
+    ax[2].plot(it, [r["charts/entropy"] for r in rows], lw=0.8, label="policy entropy (nats)")
+    ax[2].legend(fontsize=8)
+    for a in ax:
+        a.set_xlabel("iteration")
+        a.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def train(args: Args, caches=None) -> TrainResult:
+    """Train one policy (and, for learned fusion, its confidence net); `caches` = (train, val) ViewCaches
+    to skip loading perception (tests)."""
+    check_args(args)
+    t_start = time.perf_counter()
+    torch.set_num_threads(int(args.threads))
+    seed_everything(args.seed)
+    gen = torch.Generator().manual_seed(args.seed)
+    name = args.name or f"policy_s{args.setting}_{args.fusion}"
+    stamp = int(time.time())
+    run_dir = Path(args.runs_dir) / f"{name}__{args.seed}__{stamp}"
+    while run_dir.exists():  # two runs started within the same second
+        stamp += 1
+        run_dir = Path(args.runs_dir) / f"{name}__{args.seed}__{stamp}"
+    run_dir.mkdir(parents=True)
+    (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
+
+    train_cache, val_cache = caches if caches is not None else load_caches(args)
+    config = SearchConfig()
+    policy = PolicyNet(PolicyConfig(global_dim=int(train_cache.global_feature.shape[-1]),
+                                    num_cells=config.grid.num_cells, num_positions=config.lattice_size ** 2,
+                                    num_actions=len(config.actions), budget_T=config.budget_T,
+                                    extras=args.state_extras))
+    conf = ConfidenceNet(int(train_cache.cell_features.shape[-1])) if args.fusion == "learned" else None
+    groups = [{"params": policy.parameters(), "lr": args.lr_policy}]
+    if conf is not None:
+        groups.append({"params": conf.parameters(), "lr": args.lr_confidence})
+    opt = torch.optim.Adam(groups, weight_decay=args.weight_decay)
+    agent = Agent(args.fusion, policy, conf)  # evaluation
+    rollout_agent = Agent(args.fusion, policy, _EvalScores(conf) if conf is not None else None)
+    T, S = config.budget_T, train_cache.num_scenes
+    ema = torch.zeros(T - 1)
+    rows: list[dict] = []
+    best, best_key = {}, (-1.0, -1.0)
+    ckpt = run_dir / "model.pt"
+    csv_f = (run_dir / "metrics.csv").open("w", newline="")
+    writer = None
+    steps, roll_s = 0, 0.0
+    bar = tqdm(range(1, args.iterations + 1), desc=name, disable=not args.progress, unit="it")
+    for it in bar:
+        policy.train()
+        if conf is not None:
+            conf.train()
+        t0 = time.perf_counter()
+        scenes = torch.randint(S, (args.scenes_per_batch,), generator=gen)
+        rows_b = scenes.repeat_interleave(args.episodes_per_scene)
+        ep = run_search(CachedViews(train_cache, rows_b, config), rollout_agent, generator=gen)
+        y = ep.labels
+        final = ep.maps[:, -1]
+        R, r_cls = returns(ep, final, y, args)
+        if args.baseline == "loo":
+            g = R.view(args.scenes_per_batch, args.episodes_per_scene, -1)
+            b = (g.sum(1, keepdim=True) - g) / (args.episodes_per_scene - 1)
+            adv = (g - b).reshape_as(R)
+        else:
+            adv = R - ema
+            ema = args.ema_decay * ema + (1 - args.ema_decay) * R.mean(0)
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+        loss_pg = -(ep.log_prob * adv).mean()
+        loss_ent = -ep.entropy.mean()
+        loss = loss_pg + args.entropy_coef * loss_ent
+        loss_conf = torch.zeros(())
+        if conf is not None:
+            n = min(args.conf_episodes, len(rows_b))
+            loss_conf = confidence_loss(conf, train_cache, rows_b[:n], ep.lattice_idx[:n], args.conf_pos_weight)
+            loss = loss + loss_conf
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        dt = time.perf_counter() - t0
+        steps += ep.actions.numel()
+        roll_s += dt
+        with torch.no_grad():
+            pred = final > 0.5
+            tp, fp, fn = (pred & y).sum(1), (pred & ~y).sum(1), (~pred & y).sum(1)
+            f1 = torch.where(2 * tp + fp + fn > 0, 2 * tp / (2 * tp + fp + fn).clamp(min=1), torch.ones(len(tp)))
+        row = {"iteration": it, "losses/policy": float(loss_pg.detach()), "losses/entropy": float(-loss_ent.detach()),
+               "losses/confidence": float(loss_conf.detach()), "charts/return": float(R[:, 0].mean()),
+               "charts/r_cls": float(r_cls.mean()), "charts/train_af1": float(f1.float().mean()),
+               "charts/revisit_rate": float(ep.revisit[:, 1:].float().mean()), "charts/entropy": float(-loss_ent.detach()),
+               "charts/steps_per_s": steps / roll_s, "eval/aacc": None, "eval/af1": None}
+        if it % args.eval_every == 0 or it == args.iterations:
+            sc = evaluate_agent(val_cache, agent, args.eval_episodes, seed=10_000 + args.seed, config=config)
+            row["eval/aacc"], row["eval/af1"] = float(sc.acc[:, -1].mean()), float(sc.f1[:, -1].mean())
+            key = (row["eval/af1"], row["eval/aacc"])
+            if key > best_key:
+                best_key = key
+                best = {"iteration": it, "val_aacc": row["eval/aacc"], "val_af1": row["eval/af1"],
+                        "val_revisit": sc.revisit_rate}
+                save_search_model(ckpt, args.fusion, policy, conf,
+                                  {"args": asdict(args), "best": best, "perception_tag": train_cache.perception_tag})
+            bar.set_postfix(val_af1=f"{row['eval/af1']:.3f}", best=f"{best_key[0]:.3f}")
+        rows.append(row)
+        if writer is None:
+            writer = csv.DictWriter(csv_f, fieldnames=list(row))
+            writer.writeheader()
+        writer.writerow(row)
+    csv_f.close()
+    bar.close()
+    if args.plot:
+        _plot(rows, run_dir / "learning_curve.png", f"{name}, seed {args.seed}")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(ckpt, args.out)
+    seconds = time.perf_counter() - t_start
+    summary = {"best": best, "seconds": seconds, "train_steps_per_s": steps / max(roll_s, 1e-9),
+               "checkpoint": str(args.out or ckpt)}
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    return TrainResult(run_dir, Path(args.out) if args.out else ckpt, best, seconds, steps / max(roll_s, 1e-9))
+
+
+# --------------------------------------------------------------------------------------------------
+# CLI
+
+
+def add_train_policy_parser(subparsers) -> None:
+    """`uavsearch train policy ...` (subparsers: the `train` command's); one flag per Args field."""
+    p = subparsers.add_parser("policy", help="stage 2: confidence fusion + REINFORCE view-selection policy")
+    helps = {
+        "setting": "paper setting 1|2|3 (2, 5, 10 occupied cells)", "fusion": "learned|average|bayes|size|oracle",
+        "out": "copy the best checkpoint here (e.g. models/search_s2_learned.pt)",
+    }
+    for name, value in asdict(Args()).items():
+        flag = "--" + name.replace("_", "-")
+        if isinstance(value, bool):
+            p.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes"), default=value,
+                           help=f"true|false (default {value})")
+        else:
+            typ = type(value) if value is not None else str
+            p.add_argument(flag, type=typ, default=value, help=helps.get(name, f"default {value}"))
+    p.set_defaults(func=cmd_train_policy)
+
+
+def cmd_train_policy(args) -> int:
+    fields = set(asdict(Args()))
+    res = train(Args(**{k: v for k, v in vars(args).items() if k in fields}))
+    print(f"best validation: {json.dumps(res.best)}")
+    print(f"{res.seconds:.0f} s, {res.steps_per_s:.0f} policy steps/s in training; run {res.run_dir}; "
+          f"checkpoint {res.checkpoint}")
+    return 0

@@ -1,0 +1,203 @@
+"""Fast teleport mode: the frozen perception's outputs for every (scene, lattice position), computed once.
+
+The policy only ever stands on lattice positions (25 for the paper), and stage 2 freezes the backbone and
+classifier, so everything stage 2 and the evaluation need from an image is a pure function of (scene,
+position, perception weights). It is computed once and kept on disk; training and evaluation never render.
+
+Two layers, both under the gitignored ``cache/`` folder:
+
+1. Renders: every lattice position of every scene of one (split, setting, part), as a dataset.py view set
+   (``cache/lattice_views/<split>_s<setting>_<part>/``, views_per_scene = all positions). Independent of
+   the perception weights, so retraining perception never re-renders.
+2. Perception outputs, one ``.npz`` per (perception weights, split, setting, part):
+   ``cache/search_views/<perception tag>/<split>_s<setting>_<part>.npz`` (numpy.savez, uncompressed):
+
+       format           () str        "uavsearch-search-views/1"
+       perception_tag   () str        first 16 hex of sha256 over the perception state dict
+       scene_seed       (S,) int64    scene seeds (generate_scene(seed, K) rebuilds a scene)
+       occupied_cells   (S,) int64    K
+       occupancy        (S, N) int8   ground truth, N = cells (100)
+       log_probs        (S, P, N, 2) float32   l_i = [log p(y=0), log p(y=1)] of the view at position p
+       cell_features    (S, P, N, D) float32   f_i, the confidence network's input (D = cell_dim)
+       global_feature   (S, P, G) float32      the image embedding's input (G = global_dim)
+       cell_area_px     (S, P, N) float32      F_size: the cell's clipped image polygon area
+       valid            (S, P, N) bool         cell measured by the view: in view (c^t) and pooled pixels > 0
+
+   P indexes config.lattice_positions (row-major from the NW corner; the centre is P // 2).
+
+A run is resumable at layer 1 (dataset.generate_views skips finished shards); layer 2 is one pass of the
+CNN over the rendered images (about a minute for a whole paper split on one core).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from uavsearch.errors import UavsearchError
+from uavsearch.paths import REPO_ROOT
+
+FORMAT = "uavsearch-search-views/1"
+CACHE_DIR = REPO_ROOT / "cache"
+PARTS = ("train", "val", "test")
+
+
+class ViewCache(NamedTuple):
+    """One (split, setting, part) in memory as torch tensors; row s is scene s, column p lattice position p."""
+
+    scene_seed: np.ndarray  # (S,)
+    occupied_cells: np.ndarray  # (S,)
+    occupancy: torch.Tensor  # (S, N) bool
+    log_probs: torch.Tensor  # (S, P, N, 2)
+    cell_features: torch.Tensor  # (S, P, N, D)
+    global_feature: torch.Tensor  # (S, P, G)
+    cell_area_px: torch.Tensor  # (S, P, N)
+    valid: torch.Tensor  # (S, P, N) bool
+    perception_tag: str
+
+    @property
+    def num_scenes(self) -> int:
+        return int(self.occupancy.shape[0])
+
+    @property
+    def num_positions(self) -> int:
+        return int(self.log_probs.shape[1])
+
+    def subset(self, rows) -> "ViewCache":
+        rows = np.asarray(rows)
+        t = torch.as_tensor(rows, dtype=torch.long)
+        return ViewCache(self.scene_seed[rows], self.occupied_cells[rows], self.occupancy[t], self.log_probs[t],
+                         self.cell_features[t], self.global_feature[t], self.cell_area_px[t], self.valid[t],
+                         self.perception_tag)
+
+
+@dataclass(frozen=True)
+class CacheKey:
+    """Which scenes a cache holds: one part of one split of one paper setting."""
+
+    setting: int
+    split: str = "paper"
+    part: str = "train"
+
+    @property
+    def name(self) -> str:
+        return f"{self.split}_s{self.setting}_{self.part}"
+
+    def scenes(self) -> list[tuple[int, int]]:
+        from uavsearch.world.settings import SETTINGS, scene_seeds
+
+        if self.part not in PARTS:
+            raise UavsearchError(f"unknown part {self.part!r}; valid: {', '.join(PARTS)}")
+        return [(int(s), SETTINGS[self.setting]) for s in scene_seeds(self.setting, self.split, self.part)]
+
+
+def perception_tag(net: torch.nn.Module) -> str:
+    """A content hash of the weights, so caches of different perception checkpoints never mix."""
+    h = hashlib.sha256()
+    for k, v in sorted(net.state_dict().items()):
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+@torch.no_grad()
+def perception_outputs(net, images: np.ndarray, labels: np.ndarray, batch: int = 25) -> dict[str, np.ndarray]:
+    """Run the frozen net over (V, H, W, 3) images with their (V, H, W) label images, in batches."""
+    net.eval()
+    out: dict[str, list] = {"log_probs": [], "cell_features": [], "global_feature": [], "cell_pixels": []}
+    for i in range(0, len(images), batch):
+        o = net.forward_all(images[i : i + batch], labels[i : i + batch])
+        for k in out:
+            out[k].append(getattr(o, k).numpy())
+    return {k: np.concatenate(v).astype(np.float32) for k, v in out.items()}
+
+
+def render_lattice_views(key: CacheKey, scenes=None, root=None, workers: int = 2, progress: bool = True) -> Path:
+    """Layer 1: render every lattice position of every scene (resumable); returns the view-set folder."""
+    from .config import SearchConfig, lattice_positions
+    from .dataset import ViewSetSpec, generate_views
+
+    scenes = list(scenes) if scenes is not None else key.scenes()
+    n_pos = len(lattice_positions(SearchConfig()))
+    spec = ViewSetSpec(name=f"lattice-{key.name}", scenes=tuple((int(s), int(k)) for s, k in scenes),
+                       views_per_scene=n_pos, include_start=True, seed=0)
+    root = Path(root) if root is not None else CACHE_DIR / "lattice_views" / key.name
+    return generate_views(spec, root=root, workers=workers, progress=progress)
+
+
+def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: int = 2,
+                     progress: bool = True) -> Path:
+    """Render (if needed) and run perception over one part; returns the .npz path (reused when present)."""
+    from .dataset import load_views
+
+    cache_dir = Path(cache_dir) if cache_dir is not None else CACHE_DIR
+    tag = perception_tag(net)
+    out = cache_dir / "search_views" / tag / f"{key.name}.npz"
+    if out.is_file():
+        return out
+    scenes = list(scenes) if scenes is not None else key.scenes()
+    root = render_lattice_views(key, scenes, root=cache_dir / "lattice_views" / key.name, workers=workers,
+                                progress=progress)
+    parts: dict[str, list] = {k: [] for k in ("log_probs", "cell_features", "global_feature", "cell_area_px",
+                                              "valid", "occupancy", "scene_seed", "occupied_cells")}
+    for s, k in tqdm(scenes, desc=f"perception {key.name}", unit="scene", disable=not progress):
+        vs = load_views(root, scenes=[(s, k)])
+        order = np.argsort(vs.lattice_index)
+        if not np.array_equal(vs.lattice_index[order], np.arange(len(order))):
+            raise UavsearchError(f"{root}: scene {s} does not hold every lattice position")
+        o = perception_outputs(net, vs.images[order], vs.label_images(order))
+        parts["log_probs"].append(o["log_probs"])
+        parts["cell_features"].append(o["cell_features"])
+        parts["global_feature"].append(o["global_feature"])
+        parts["cell_area_px"].append(vs.cell_area_px[order])
+        parts["valid"].append(vs.cells_in_view[order] & (o["cell_pixels"] > 0))
+        parts["occupancy"].append(vs.occupancy[0])
+        parts["scene_seed"].append(int(s))
+        parts["occupied_cells"].append(int(k))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.stem + ".tmp.npz")
+    np.savez(tmp, format=np.array(FORMAT), perception_tag=np.array(tag),
+             **{k: np.stack(v) if k not in ("scene_seed", "occupied_cells") else np.array(v, np.int64)
+                for k, v in parts.items()})
+    tmp.replace(out)
+    return out
+
+
+def load_view_cache(path) -> ViewCache:
+    """Read a cache .npz written by build_view_cache."""
+    path = Path(path)
+    if not path.is_file():
+        raise UavsearchError(f"view cache {path} not found")
+    try:
+        with np.load(path) as z:
+            if str(z["format"]) != FORMAT:
+                raise KeyError(f"format {z['format']}")
+            d = {k: z[k] for k in z.files}
+    except (OSError, KeyError, ValueError) as e:
+        raise UavsearchError(f"{path} is not a uavsearch view cache ({type(e).__name__}: {e}); delete it") from None
+    return ViewCache(
+        scene_seed=d["scene_seed"], occupied_cells=d["occupied_cells"],
+        occupancy=torch.as_tensor(d["occupancy"]).bool(), log_probs=torch.as_tensor(d["log_probs"]),
+        cell_features=torch.as_tensor(d["cell_features"]), global_feature=torch.as_tensor(d["global_feature"]),
+        cell_area_px=torch.as_tensor(d["cell_area_px"]), valid=torch.as_tensor(d["valid"]).bool(),
+        perception_tag=str(d["perception_tag"]),
+    )
+
+
+def get_view_cache(net, setting: int, split: str = "paper", part: str = "train", cache_dir=None,
+                   workers: int = 2, progress: bool = True) -> ViewCache:
+    """The cache of one part, building it first if needed (the one call training and evaluation make)."""
+    return load_view_cache(build_view_cache(net, CacheKey(setting, split, part), cache_dir=cache_dir,
+                                            workers=workers, progress=progress))
+
+
+def describe(cache: ViewCache) -> str:
+    return json.dumps({"scenes": cache.num_scenes, "positions": cache.num_positions,
+                       "cell_dim": int(cache.cell_features.shape[-1]), "perception": cache.perception_tag})
