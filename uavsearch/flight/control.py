@@ -103,6 +103,7 @@ class PositionControl:
         self.sp_acc = (math.nan,) * 3
         self.sp_yaw = math.nan
         self.sp_yawspeed = math.nan
+        self.set_setpoint(self.sp_pos, self.sp_vel, self.sp_acc, self.sp_yaw, self.sp_yawspeed)
         self.reset()
 
     def configure(self, p) -> None:
@@ -133,12 +134,16 @@ class PositionControl:
     def set_setpoint(self, pos_ned, vel_ned, acc_ned, yaw: float, yawspeed: float) -> None:
         self.sp_pos, self.sp_vel, self.sp_acc = pos_ned, vel_ned, acc_ned
         self.sp_yaw, self.sp_yawspeed = yaw, yawspeed
+        # which axes are controlled, worked out once per setpoint rather than every update
+        self._has_pos_xy = _finite(pos_ned[0]) and _finite(pos_ned[1])
+        self._has_vel_xy = _finite(vel_ned[0]) and _finite(vel_ned[1])
+        self._acc_ff = tuple(a if _finite(a) else 0.0 for a in acc_ned)
 
     # ------------------------------------------------------------------
     def _shape_xy(self, dt: float) -> None:
         px, py = self.sp_pos[0], self.sp_pos[1]
         vx, vy = self.sp_vel[0], self.sp_vel[1]
-        if _finite(px) and _finite(py):
+        if self._has_pos_xy:
             ex, ey = px - self.pos[0], py - self.pos[1]
             d = math.hypot(ex, ey)
             cruise = self.cruise_override_m_s or self.cruise
@@ -148,9 +153,9 @@ class PositionControl:
             n = math.hypot(vx, vy)
             if n > vmax:
                 vx, vy = vx * vmax / n, vy * vmax / n
-            if _finite(self.sp_vel[0]) and _finite(self.sp_vel[1]):
+            if self._has_vel_xy:
                 vx, vy = vx + self.sp_vel[0], vy + self.sp_vel[1]
-        elif not (_finite(vx) and _finite(vy)):
+        elif not self._has_vel_xy:
             vx = vy = 0.0
         n = math.hypot(vx, vy)
         if n > self.vel_max:
@@ -167,11 +172,11 @@ class PositionControl:
 
     def _shape_z(self, dt: float) -> None:
         pz, vz = self.sp_pos[2], self.sp_vel[2]
-        if _finite(pz):
+        if pz == pz:  # not NaN (infinities are refused upstream)
             v = self.z_p * (pz - self.pos[2])
-            if _finite(vz):
+            if vz == vz:
                 v += vz
-        elif _finite(vz):
+        elif vz == vz:
             v = vz
         else:
             v = 0.0
@@ -193,7 +198,7 @@ class PositionControl:
             dv = (self.vel[i] - self.vel_prev[i]) / dt
             self.vel_prev[i] = self.vel[i]
             self.dv_filt[i] += 0.3 * (dv - self.dv_filt[i])
-            ff = self.a_ff[i] + (self.sp_acc[i] if _finite(self.sp_acc[i]) else 0.0)
+            ff = self.a_ff[i] + self._acc_ff[i]
             acc[i] = kp * e + self.integ[i] - kd * self.dv_filt[i] + ff
         if self.ground_contact or self.maybe_landed:
             # PX4's landing thrust limit: level, integrators emptied, only the vertical push remains
@@ -230,16 +235,17 @@ class PositionControl:
         thrust = _clamp(f / self.g * self.thr_hover, self.thr_min, self.thr_max)
         self.thrust = thrust
         # yaw: follow the setpoint; NaN holds the heading at the moment it went NaN
-        if _finite(self.sp_yaw):
-            yaw_sp = self.sp_yaw
+        ysp, yrate = self.sp_yaw, self.sp_yawspeed
+        if ysp == ysp:
+            yaw_sp = ysp
             self.yaw_hold = math.nan
         else:
-            if not _finite(self.yaw_hold):
+            if self.yaw_hold != self.yaw_hold:
                 self.yaw_hold = self.yaw
-            if _finite(self.sp_yawspeed):
-                self.yaw_hold = _wrap(self.yaw_hold + self.sp_yawspeed * dt)
+            if yrate == yrate:
+                self.yaw_hold = _wrap(self.yaw_hold + yrate * dt)
             yaw_sp = self.yaw_hold
-        yawspeed_ff = self.sp_yawspeed if _finite(self.sp_yawspeed) else 0.0
+        yawspeed_ff = yrate if yrate == yrate else 0.0
         return AttitudeSetpoint(attitude_from_thrust(fx / f, fy / f, fz / f, yaw_sp), thrust, yaw_sp, yawspeed_ff)
 
 
@@ -297,13 +303,20 @@ class AttitudeControl:
         ez = w * dz - x * dy + y * dx - z * dw
         if ew < 0.0:
             ex, ey, ez = -ex, -ey, -ez
-        r = [2.0 * self.k[0] * ex, 2.0 * self.k[1] * ey, 2.0 * self.k[2] * ez]
-        if self.yawspeed_ff:
-            # the feedforward is about NED down; express it in body axes (third row of R^T)
-            r[0] += 2.0 * (x * z - w * y) * self.yawspeed_ff
-            r[1] += 2.0 * (y * z + w * x) * self.yawspeed_ff
-            r[2] += (1.0 - 2.0 * (x * x + y * y)) * self.yawspeed_ff
-        return tuple(_clamp(r[i], -self.rmax[i], self.rmax[i]) for i in range(3))
+        kr, kp, ky = self.k
+        p, q, r = 2.0 * kr * ex, 2.0 * kp * ey, 2.0 * ky * ez
+        ff = self.yawspeed_ff
+        if ff:
+            # the feedforward is about NED down; express it in body axes (third row of R)
+            p += 2.0 * (x * z - w * y) * ff
+            q += 2.0 * (y * z + w * x) * ff
+            r += (1.0 - 2.0 * (x * x + y * y)) * ff
+        mp, mq, mr = self.rmax
+        return (
+            -mp if p < -mp else (mp if p > mp else p),
+            -mq if q < -mq else (mq if q > mq else q),
+            -mr if r < -mr else (mr if r > mr else r),
+        )
 
 
 # ==================================================================================================
@@ -332,16 +345,18 @@ class RateControl:
         self.sp = rates_sp
 
     def update(self, dt: float, integrate: bool = True) -> tuple:
-        prev = self.prev or self.rates
+        rates, sp, integ = self.rates, self.sp, self.integ
+        prev = self.prev or rates
         out = [0.0, 0.0, 0.0]
-        for i in range(3):
-            e = self.sp[i] - self.rates[i]
-            d = (self.rates[i] - prev[i]) / dt
-            out[i] = _clamp(self.kp[i] * e + self.integ[i] - self.kd[i] * d, -1.0, 1.0)
+        for i in (0, 1, 2):
+            e = sp[i] - rates[i]
+            u = self.kp[i] * e + integ[i] - self.kd[i] * (rates[i] - prev[i]) / dt
+            out[i] = -1.0 if u < -1.0 else (1.0 if u > 1.0 else u)
             if integrate:
-                self.integ[i] = _clamp(self.integ[i] + self.ki[i] * e * dt, -self.ilim[i], self.ilim[i])
-        self.prev = self.rates
-        return tuple(out)
+                v, lim = integ[i] + self.ki[i] * e * dt, self.ilim[i]
+                integ[i] = -lim if v < -lim else (lim if v > lim else v)
+        self.prev = rates
+        return out
 
 
 # ==================================================================================================
@@ -361,22 +376,24 @@ class QuadXMixer:
 
     def mix(self, thrust: float, torque) -> list:
         r, p, y = torque
-        rp = [r * self.roll[i] + p * self.pitch[i] for i in range(4)]
-        yw = [y * self.yaw[i] for i in range(4)]
+        ro, pi, ya = self.roll, self.pitch, self.yaw
         lo, hi = self.idle, 1.0
-        m = [thrust + rp[i] + yw[i] for i in range(4)]
+        m = [thrust + r * ro[i] + p * pi[i] + y * ya[i] for i in (0, 1, 2, 3)]
         if max(m) > hi or min(m) < lo:
+            rp = [r * ro[i] + p * pi[i] for i in (0, 1, 2, 3)]
+            yw = [y * ya[i] for i in (0, 1, 2, 3)]
             # shrink yaw to what fits around the roll/pitch mix
             scale = 1.0
-            for i in range(4):
+            for i in (0, 1, 2, 3):
                 base = thrust + rp[i]
                 if yw[i] > 0 and base + yw[i] > hi:
                     scale = min(scale, max(0.0, (hi - base) / yw[i]))
                 elif yw[i] < 0 and base + yw[i] < lo:
                     scale = min(scale, max(0.0, (lo - base) / yw[i]))
-            m = [thrust + rp[i] + scale * yw[i] for i in range(4)]
+            m = [thrust + rp[i] + scale * yw[i] for i in (0, 1, 2, 3)]
             top, bot = max(m), min(m)
             if top - bot <= hi - lo:  # fits after a shift of the collective
                 shift = (hi - top) if top > hi else ((lo - bot) if bot < lo else 0.0)
                 m = [v + shift for v in m]
-        return [lo if v < lo else (hi if v > hi else v) for v in m]
+            m = [lo if v < lo else (hi if v > hi else v) for v in m]
+        return m

@@ -89,10 +89,6 @@ def quat_from_euler(roll: float, pitch: float, yaw: float) -> tuple:
     )
 
 
-def _skew(v) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
@@ -138,6 +134,7 @@ class NavigationEkf:
         self._H_baro_head = np.zeros((2, self.N))
         self._H_baro_head[0, 2] = 1.0
         self._H_baro_head[1, 8] = 1.0
+        self._H_all = np.vstack([self._H_gps, self._H_baro_head])
         self._R = np.eye(3)
         self.configure(params)
 
@@ -147,6 +144,9 @@ class NavigationEkf:
         sp, sv = p["EKF2_GPS_P_NOISE"], p["EKF2_GPS_V_NOISE"]
         self._R_gps = np.diag([sp * sp, sp * sp, (1.5 * sp) ** 2, sv * sv, sv * sv, (1.5 * sv) ** 2])
         self._R_baro_head = np.diag([p["EKF2_BARO_NOISE"] ** 2, p["EKF2_HEAD_NOISE"] ** 2])
+        self._R_all = np.zeros((8, 8))
+        self._R_all[:6, :6] = self._R_gps
+        self._R_all[6:, 6:] = self._R_baro_head
         self._dt_F = None  # rebuild Q
 
     # ------------------------------------------------------------------ life cycle
@@ -170,15 +170,19 @@ class NavigationEkf:
         kf = self.kf
         if dt != self._dt_F:
             self._set_dt(dt)
-        x = kf.x
-        f = np.array([accel_frd[0] - x[12, 0], accel_frd[1] - x[13, 0], accel_frd[2] - x[14, 0]])
+        xl = kf.x[9:15, 0].tolist()  # biases, as floats: the scalar work below stays in Python
+        f = np.array([accel_frd[0] - xl[3], accel_frd[1] - xl[4], accel_frd[2] - xl[5]])
         R = self._R
+        a = R @ f  # specific force in NED
+        ax, ay, az = a.tolist()
         F = kf.F
+        F[3:6, 6:9] = np.array([[0.0, az * dt, -ay * dt], [-az * dt, 0.0, ax * dt], [ay * dt, -ax * dt, 0.0]])
         Rdt = R * -dt
-        F[3:6, 6:9] = -_skew(R @ f) * dt
         F[3:6, 12:15] = Rdt
         F[6:9, 9:12] = Rdt
-        kf.predict(u=(gyro_frd, f, dt))  # nominal state via predict_x, then P = F P F' + Q
+        a[2] += self.g
+        w = (gyro_frd[0] - xl[0], gyro_frd[1] - xl[1], gyro_frd[2] - xl[2])
+        kf.predict(u=(w, a, dt))  # nominal state via predict_x, then P = F P F' + Q
 
     def _set_dt(self, dt: float) -> None:
         kf = self.kf
@@ -187,15 +191,13 @@ class NavigationEkf:
         kf.Q = np.diag([0.0, 0.0, 0.0, qv, qv, qv, qa, qa, qa, qbg, qbg, qbg, qba, qba, qba])
         self._dt_F = dt
 
-    def _propagate_nominal(self, gyro_frd, f: np.ndarray, dt: float) -> None:
+    def _propagate_nominal(self, w, a_ned: np.ndarray, dt: float) -> None:
+        """Strapdown step: acceleration (NED, gravity added) into velocity and position, rate into attitude."""
         x = self.kf.x
-        a_ned = self._R @ f
-        a_ned[2] += self.g
-        x[0:3, 0] += x[3:6, 0] * dt + 0.5 * dt * dt * a_ned
+        x[0:3, 0] += x[3:6, 0] * dt + (0.5 * dt * dt) * a_ned
         x[3:6, 0] += a_ned * dt
-        wx, wy, wz = gyro_frd[0] - x[9, 0], gyro_frd[1] - x[10, 0], gyro_frd[2] - x[11, 0]
         # attitude: body-frame increment, right-multiplied
-        self.q = quat_normalize(quat_multiply(self.q, quat_from_rotvec(wx * dt, wy * dt, wz * dt)))
+        self.q = quat_normalize(quat_multiply(self.q, quat_from_rotvec(w[0] * dt, w[1] * dt, w[2] * dt)))
         self._R = quat_to_matrix(self.q)
 
     # ------------------------------------------------------------------ measurements
@@ -214,13 +216,32 @@ class NavigationEkf:
 
     def fuse_baro_heading(self, height_above_home_m: float, mag_frd) -> None:
         """Baro height and magnetic heading in one update (one filterpy call instead of two)."""
-        roll, pitch, yaw = quat_to_euler(self.q)
-        innov = _wrap(mag_heading(mag_frd, roll, pitch) - yaw)
+        innov = self._heading_innovation(mag_frd)
         # the heading residual is taken on the circle: z carries it and Hx is the zero attitude error
         z = np.array([[-height_above_home_m], [innov]])
         H = self._H_baro_head
         self.kf.update(z, lambda _x: H, lambda x: np.array([[x[2, 0]], [x[8, 0]]]), R=self._R_baro_head)
         self._fold_attitude_error()
+
+    def fuse_all(self, position_ned, velocity_ned, height_above_home_m: float, mag_frd) -> None:
+        """GPS, baro and heading together: one 8-row update when they arrive at the same tick."""
+        innov = self._heading_innovation(mag_frd)
+        z = np.array([[*position_ned, *velocity_ned, -height_above_home_m, innov]], dtype=float).T
+        H = self._H_all
+
+        def hx(x):
+            h = np.empty((8, 1))
+            h[0:6] = x[0:6]
+            h[6, 0] = x[2, 0]
+            h[7, 0] = x[8, 0]
+            return h
+
+        self.kf.update(z, lambda _x: H, hx, R=self._R_all)
+        self._fold_attitude_error()
+
+    def _heading_innovation(self, mag_frd) -> float:
+        roll, pitch, yaw = quat_to_euler(self.q)
+        return _wrap(mag_heading(mag_frd, roll, pitch) - yaw)
 
     # ------------------------------------------------------------------ outputs
     @property

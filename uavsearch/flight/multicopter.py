@@ -86,10 +86,11 @@ class Multicopter:
         self.home = home
         self.physics_hz, self.ctrl_hz, self.ekf_hz = physics_hz, ctrl_hz, ekf_hz
         self._ctrl_div = physics_hz // ctrl_hz
+        self._dt_ctrl = 1.0 / ctrl_hz
         self._ekf_div = physics_hz // ekf_hz
         self._gps_div = physics_hz // GPS_HZ if physics_hz % GPS_HZ == 0 else None
         self._baro_div = physics_hz // BARO_MAG_HZ if physics_hz % BARO_MAG_HZ == 0 else None
-        if self._gps_div is None or self._baro_div is None:
+        if self._gps_div is None or self._baro_div is None or self._gps_div % self._baro_div:
             raise UavsearchError(f"physics_hz={physics_hz} must be a multiple of {GPS_HZ} and {BARO_MAG_HZ}")
         self.fdm = QuadFdm(home, physics_hz, start_enu, start_yaw_rad)
         self.rng = np.random.default_rng(seed)
@@ -128,6 +129,7 @@ class Multicopter:
         self.att_ctrl.configure(p)
         self.rate_ctrl.configure(p)
         self.ekf.configure(p)
+        self.sensors.configure(p)
 
     def set_cruise_speed(self, speed_m_s: float | None) -> None:
         """Override MPC_XY_CRUISE for position setpoints (MAV_CMD_DO_CHANGE_SPEED); None goes back to the param."""
@@ -171,12 +173,15 @@ class Multicopter:
 
     def _control_tick(self, k: int) -> None:
         fdm = self.fdm
-        dt_ctrl = 1.0 / self.ctrl_hz
-        imu = self.sensors.imu(fdm.body_rates_rad_s(), fdm.specific_force_frd_m_s2(), dt_ctrl)
-        g, a = imu.gyro_frd_rad_s, imu.accel_frd_m_s2
-        for i in range(3):
-            self._acc_gyro[i] += g[i]
-            self._acc_accel[i] += a[i]
+        dt_ctrl = self._dt_ctrl
+        g, a = self.sensors.imu(fdm.body_rates_rad_s(), fdm.specific_force_frd_m_s2(), dt_ctrl)
+        sg, sa = self._acc_gyro, self._acc_accel
+        sg[0] += g[0]
+        sg[1] += g[1]
+        sg[2] += g[2]
+        sa[0] += a[0]
+        sa[1] += a[1]
+        sa[2] += a[2]
         self._acc_n += 1
         bg = self._bias_g
         rates = (g[0] - bg[0], g[1] - bg[1], g[2] - bg[2])
@@ -222,11 +227,13 @@ class Multicopter:
             self._acc_n = 0
             if k % self._baro_div == 0:
                 alt = sens.baro(pos[2], 1.0 / BARO_MAG_HZ)
-                ekf.fuse_baro_heading(alt - self.home.alt_m, sens.mag(*fdm.euler_rad()))
-            if k % self._gps_div == 0:
-                fix = sens.gps(self.time_us, pos, fdm.velocity_ned_m_s(), 1.0 / GPS_HZ)
-                ekf.fuse_gps(fix.position_ned_m, fix.velocity_ned_m_s)
-                self._gps_time_us = self.time_us
+                mag = sens.mag(*fdm.euler_rad())
+                if k % self._gps_div == 0:  # all three at once: one filter update
+                    fix = sens.gps(self.time_us, pos, fdm.velocity_ned_m_s(), 1.0 / GPS_HZ)
+                    ekf.fuse_all(fix.position_ned_m, fix.velocity_ned_m_s, alt - self.home.alt_m, mag)
+                    self._gps_time_us = self.time_us
+                else:
+                    ekf.fuse_baro_heading(alt - self.home.alt_m, mag)
         self._q_out = ekf.q
         self._bias_g = tuple(ekf.kf.x[9:12, 0].tolist())
         x = ekf.kf.x[:, 0].tolist()

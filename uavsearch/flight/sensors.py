@@ -9,7 +9,6 @@ first-order Gauss-Markov for GPS position and baro), so the EKF has something re
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -62,8 +61,7 @@ class GpsFix(NamedTuple):
         return math.atan2(self.velocity_ned_m_s[1], self.velocity_ned_m_s[0]) % (2.0 * math.pi)
 
 
-@dataclass
-class ImuSample:
+class ImuSample(NamedTuple):
     gyro_frd_rad_s: tuple
     accel_frd_m_s2: tuple
 
@@ -104,27 +102,34 @@ class SensorSuite:
         self.last_baro_alt_m = math.nan
         self.last_mag_gauss = (math.nan, math.nan, math.nan)
         self.last_imu: ImuSample | None = None
+        self.configure(params)
 
     def imu(self, rates_frd, specific_force_frd, dt: float) -> ImuSample:
         """One gyro + accelerometer sample; `dt` is the time since the previous one (bias random walk)."""
-        p = self.params
-        n = self._n.take(12)
-        sg, sa = p["SIM_GYRO_NOISE"], p["SIM_ACC_NOISE"]
+        n0, n1, n2, n3, n4, n5, n6, n7, n8, n9, n10, n11 = self._n.take(12)
+        sg, sa = self._imu_noise
         kg, ka = GYRO_BIAS_RW * math.sqrt(dt), ACC_BIAS_RW * math.sqrt(dt)
         bg, ba = self.gyro_bias, self.accel_bias
-        for i in range(3):
-            bg[i] += kg * n[6 + i]
-            ba[i] += ka * n[9 + i]
+        bg[0] += kg * n6
+        bg[1] += kg * n7
+        bg[2] += kg * n8
+        ba[0] += ka * n9
+        ba[1] += ka * n10
+        ba[2] += ka * n11
         s = ImuSample(
-            (rates_frd[0] + bg[0] + sg * n[0], rates_frd[1] + bg[1] + sg * n[1], rates_frd[2] + bg[2] + sg * n[2]),
+            (rates_frd[0] + bg[0] + sg * n0, rates_frd[1] + bg[1] + sg * n1, rates_frd[2] + bg[2] + sg * n2),
             (
-                specific_force_frd[0] + ba[0] + sa * n[3],
-                specific_force_frd[1] + ba[1] + sa * n[4],
-                specific_force_frd[2] + ba[2] + sa * n[5],
+                specific_force_frd[0] + ba[0] + sa * n3,
+                specific_force_frd[1] + ba[1] + sa * n4,
+                specific_force_frd[2] + ba[2] + sa * n5,
             ),
         )
         self.last_imu = s
         return s
+
+    def configure(self, params) -> None:
+        """Copy the per-sample noise levels (read at IMU rate; called again when a parameter changes)."""
+        self._imu_noise = (params["SIM_GYRO_NOISE"], params["SIM_ACC_NOISE"])
 
     def gps(self, time_us: int, position_enu, velocity_ned, dt: float) -> GpsFix:
         """A 3D fix: true position + Gauss-Markov drift + white noise; `dt` since the previous fix."""
