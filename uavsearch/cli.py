@@ -79,6 +79,79 @@ def _add_scene_parser(sub) -> None:
 
 
 # --------------------------------------------------------------------------------------------------
+# fly / replay (the flying issue: uavsearch/search/mission_controller.py, uavsearch/logs/replay.py)
+
+
+def _cmd_fly(args) -> int:
+    from .missions import load_mission
+    from .search.mission_controller import fly, format_maps
+
+    mission = load_mission(args.mission)
+    mission = mission.with_overrides(**{"scene.seed": args.scene, "flight.speed": args.speed})
+    r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
+            progress=lambda line: print(line, flush=True))
+    print()
+    if r.fused is not None:
+        print(format_maps(r.fused, r.labels, mission.search_config().grid.n))
+    sim = f"{r.sim_time_s:.1f} s" if r.sim_time_s is not None else "n/a"
+    acc = f"{r.acc:.3f}" if r.acc is not None else "n/a"
+    f1 = f"{r.f1:.3f}" if r.f1 is not None else "n/a"
+    print(f"{r.status}: {r.steps} view(s); Aacc {acc}  F1 {f1}  sim time {sim}  wall time {r.wall_s:.1f} s "
+          f"(flight {r.flight_wall_s:.1f} s); {r.end}")
+    print(f"flight log: {r.run_dir}  (uavsearch replay {r.run_dir} --out REPLAY_DIR)")
+    return 0 if r.status == "completed" else 1
+
+
+def _speed_arg(text: str):
+    if text.lower() == "max":
+        return "max"
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"speed must be a number or 'max', got {text!r}") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError("speed must be positive")
+    return v
+
+
+def _add_fly_parser(sub) -> None:
+    p = sub.add_parser("fly", help="fly a search mission over MAVLink (starts the simulated vehicle unless --connect)",
+                       description="Take off, search with the mission's model (perception, fusion, policy choosing "
+                                   "each next view), land; print the found map beside the ground truth.")
+    p.add_argument("--mission", default=None, metavar="FILE", help="mission YAML (default missions/default.yaml)")
+    p.add_argument("--scene", type=int, default=None, metavar="SEED", help="override the mission's scene seed")
+    p.add_argument("--speed", type=_speed_arg, default=None, help="1 (real time), N (N x real time) or max")
+    p.add_argument("--out", type=Path, default=None, metavar="RUN_DIR", help="flight log directory (default runs/fly__...)")
+    p.add_argument("--connect", default=None, metavar="URL",
+                   help="fly an already running vehicle instead, e.g. udpin:127.0.0.1:14540")
+    p.add_argument("--gcs-port", type=int, default=14550,
+                   help="the started vehicle's ground-station link sends here (QGroundControl; 0: off)")
+    p.set_defaults(func=_cmd_fly)
+
+
+def _cmd_replay(args) -> int:
+    from .logs.replay import replay_command
+
+    return replay_command(args)
+
+
+def _add_replay_parser(sub) -> None:
+    p = sub.add_parser("replay", help="replay a flight log (run directory) or any MAVLink .tlog into plots and a video")
+    p.add_argument("log", type=Path, metavar="RUN_DIR|FILE.tlog", help="a flight log directory, or a telemetry log")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (PNGs, video, summary)")
+    p.add_argument("--fusion", default=None, help="re-fuse the logged per-view outputs with another method")
+    p.add_argument("--scene", type=int, default=None, metavar="SEED", help="(.tlog) scene to re-render the camera in")
+    p.add_argument("--setting", type=int, default=2, help="(.tlog) paper setting of the scene (default 2)")
+    p.add_argument("--occupied-cells", type=int, default=None, metavar="K", help="(.tlog) K instead of --setting")
+    p.add_argument("--mission", default=None, metavar="FILE",
+                   help="(.tlog) mission whose perception / fusion / home to use (default missions/default.yaml)")
+    p.add_argument("--every", type=float, default=None, metavar="S",
+                   help="(.tlog) also take a view every S seconds of the log (default: at each CAMERA_IMAGE_CAPTURED)")
+    p.add_argument("--video", choices=("gif", "mp4"), default="gif", help="video format (default gif)")
+    p.set_defaults(func=_cmd_replay)
+
+
+# --------------------------------------------------------------------------------------------------
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -92,6 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
     from .flight.sitl import add_sitl_parser
 
     add_sitl_parser(sub)
+    _add_fly_parser(sub)
+    _add_replay_parser(sub)
     return parser
 
 

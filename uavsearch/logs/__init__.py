@@ -1,0 +1,1 @@
+"""Flight logs: recording (tlog + search.jsonl) and replay."""

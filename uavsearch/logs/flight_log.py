@@ -1,0 +1,150 @@
+"""A flight log is one run directory, written as the flight goes so a flight killed mid-air stays readable:
+
+    telemetry.tlog   every MAVLink packet both ways (8-byte big-endian UNIX microseconds + raw packet),
+                     readable by pymavlink's mavlogdump.py, MAVProxy and QGroundControl
+    search.jsonl     line 1: {"type": "header", mission, scene, ground truth, grid, ...};
+                     then one {"type": "step", ...} per view (sim time, commanded waypoint, reported and
+                     true pose, image file, per-cell p(occupied), confidence scores, cells in view, cell
+                     areas, fused map, action, reward, metrics); a {"type": "failure"} line if a step failed
+    images/          the PNGs the camera wrote (img_NNNN.png)
+    captures.jsonl   the simulated camera's own record (true and estimated pose per image)
+    summary.json     the result, written at the end (replay rebuilds it from search.jsonl if absent)
+
+Every line is flushed and fsync'ed when written; a reader skips a torn last line with a warning.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LogError
+from .tlog import TlogWriter
+
+FORMAT = "uavsearch-flight-log/1"
+
+
+def _jsonable(x):
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return round(v, 6) if np.isfinite(v) else None
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.bool_,)):
+        return bool(x)
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if hasattr(x, "tolist"):
+        return _jsonable(x.tolist())
+    return x
+
+
+class FlightLogWriter:
+    """Appends the search records of one run directory; owns its telemetry tlog."""
+
+    def __init__(self, run_dir, tlog: bool = True):
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        (self.run_dir / "images").mkdir(exist_ok=True)
+        self.tlog = TlogWriter(self.run_dir / "telemetry.tlog") if tlog else None
+        self._f = open(self.run_dir / "search.jsonl", "a")
+
+    def _write(self, record: dict) -> None:
+        self._f.write(json.dumps(_jsonable(record), separators=(",", ":")) + "\n")
+        self._f.flush()
+        os.fsync(self._f.fileno())
+        if self.tlog is not None:
+            self.tlog.flush()
+
+    def header(self, **fields) -> None:
+        self._write({"type": "header", "format": FORMAT, **fields})
+
+    def step(self, **fields) -> None:
+        self._write({"type": "step", **fields})
+
+    def failure(self, **fields) -> None:
+        self._write({"type": "failure", **fields})
+
+    def summary(self, summary: dict) -> Path:
+        path = self.run_dir / "summary.json"
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
+        os.replace(tmp, path)
+        return path
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+        if self.tlog is not None:
+            self.tlog.close()
+
+
+@dataclass
+class FlightLog:
+    """A run directory read back: header, step records (in order), optional failure and summary."""
+
+    run_dir: Path
+    header: dict
+    steps: list[dict]
+    failure: dict | None
+    summary: dict | None
+    warning: str | None  # set when the file was damaged (read up to the damage)
+
+    @property
+    def labels(self) -> np.ndarray:
+        return np.asarray(self.header["labels"], dtype=bool)
+
+    def array(self, key: str) -> np.ndarray:
+        """A per-step field stacked over steps, e.g. array('p_occ') -> (T, N)."""
+        return np.asarray([s[key] for s in self.steps], dtype=float)
+
+
+def read_flight_log(run_dir) -> FlightLog:
+    """Read search.jsonl (and summary.json); a torn or corrupt line ends the read with a warning."""
+    run_dir = Path(run_dir)
+    path = run_dir / "search.jsonl"
+    if not path.is_file():
+        raise LogError(f"{run_dir} is not a flight log: no search.jsonl")
+    header, steps, failure, warning = None, [], None, None
+    with open(path, "rb") as f:
+        for n, raw in enumerate(f, 1):
+            try:
+                rec = json.loads(raw.decode("utf-8"))
+                if not isinstance(rec, dict) or "type" not in rec:
+                    raise ValueError("not a record")
+            except (ValueError, UnicodeDecodeError):
+                warning = f"{path}: damaged at line {n}; read the {len(steps)} step(s) before it"
+                break
+            if rec["type"] == "header":
+                header = rec
+            elif rec["type"] == "step":
+                steps.append(rec)
+            elif rec["type"] == "failure":
+                failure = rec
+    if header is None:
+        raise LogError(f"{path}: no header line (not a uavsearch flight log, or damaged at the start)")
+    if header.get("format") != FORMAT:
+        raise LogError(f"{path}: unknown format {header.get('format')!r} (expected {FORMAT})")
+    summary = None
+    sp = run_dir / "summary.json"
+    if sp.is_file():
+        try:
+            summary = json.loads(sp.read_text())
+        except ValueError:
+            warning = warning or f"{sp}: damaged; ignored"
+    if warning:
+        warnings.warn(warning, stacklevel=2)
+    return FlightLog(run_dir, header, steps, failure, summary, warning)
+
+
+__all__ = ["FORMAT", "FlightLog", "FlightLogWriter", "read_flight_log"]

@@ -1,0 +1,241 @@
+"""Mission files (missions/*.yaml): everything one flown search needs, validated with pydantic.
+
+A mission names the scene (a seed with a setting or K, or a saved spec), the search task (altitude, step,
+budget T, action set), the method (fusion + policy + checkpoints), how to fly (speed factor, home,
+arrival thresholds, end action) and the seeds. Unknown keys are errors (a typo must not silently fall
+back to a default). A bad file gives ONE line naming the field and the problem:
+
+    mission missions/x.yaml: search.budget_T: Input should be greater than or equal to 1 (got 0)
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .errors import MissionError
+from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
+
+DEFAULT_MISSION = MISSIONS_DIR / "default.yaml"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SceneRef(_Strict):
+    """Which world: a generated scene (seed + setting or occupied_cells) or a saved spec file."""
+
+    seed: int | None = Field(3, ge=0)
+    setting: int | None = Field(2, ge=1, le=3)
+    occupied_cells: int | None = Field(None, ge=0, le=100)
+    spec: str | None = None  # path to a scene JSON (uavsearch scene save), relative to the mission file
+
+    @property
+    def k(self) -> int:
+        from .world.settings import SETTINGS
+
+        return int(self.occupied_cells) if self.occupied_cells is not None else SETTINGS[int(self.setting or 2)]
+
+
+class SearchSection(_Strict):
+    altitude_m: float = Field(70.0, gt=0, le=120)
+    step_m: float = Field(10.0, gt=0)
+    budget_T: int = Field(5, ge=1, le=25)
+    actions: tuple[str, ...] = ("MoveAhead", "MoveRight", "MoveLeft", "MoveBack")
+
+    @field_validator("actions")
+    @classmethod
+    def _known(cls, v):
+        from .search.config import ACTIONS
+
+        bad = [a for a in v if a not in ACTIONS]
+        if bad:
+            raise ValueError(f"unknown action(s) {bad}; valid: {sorted(ACTIONS)}")
+        if not v:
+            raise ValueError("at least one action")
+        return tuple(v)
+
+
+class Home(_Strict):
+    """WGS84 position of the search area's centre (the scene origin)."""
+
+    lat_deg: float = Field(47.397742, ge=-90, le=90)
+    lon_deg: float = Field(8.545594, ge=-180, le=180)
+    alt_m: float = 488.0
+
+
+class FlightSection(_Strict):
+    speed: float | Literal["max"] = "max"  # 1 = real time, N = N x real time, max
+    arrive_radius_m: float = Field(0.5, gt=0)
+    settle_speed_m_s: float = Field(0.3, gt=0)
+    settle_time_s: float = Field(0.5, ge=0)
+    step_timeout_s: float = Field(60.0, gt=0)
+    end_action: Literal["land", "rtl", "none"] = "land"
+    vehicle_seed: int = Field(0, ge=0)  # sensor / estimator noise of the simulated vehicle
+
+    @field_validator("speed")
+    @classmethod
+    def _speed(cls, v):
+        if v != "max" and not (isinstance(v, (int, float)) and v > 0 and math.isfinite(v)):
+            raise ValueError("must be a positive number or 'max'")
+        return v
+
+
+class Mission(_Strict):
+    name: str = "mission"
+    description: str = ""
+    scene: SceneRef = SceneRef()
+    search: SearchSection = SearchSection()
+    fusion: Literal["learned", "average", "bayes", "size", "oracle"] = "learned"
+    policy: Literal["learned", "random", "coverage", "greedy"] = "learned"
+    checkpoint: str | None = None  # default: models/search_s<setting>_<fusion>.pt
+    perception: str | None = None  # default: models/perception.pt
+    policy_seed: int = Field(0, ge=0)
+    greedy_policy: bool = False  # the learned policy takes its most likely action instead of sampling
+    home: Home = Home()
+    flight: FlightSection = FlightSection()
+    source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        s = self.scene
+        if s.spec is None and s.seed is None:
+            raise ValueError("scene: give a seed or a spec file")
+        if s.occupied_cells is not None and s.setting is not None and "setting" in s.model_fields_set:
+            raise ValueError("scene: give setting OR occupied_cells, not both")
+        if self.fusion == "learned" and self.policy != "learned" and self.checkpoint is None and s.setting is None:
+            raise ValueError("learned fusion needs a checkpoint (no setting to pick a shipped one)")
+        return self
+
+    # -- derived ---------------------------------------------------------------------------------
+    @property
+    def speed_factor(self) -> float:
+        return math.inf if self.flight.speed == "max" else float(self.flight.speed)
+
+    def _resolve(self, p: str) -> Path:
+        path = Path(p).expanduser()
+        if path.is_absolute():
+            return path
+        base = Path(self.source).parent if self.source else Path.cwd()
+        for root in (base, Path.cwd(), REPO_ROOT):  # beside the mission file, then here, then the repository
+            if (root / path).exists():
+                return root / path
+        return base / path
+
+    @property
+    def setting_for_models(self) -> int:
+        if self.scene.setting is not None:
+            return int(self.scene.setting)
+        from .world.settings import SETTINGS
+
+        k = self.scene.k
+        return min(SETTINGS, key=lambda s: abs(SETTINGS[s] - k))  # nearest density's model
+
+    @property
+    def checkpoint_path(self) -> Path:
+        if self.checkpoint:
+            return self._resolve(self.checkpoint)
+        return MODELS_DIR / f"search_s{self.setting_for_models}_{self.fusion}.pt"
+
+    @property
+    def perception_path(self) -> Path:
+        return self._resolve(self.perception) if self.perception else MODELS_DIR / "perception.pt"
+
+    @property
+    def spec_path(self) -> Path | None:
+        return self._resolve(self.scene.spec) if self.scene.spec else None
+
+    def search_config(self):
+        from .search.config import SearchConfig
+
+        s = self.search
+        return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions))
+
+    def flight_settings(self):
+        from .search.mavlink_vehicle import FlightSettings
+
+        f = self.flight
+        return FlightSettings(arrive_radius_m=f.arrive_radius_m, settle_speed_m_s=f.settle_speed_m_s,
+                              settle_time_s=f.settle_time_s, step_timeout_s=f.step_timeout_s, end_action=f.end_action)
+
+    def origin(self):
+        from .geometry import GeodeticOrigin
+
+        return GeodeticOrigin(self.home.lat_deg, self.home.lon_deg, self.home.alt_m)
+
+    def scene_spec(self):
+        """The ground-truth scene (generated from the seed, or loaded from the spec file)."""
+        from .world.scene import generate_scene, load_scene
+
+        if self.spec_path is not None:
+            return load_scene(self.spec_path)
+        return generate_scene(int(self.scene.seed), self.scene.k)
+
+    def with_overrides(self, **changes) -> "Mission":
+        """A copy with dotted-path overrides ({'scene.seed': 4, 'flight.speed': 'max'}), re-validated."""
+        data = self.model_dump(mode="json")
+        for key, value in changes.items():
+            if value is None:
+                continue
+            d = data
+            *parents, leaf = key.split(".")
+            for p in parents:
+                d = d[p]
+            d[leaf] = value
+            if key == "scene.seed":
+                data["scene"]["spec"] = None
+        return mission_from_dict(data, self.source)
+
+
+def _format_error(e: ValidationError, source: str) -> str:
+    err = e.errors()[0]
+    loc = ".".join(str(x) for x in err.get("loc", ()) if not str(x).startswith("function-after"))
+    msg = err.get("msg", "invalid")
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    got = err.get("input")
+    where = f"{loc}: " if loc else ""
+    tail = f" (got {got!r})" if err.get("type") not in ("missing", "extra_forbidden", "value_error") and \
+        not isinstance(got, (dict, list)) else ""
+    if err.get("type") == "extra_forbidden":
+        msg = "unknown field"
+    more = f" [+{len(e.errors()) - 1} more]" if len(e.errors()) > 1 else ""
+    return f"mission {source}: {where}{msg}{tail}{more}"
+
+
+def mission_from_dict(data, source: str | None = None) -> Mission:
+    src = source or "<dict>"
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise MissionError(f"mission {src}: the file must be a YAML mapping of fields, got {type(data).__name__}")
+    try:
+        m = Mission.model_validate(data)
+    except ValidationError as e:
+        raise MissionError(_format_error(e, src)) from None
+    return m.model_copy(update={"source": source})
+
+
+def load_mission(path=None) -> Mission:
+    """Read and validate a mission file (default: missions/default.yaml)."""
+    path = Path(path) if path else DEFAULT_MISSION
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise MissionError(f"mission {path}: cannot read ({e.strerror or e})") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise MissionError(f"mission {path}: not valid YAML{where}: {problem}") from None
+    return mission_from_dict(data, str(path))
+
+
+__all__ = ["DEFAULT_MISSION", "Mission", "load_mission", "mission_from_dict"]

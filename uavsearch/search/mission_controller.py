@@ -1,0 +1,364 @@
+"""The mission controller: the teleport search loop (search_loop.run_search) flown on a MAVLink vehicle.
+
+There is no second loop here. `run_search` runs with `LiveViews(MavlinkVehicle, perception)` as its view
+source; this module only adds what a flight needs around it:
+
+- the agent from the mission (fusion + policy + checkpoints, as eval_search builds them);
+- recording: a thin wrapper on the policy sees each fused map M-bar^t and the move chosen after view t,
+  so every step is written to search.jsonl (and flushed) before the vehicle flies on;
+- the vehicle's life cycle: connect, take off, the search, then land / RTL even when a step fails;
+- `fly()`: by default it starts `uavsearch sitl` as a SEPARATE process on a free UDP port (real UDP,
+  nothing shared but the run directory) and flies the mission over MAVLink.
+
+The only thing taken from outside MAVLink is the TRUE camera pose for the log: the simulated camera
+writes it to captures.jsonl in the shared run directory, and the controller copies it into each step
+record (for evaluation and replay; the search itself never reads it).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import MissionError, UavsearchError
+from ..paths import MODELS_DIR, RUNS_DIR
+from .config import lattice_positions
+from .mavlink_vehicle import FlightError, MavlinkVehicle, StepFailed
+from .metrics import map_accuracy, map_f1
+from .search_loop import Agent, LiveViews, run_search
+
+# Reward weights of Eq. 13-15 as stage 2 trains with them (train_policy.Args defaults), for the log.
+R_TP, R_FP, R_RE = 1.0, -1.0, -0.5
+
+
+# --------------------------------------------------------------------------------------------------
+# The agent
+
+
+@dataclass
+class LoadedAgent:
+    agent: Agent
+    perception: torch.nn.Module
+    log_confidence: torch.nn.Module | None  # scores logged for replay's re-fusion (learned fusion's net)
+    description: str
+
+
+def load_agent(mission, config) -> LoadedAgent:
+    """Perception + fusion + policy of a mission, from its checkpoints (clear one-line errors)."""
+    from .perception import load_perception
+    from .policy import ArgmaxPolicy, CoverageRoute, GreedyUncertainty, RandomPolicy, load_search_model
+
+    perception, _ = load_perception(mission.perception_path)
+    policy, confidence, log_conf = None, None, None
+    if mission.policy == "learned":
+        fusion, net, conf, _ = load_search_model(mission.checkpoint_path)
+        if fusion != mission.fusion:
+            raise MissionError(f"mission {mission.source}: checkpoint {mission.checkpoint_path} holds a policy trained "
+                               f"with {fusion!r} fusion, the mission asks for {mission.fusion!r}")
+        if net.cfg.num_actions != len(config.actions):
+            raise MissionError(f"mission {mission.source}: checkpoint has {net.cfg.num_actions} actions, "
+                               f"search.actions has {len(config.actions)}")
+        policy = ArgmaxPolicy(net) if mission.greedy_policy else net
+        confidence = conf
+    elif mission.policy == "random":
+        policy = RandomPolicy(len(config.actions))
+    elif mission.policy == "coverage":
+        policy = CoverageRoute(config)
+    else:
+        policy = GreedyUncertainty(config)
+    learned_ck = mission.checkpoint_path if mission.fusion == "learned" and mission.checkpoint else \
+        MODELS_DIR / f"search_s{mission.setting_for_models}_learned.pt"
+    if confidence is None and (mission.fusion == "learned" or learned_ck.is_file()):
+        try:
+            _, _, confidence_ck, _ = load_search_model(learned_ck)
+        except UavsearchError:
+            if mission.fusion == "learned":
+                raise
+            confidence_ck = None
+        if mission.fusion == "learned" and confidence_ck is None:
+            raise MissionError(f"mission {mission.source}: {learned_ck} has no confidence network for learned fusion")
+        confidence = confidence_ck
+    log_conf = confidence
+    agent = Agent(mission.fusion, policy, confidence if mission.fusion == "learned" else None)
+    desc = f"{mission.fusion} fusion + {mission.policy} policy"
+    return LoadedAgent(agent, perception, log_conf, desc)
+
+
+# --------------------------------------------------------------------------------------------------
+# Recording wrappers (no loop of their own)
+
+
+class _RecordingPolicy:
+    """Passes act() through; reports (step, fused map, chosen action) to the controller."""
+
+    def __init__(self, inner, on_step):
+        self.inner, self.on_step = inner, on_step
+        self.net = getattr(inner, "net", inner)
+
+    def act(self, inp, generator=None):
+        a, lp, ent = self.inner.act(inp, generator)
+        self.on_step(inp.step, inp.fused[0], int(a[0]))
+        return a, lp, ent
+
+
+class _RecordingViews(LiveViews):
+    """LiveViews that keeps the last Observation and lattice index for the step record."""
+
+    def observe(self, lattice_idx):
+        self.last_idx = int(lattice_idx.reshape(-1)[0])
+        self.last_obs = super().observe(lattice_idx)
+        return self.last_obs
+
+
+def _true_pose(run_dir: Path, index: int) -> dict | None:
+    """The simulated camera's own record of image `index` (true pose), if it writes into this run dir."""
+    path = run_dir / "captures.jsonl"
+    if not path.is_file():
+        return None
+    with open(path) as f:
+        for line in f:
+            try:
+                rec = json.loads(line)
+            except ValueError:
+                continue
+            if rec.get("index") == index:
+                return {"position_enu": rec.get("true_position_enu_m"), "rpy_rad": rec.get("true_rpy_rad")}
+    return None
+
+
+@dataclass
+class MissionResult:
+    run_dir: Path
+    status: str  # "completed" | "failed: ..." | "interrupted"
+    fused: np.ndarray | None  # (N,) final fused p(occupied)
+    labels: np.ndarray  # (N,) ground truth
+    acc: float | None
+    f1: float | None
+    steps: int
+    positions: list = field(default_factory=list)  # commanded waypoints (ENU)
+    sim_time_s: float | None = None  # vehicle clock from connection to the end action done
+    wall_s: float = 0.0  # whole command (incl. starting the vehicle)
+    flight_wall_s: float = 0.0  # connection to the end action done
+    end: str = ""
+
+
+class SearchRecorder:
+    """Builds and writes one step record per view."""
+
+    def __init__(self, log, views: _RecordingViews, vehicle: MavlinkVehicle, loaded: LoadedAgent, labels, config,
+                 run_dir: Path, progress, T: int):
+        self.log, self.views, self.vehicle, self.loaded = log, views, vehicle, loaded
+        self.labels = np.asarray(labels, dtype=bool)
+        self.config, self.run_dir, self.progress, self.T = config, run_dir, progress, T
+        self.visited: set[int] = set()
+        self.records: list[dict] = []
+        self.lattice = lattice_positions(config)
+
+    def step(self, t: int, fused, action: int | None) -> None:
+        o, cap = self.views.last_obs, self.vehicle.last_capture
+        idx = self.views.last_idx
+        revisit = idx in self.visited
+        self.visited.add(idx)
+        fused = np.asarray(fused.detach().float(), dtype=float).reshape(-1)
+        p = o.log_probs[0, :, 1].exp().numpy()
+        scores = None
+        if self.loaded.log_confidence is not None:
+            with torch.no_grad():
+                scores = self.loaded.log_confidence(o.cell_features).reshape(-1).numpy()
+        acc = float(map_accuracy(fused, self.labels))
+        f1 = float(map_f1(fused, self.labels))
+        reward = (R_RE if revisit and t > 0 else 0.0)
+        if t == self.T - 1:
+            pred = fused > 0.5
+            reward += R_TP * float((pred & self.labels).sum()) + R_FP * float((pred & ~self.labels).sum())
+        rec = dict(
+            t=t, sim_time_s=cap.time_boot_s, wall_s=cap.wall_s, flight_time_s=cap.flight_time_s,
+            lattice_idx=idx, waypoint_enu=cap.waypoint_enu,
+            reported_position_enu=cap.reported_position_enu, reported_rpy_rad=cap.reported_rpy_rad,
+            true_pose=_true_pose(self.run_dir, cap.index), image_index=cap.index,
+            image=os.path.relpath(cap.image_path, self.run_dir) if Path(cap.image_path).is_absolute() else cap.image_path,
+            p_occ=p, scores=scores, valid=o.valid[0].numpy(), cell_area_px=o.cell_area_px[0].numpy(),
+            fused=fused, action=action, action_name=self.config.actions[action] if action is not None else None,
+            revisit=revisit, reward=reward, acc=acc, f1=f1,
+        )
+        self.log.step(**rec)
+        self.records.append(rec)
+        found = int((fused > 0.5).sum())
+        hits = int(((fused > 0.5) & self.labels).sum())
+        e, n, u = cap.reported_position_enu
+        nxt = f" -> {rec['action_name']}" if action is not None else ""
+        self.progress(f"step {t + 1}/{self.T}  at E {e:6.1f} N {n:6.1f} U {u:5.1f} m  "
+                      f"flew {cap.flight_time_s:5.1f} s  cells found {found} ({hits} of {int(self.labels.sum())} true)"
+                      f"  acc {acc:.2f} F1 {f1:.2f}{nxt}")
+
+
+def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log, run_dir: Path,
+               policy_seed: int = 0, progress=print) -> tuple[SearchRecorder, str]:
+    """Take off, run the search loop on the vehicle, record every step. Returns (recorder, status)."""
+    T = config.budget_T
+    views = _RecordingViews(vehicle, loaded.perception, labels)
+    rec = SearchRecorder(log, views, vehicle, loaded, labels, config, run_dir, progress, T)
+    agent = Agent(loaded.agent.fusion, _RecordingPolicy(loaded.agent.policy, rec.step), loaded.agent.confidence)
+    gen = torch.Generator().manual_seed(int(policy_seed))
+    status = "completed"
+    try:
+        vehicle.connect()
+        vehicle.take_off()
+        with torch.no_grad():
+            ep = run_search(views, agent, T, generator=gen)
+        rec.step(T - 1, ep.maps[0, -1], None)
+    except StepFailed as e:
+        status = f"failed: {e}"
+        log.failure(step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
+        progress(f"step {len(rec.records) + 1} failed: {e}")
+    return rec, status
+
+
+# --------------------------------------------------------------------------------------------------
+# Starting the simulated vehicle as its own process
+
+
+class SitlProcess:
+    """`uavsearch sitl` in its own process, its output in RUN_DIR/sitl.log; stopped with SIGINT."""
+
+    def __init__(self, run_dir: Path, mission, api_port: int, gcs_port: int = 0, timeout_s: float = 120.0):
+        self.log_path = Path(run_dir) / "sitl.log"
+        s, h = mission.flight, mission.home
+        if mission.spec_path is not None:
+            raise MissionError(f"mission {mission.source}: scene.spec: uavsearch sitl renders generated scenes only; "
+                               "fly a spec file with --connect to a vehicle that renders it")
+        speed = "max" if s.speed == "max" else f"{float(s.speed):g}"
+        cmd = [sys.executable, "-m", "uavsearch.flight.sitl", "--scene", str(mission.scene.seed), "--cells",
+               str(mission.scene.k), "--seed", str(s.vehicle_seed), "--speed", speed, "--out", str(run_dir),
+               "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}", "--api-port", str(api_port),
+               "--gcs-port", str(gcs_port), "--api-local-port", "0", "--gcs-local-port", "0"]
+        self._out = open(self.log_path, "w")
+        self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            text = self.log_path.read_text()
+            if "\nready" in text or text.startswith("ready"):
+                return
+            if self.proc.poll() is not None:
+                self.stop()
+                last = [ln for ln in text.strip().splitlines() if ln.strip()][-1:] or ["no output"]
+                raise FlightError(f"uavsearch sitl exited at start: {last[0]} (see {self.log_path})")
+            time.sleep(0.1)
+        self.stop()
+        raise FlightError(f"uavsearch sitl did not get ready in {timeout_s:.0f} s (see {self.log_path})")
+
+    def stop(self) -> int | None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._out.close()
+        return self.proc.returncode
+
+
+def default_run_dir(mission) -> Path:
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+    return RUNS_DIR / f"fly__{mission.name}__{stamp}"
+
+
+def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port: int = 14550) -> MissionResult:
+    """Fly `mission`: start the simulated vehicle (unless `connect` names one), search, land, log."""
+    wall0 = time.monotonic()
+    config = mission.search_config()
+    spec = mission.scene_spec()
+    labels = np.asarray(spec.occupancy_array(), dtype=bool)
+    loaded = load_agent(mission, config)
+    run_dir = Path(out) if out else default_run_dir(mission)
+    from ..logs.flight_log import FlightLogWriter
+
+    log = FlightLogWriter(run_dir)
+    (run_dir / "mission.json").write_text(mission.model_dump_json(indent=2) + "\n")
+    url = connect or "udpin:127.0.0.1:0"
+    vehicle = MavlinkVehicle(url, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
+                             image_dir=run_dir / "images", progress=progress)
+    sitl = None
+    rec, status, end, fwall0 = None, "not started", "", None
+    try:
+        log.header(mission=mission.model_dump(mode="json"), mission_file=mission.source, connect=connect,
+                   scene={"seed": spec.seed, "occupied_cells": int(labels.sum())}, labels=labels.astype(int),
+                   grid={"n": config.grid.n, "cell_m": config.grid.cell_m},
+                   config={"altitude_m": config.altitude_m, "step_m": config.step_m, "budget_T": config.budget_T,
+                           "actions": list(config.actions)},
+                   agent=loaded.description, fusion=mission.fusion, policy=mission.policy,
+                   home=mission.home.model_dump(), started_utc=datetime.now(timezone.utc).isoformat())
+        if connect is None:
+            port = vehicle.conn.port.getsockname()[1]
+            progress(f"starting uavsearch sitl (scene {spec.seed}, {int(labels.sum())} occupied cells, speed "
+                     f"{mission.flight.speed}) -> API link udp 127.0.0.1:{port}")
+            sitl = SitlProcess(run_dir, mission, api_port=port, gcs_port=gcs_port)
+        fwall0 = time.monotonic()
+        try:
+            rec, status = fly_search(vehicle, loaded, config, labels, log, run_dir, mission.policy_seed, progress)
+        except KeyboardInterrupt:
+            status = "interrupted"
+            log.failure(step=None, error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
+        except FlightError as e:
+            status = f"failed: {e}"
+            log.failure(step=None, error=str(e), sim_time_s=vehicle.sim_time_s)
+        try:
+            end = vehicle.finish()
+            progress(f"{end}")
+        except (FlightError, KeyboardInterrupt) as e:
+            end = f"end action failed: {e}"
+            progress(end)
+    finally:
+        vehicle.close()
+        if sitl is not None:
+            sitl.stop()
+    fused = None if rec is None or not rec.records else np.asarray(rec.records[-1]["fused"])
+    acc = None if fused is None else float(map_accuracy(fused, labels))
+    f1 = None if fused is None else float(map_f1(fused, labels))
+    t_first = rec.records[0]["sim_time_s"] if rec and rec.records else None
+    result = MissionResult(
+        run_dir=run_dir, status=status, fused=fused, labels=labels, acc=acc, f1=f1,
+        steps=len(rec.records) if rec else 0, positions=[r["waypoint_enu"] for r in rec.records] if rec else [],
+        sim_time_s=None if vehicle.sim_time_s is None or vehicle.connected_sim_s is None
+        else vehicle.sim_time_s - vehicle.connected_sim_s, wall_s=time.monotonic() - wall0,
+        flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end)
+    log.summary(dict(status=status, end=end, steps=result.steps, budget_T=config.budget_T, acc=acc, f1=f1,
+                     fused=fused, labels=labels.astype(int), positions=result.positions,
+                     sim_time_s=result.sim_time_s, first_view_sim_time_s=t_first, wall_s=result.wall_s,
+                     flight_wall_s=result.flight_wall_s, agent=loaded.description, scene_seed=spec.seed,
+                     occupied_cells=int(labels.sum()), speed=mission.flight.speed))
+    log.close()
+    return result
+
+
+def format_maps(fused, labels, n: int) -> str:
+    """The found map beside the ground truth, as text: '#' occupied, '.' empty; in 'found', 'x' marks a miss
+    (occupied but not found) and '!' a false alarm."""
+    f = np.asarray(fused) > 0.5
+    y = np.asarray(labels, dtype=bool)
+    lines = [f"{'found':<{2 * n}}   {'truth':<{2 * n}}"]
+    for r in range(n):
+        a, b = [], []
+        for c in range(n):
+            i = r * n + c
+            a.append("#" if f[i] and y[i] else "!" if f[i] else "x" if y[i] else ".")
+            b.append("#" if y[i] else ".")
+        lines.append(" ".join(a) + "    " + " ".join(b))
+    lines.append("(# occupied, . empty; in 'found': x missed, ! false alarm; north up, row 0 = north)")
+    return "\n".join(lines)
+
+
+__all__ = ["LoadedAgent", "MissionResult", "SitlProcess", "fly", "fly_search", "format_maps", "load_agent"]
