@@ -1,0 +1,112 @@
+"""View-set generation (real renders of tiny scene sets), its cache format, and the stage-1 smoke run."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from uavsearch.errors import UavsearchError
+from uavsearch.search.dataset import (
+    ViewSetSpec,
+    generate_views,
+    load_views,
+    perception_scenes,
+    positions_for_scene,
+    shard_path,
+)
+
+SPEC = ViewSetSpec("tiny", ((100000, 3), (110000, 7)), views_per_scene=2, seed=5)
+
+
+@pytest.fixture(scope="module")
+def tiny_root(tmp_path_factory):
+    root = tmp_path_factory.mktemp("views") / "tiny"
+    generate_views(SPEC, root, workers=1, progress=False)
+    return root
+
+
+def test_positions_are_deterministic_distinct_and_include_the_start():
+    a = positions_for_scene(SPEC, 100000, 3, 25)
+    assert np.array_equal(a, positions_for_scene(SPEC, 100000, 3, 25))
+    assert 12 in a and len(set(a.tolist())) == 2
+    spec9 = ViewSetSpec("x", SPEC.scenes, views_per_scene=9, seed=5)
+    b = positions_for_scene(spec9, 100000, 3, 25)
+    assert len(set(b.tolist())) == 9 and 12 in b
+
+
+def test_perception_scenes_avoid_test_seeds_and_cover_densities():
+    from uavsearch.world.settings import density_scenes, scene_seeds
+
+    train = perception_scenes("train", 60, seed=1)
+    seeds = {s for s, _ in train}
+    test = {s for st in (1, 2, 3) for sp in ("paper", "large") for s in scene_seeds(st, sp, "test")}
+    test |= {s for s, _ in density_scenes()}
+    assert not seeds & test
+    assert not seeds & {s for s, _ in perception_scenes("val", 30, seed=1)}
+    assert {k for _, k in train} <= set(range(1, 13)) and len({k for _, k in train}) >= 8
+    assert train == perception_scenes("train", 60, seed=1)
+
+
+def test_shards_hold_the_documented_arrays(tiny_root):
+    man = json.loads((tiny_root / "manifest.json").read_text())
+    assert man["format"] == "uavsearch-views/1" and man["spec"]["views_per_scene"] == 2
+    with np.load(shard_path(tiny_root, 100000, 3)) as z:
+        assert z["images"].shape == (2, 224, 224, 3) and z["images"].dtype == np.uint8
+        assert z["cell_area_px"].shape == (2, 100) and z["cells_in_view"].dtype == bool
+        assert int(z["occupancy"].sum()) == 3 and int(z["occupied_cells"]) == 3
+        assert z["person_px"].shape == (2, 100)
+
+
+def test_load_views_and_label_images(tiny_root):
+    vs = load_views(tiny_root)
+    assert len(vs) == 4
+    assert vs.occupancy.sum(1).tolist() == [3, 3, 7, 7]
+    lab = vs.label_images(np.arange(4))
+    assert lab.shape == (4, 224, 224)
+    # The label image agrees with the stored pixel areas (exact pixel counts vs polygon areas).
+    counts = np.bincount(lab[0][lab[0] >= 0].astype(int), minlength=100)
+    assert np.abs(counts - vs.cell_area_px[0]).max() < 30
+    start = load_views(tiny_root, start_only=True)
+    assert len(start) == 2 and (start.lattice_index == 12).all()
+
+
+def test_resume_rerenders_a_missing_shard_identically(tiny_root):
+    path = shard_path(tiny_root, 110000, 7)
+    with np.load(path) as z:
+        before = z["images"].copy()
+    path.unlink()
+    generate_views(SPEC, tiny_root, workers=1, progress=False)
+    with np.load(path) as z:
+        assert np.array_equal(z["images"], before)
+
+
+def test_a_different_spec_in_the_same_directory_is_refused(tiny_root):
+    other = ViewSetSpec("tiny", SPEC.scenes, views_per_scene=3, seed=5)
+    with pytest.raises(UavsearchError, match="different view set"):
+        generate_views(other, tiny_root, workers=1, progress=False)
+    with pytest.raises(UavsearchError, match="not a view set"):
+        load_views(tiny_root / "nowhere")
+
+
+def test_stage1_smoke_trains_and_writes_a_run(tmp_path, tiny_root):
+    from uavsearch.search.perception import load_perception
+    from uavsearch.search.train_perception import Args, train
+
+    args = Args(exp_name="smoke", seed=3, train_scenes=2, train_views_per_scene=2, val_scenes=1,
+                val_views_per_scene=1, data_dir=str(tmp_path / "data"), workers=1, steps=4, batch_size=4,
+                eval_every=2, out=str(tmp_path / "p.pt"), runs_dir=str(tmp_path / "runs"), progress=False)
+    rep = train(args)
+    run = next((tmp_path / "runs").iterdir())
+    assert {"args.json", "metrics.csv", "learning_curve.png", "perception.pt", "report.json"} <= {p.name for p in run.iterdir()}
+    lines = (run / "metrics.csv").read_text().splitlines()
+    assert lines[0].startswith("step,") and len(lines) == 5
+    assert 0.0 <= rep["eval/aacc"] <= 1.0
+    net, extra = load_perception(tmp_path / "p.pt")
+    assert extra["args"]["steps"] == 4
+    # Same seed, same data -> same weights (determinism).
+    args2 = Args(**{**args.__dict__, "out": str(tmp_path / "p2.pt"), "runs_dir": str(tmp_path / "runs2")})
+    train(args2)
+    net2, _ = load_perception(tmp_path / "p2.pt")
+    for (k, a), (_, b) in zip(net.state_dict().items(), net2.state_dict().items()):
+        assert torch.equal(a, b), k

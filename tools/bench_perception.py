@@ -1,0 +1,80 @@
+"""Perception speed on CPU: ms per view for all 100 cells, pooled (one backbone pass per image) vs the
+literal per-cell masked pass of Eq. 2 (one backbone pass per cell).
+
+    .venv/bin/python tools/bench_perception.py [--threads 2] [--repeats 3] [--checkpoint models/perception.pt]
+
+Inputs are random images with the real label image of the start view (speed does not depend on pixel
+values). CPU time (process time, all threads) is printed beside wall time because the machine is shared:
+the CPU figure is the cost, the wall figure what you get right now.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uavsearch.geometry import CameraIntrinsics, Grid, cell_label_image, nadir_camera_pose
+from uavsearch.paths import MODELS_DIR
+from uavsearch.search.perception import PerceptionNet, images_to_tensor, load_perception
+
+
+def _time(fn, repeats: int) -> tuple[float, float]:
+    fn()  # warm-up
+    w0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(repeats):
+        fn()
+    return (time.perf_counter() - w0) / repeats, (time.process_time() - c0) / repeats
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--batch", type=int, default=32, help="views per batch for the batched pooled pass")
+    ap.add_argument("--checkpoint", default=str(MODELS_DIR / "perception.pt"))
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    if Path(a.checkpoint).is_file():
+        net, _ = load_perception(a.checkpoint)
+        src = a.checkpoint
+    else:
+        net, src = PerceptionNet().eval(), "random init"
+    intr, grid = CameraIntrinsics(), Grid()
+    label = cell_label_image(grid, intr, nadir_camera_pose([0.0, 0.0, 70.0]))
+    rng = np.random.default_rng(0)
+    imgs = images_to_tensor(rng.integers(0, 256, (a.batch, intr.height_px, intr.width_px, 3), dtype=np.uint8))
+    labs = torch.as_tensor(np.repeat(label[None], a.batch, 0))
+    n_cells = int((np.bincount(label[label >= 0].astype(int), minlength=grid.num_cells) > 0).sum())
+    params = sum(p.numel() for p in net.parameters())
+    print(f"perception {src}: {params / 1e6:.2f} M parameters, backbone {net.cfg.layers}, "
+          f"{n_cells} cells in the start view, {a.threads} torch threads")
+
+    rows = []
+    with torch.no_grad():
+        w, c = _time(lambda: net(imgs[:1], labs[:1]), a.repeats)
+        rows.append(("pooled, batch 1", w * 1e3, c * 1e3))
+        w, c = _time(lambda: net(imgs, labs), a.repeats)
+        rows.append((f"pooled, batch {a.batch}", w * 1e3 / a.batch, c * 1e3 / a.batch))
+        lit_rep = max(1, a.repeats // 3)
+        w, c = _time(lambda: net.forward_literal(imgs[:1], labs[:1], batch_cells=False), lit_rep)
+        rows.append(("literal Eq. 2, one pass per cell", w * 1e3, c * 1e3))
+        w, c = _time(lambda: net.forward_literal(imgs[:1], labs[:1], batch_cells=True), lit_rep)
+        rows.append(("literal Eq. 2, cells batched", w * 1e3, c * 1e3))
+
+    base = rows[0]
+    print(f"\n| {'method (all cells of one view)':<36} | {'wall ms/view':>12} | {'CPU ms/view':>11} | {'speed-up vs literal':>19} |")
+    print(f"|{'-' * 38}|{'-' * 14}|{'-' * 13}|{'-' * 21}|")
+    lit = min(rows[2][1], rows[3][1])
+    for name, w, c in rows:
+        print(f"| {name:<36} | {w:>12.1f} | {c:>11.1f} | {lit / w:>18.1f}x |")
+    print(f"\npooled batch 1 is {rows[2][1] / base[1]:.0f}x faster than one literal pass per cell and "
+          f"{rows[3][1] / base[1]:.0f}x faster than the batched literal pass (wall).")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
