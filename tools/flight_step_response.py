@@ -26,6 +26,7 @@ ROWS = [
     ("hover_err_h_rms_m", "hover hold: horizontal error RMS (truth) [m]"),
     ("hover_err_h_max_m", "hover hold: horizontal error max (truth) [m]"),
     ("hover_err_v_rms_m", "hover hold: vertical error RMS (truth) [m]"),
+    ("hover_err_h_rms_est_m", "hover hold: horizontal error RMS (estimate) [m]"),
     ("move_settle_est_s", "10 m move: settle, estimate [s] (N,E,S,W)"),
     ("move_settle_s", "10 m move: settle, truth [s] (N,E,S,W)"),
     ("move_overshoot_est_m", "10 m move: overshoot, estimate [m]"),

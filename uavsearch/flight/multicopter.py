@@ -6,7 +6,7 @@ TrajectorySetpoint (NED, NaN = uncontrolled), arm/disarm, and advances exactly o
 measurement).
 
 Rates (all in simulated time; each must divide the one above it):
-  physics_hz  JSBSim step                           (default 200)
+  physics_hz  JSBSim step                           (default 100; the contacts are stable there)
   ctrl_hz     IMU sample, attitude + rate control   (default 100)
   ekf_hz      EKF prediction, position control,     (default 50; GPS fused at 5 Hz, baro and
               land detector, battery                 magnetometer at 10 Hz)
@@ -74,7 +74,7 @@ class Multicopter:
         seed: int,
         start_enu=(0.0, 0.0, 0.0),
         start_yaw_rad: float = 0.0,
-        physics_hz: int = 200,
+        physics_hz: int = 100,
         ctrl_hz: int = 100,
         ekf_hz: int = 50,
     ):
@@ -119,6 +119,8 @@ class Multicopter:
         self._acc_accel = [0.0, 0.0, 0.0]
         self._acc_n = 0
         self._gps_time_us = -1
+        self._att_time_us = 0
+        self._att_cache = None
         # a first IMU/GPS/baro/mag set from the resting airframe initialises the filter
         self._sample_and_estimate(initial=True)
 
@@ -186,6 +188,7 @@ class Multicopter:
         bg = self._bias_g
         rates = (g[0] - bg[0], g[1] - bg[1], g[2] - bg[2])
         self._rates = rates
+        self._att_time_us = self.time_us
         if k % self._ekf_div == 0:
             self._sample_and_estimate(initial=False)  # the prediction has consumed this sample
             self._position_tick()
@@ -239,6 +242,8 @@ class Multicopter:
         x = ekf.kf.x[:, 0].tolist()
         self._est_pos = (x[0], x[1], x[2])
         self._est_vel = (x[3], x[4], x[5])
+        self._est_time_us = self.time_us
+        self._lp_cache = self._gp_cache = None  # outputs are built lazily, once per filter update
 
     def _position_tick(self) -> None:
         dt = 1.0 / self.ekf_hz
@@ -283,25 +288,32 @@ class Multicopter:
     # ----------------------------------------------------------------------------------- outputs
     @property
     def local_position(self) -> VehicleLocalPosition:
-        std = self.ekf.position_std
-        return VehicleLocalPosition(
-            self.time_us,
-            np.array(self._est_pos),
-            np.array(self._est_vel),
-            quat_to_euler(self._q_out)[2],
-            eph_m=float(math.hypot(std[0], std[1])),
-            epv_m=float(std[2]),
-        )
+        """The EKF's position/velocity, stamped with the time of the filter update that made it."""
+        if self._lp_cache is None:
+            std = np.sqrt(np.diag(self.ekf.kf.P)[0:3])
+            self._lp_cache = VehicleLocalPosition(
+                self._est_time_us,
+                np.array(self._est_pos),
+                np.array(self._est_vel),
+                quat_to_euler(self.ekf.q)[2],
+                eph_m=float(math.hypot(std[0], std[1])),
+                epv_m=float(std[2]),
+            )
+        return self._lp_cache
 
     @property
     def attitude(self) -> VehicleAttitude:
-        return VehicleAttitude(self.time_us, np.array(self._q_out), np.array(self._rates))
+        if self._att_cache is None or self._att_cache.timestamp_us != self._att_time_us:
+            self._att_cache = VehicleAttitude(self._att_time_us, np.array(self._q_out), np.array(self._rates))
+        return self._att_cache
 
     @property
     def global_position(self) -> VehicleGlobalPosition:
-        n, e, d = self._est_pos
-        lat, lon, alt = self.home.enu_to_geodetic(np.array([e, n, -d])).tolist()
-        return VehicleGlobalPosition(self.time_us, lat, lon, alt, -d)
+        if self._gp_cache is None:
+            n, e, d = self._est_pos
+            lat, lon, alt = self.home.enu_to_geodetic(np.array([e, n, -d])).tolist()
+            self._gp_cache = VehicleGlobalPosition(self._est_time_us, lat, lon, alt, -d)
+        return self._gp_cache
 
     @property
     def true_state(self) -> VehicleTrueState:

@@ -133,6 +133,8 @@ def mission_profile(seed: int = 0, params: dict | None = None, alt_m: float = 70
     res["hover_err_h_rms_m"] = float(np.sqrt(np.mean(herr**2)))
     res["hover_err_h_max_m"] = float(herr.max())
     res["hover_err_v_rms_m"] = float(np.sqrt(np.mean(verr**2)))
+    herr_est = np.hypot(a["est_pos"][i0:, 0], a["est_pos"][i0:, 1])
+    res["hover_err_h_rms_est_m"] = float(np.sqrt(np.mean(herr_est**2)))
     # -- four 10 m moves
     settle, overshoot, settle_est, overshoot_est = [], [], [], []
     pos = np.zeros(2)
