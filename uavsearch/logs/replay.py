@@ -1,0 +1,497 @@
+"""Replay a flight: re-score it, re-fuse it, draw it, make a video of the occupancy map evolving.
+
+Two inputs:
+
+- a run directory written by `uavsearch fly` (logs/flight_log.py): the logged per-view outputs (p(occupied),
+  confidence scores, cells in view, cell areas) are re-fused with the logged method or `--fusion METHOD`
+  and re-scored against the ground truth; nothing is re-rendered;
+- any MAVLink telemetry log (`FILE.tlog`, ours or another autopilot's, e.g. a MAVSDK survey's): the camera
+  is re-rendered in the scene `--scene SEED` at the pose of each CAMERA_IMAGE_CAPTURED (or every
+  `--every S` seconds of the logged trajectory), and perception + fusion run on those views.
+
+Outputs in --out: trajectory.png (the track over the scene's top view), maps.png (the fused map after
+each view beside the ground truth), metrics.png (Aacc and F1 vs. step), replay.gif or .mp4 (one frame per
+view: camera image with the grid, fused map, track so far), replay.json (per-step numbers).
+
+A truncated or corrupt log is read up to the damage with a one-line warning (never a traceback).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import LogError, UavsearchError
+from ..geometry import GeodeticOrigin, Grid, camera_pose_from_vehicle, euler_from_quaternion
+
+# --------------------------------------------------------------------------------------------------
+# tlog reading (robust: stops at the first damaged record)
+
+
+@dataclass
+class TlogTrack:
+    """What replay needs from a telemetry log."""
+
+    t_s: np.ndarray  # (K,) log timestamps (UNIX s) of GLOBAL_POSITION_INT
+    lla: np.ndarray  # (K, 3) lat, lon (deg), alt AMSL (m)
+    rpy_at: list  # [(t_s, (roll, pitch, yaw))] from ATTITUDE
+    captures: list  # [dict(t_s, lat, lon, alt, q, index, url)] from CAMERA_IMAGE_CAPTURED
+    home: tuple | None  # (lat, lon, alt) from HOME_POSITION
+    messages: int
+    warning: str | None = None
+
+    def rpy(self, t_s: float) -> tuple[float, float, float]:
+        if not self.rpy_at:
+            return (0.0, 0.0, 0.0)
+        ts = np.array([t for t, _ in self.rpy_at])
+        return self.rpy_at[int(np.clip(np.searchsorted(ts, t_s), 0, len(ts) - 1))][1]
+
+
+def read_tlog(path) -> TlogTrack:
+    """Parse a .tlog record by record; the first truncated or corrupt record ends it with a warning."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise LogError(f"cannot read {path}: {e.strerror or e}") from None
+    mav = mavlink.MAVLink(None)
+    mav.robust_parsing = False
+    t_pos, lla, rpy_at, caps = [], [], [], []
+    home, n, off, warning = None, 0, 0, None
+    while off < len(data):
+        if off + 9 > len(data):
+            warning = f"{path}: truncated at byte {off} of {len(data)}; read {n} messages before it"
+            break
+        (usec,) = struct.unpack(">Q", data[off:off + 8])
+        magic = data[off + 8]
+        if magic == 0xFD and off + 8 + 10 <= len(data):
+            plen = data[off + 9]
+            size = 10 + plen + 2 + (13 if data[off + 10] & 0x01 else 0)
+        elif magic == 0xFE and off + 8 + 6 <= len(data):
+            size = 6 + data[off + 9] + 2
+        else:
+            kind = "truncated" if magic in (0xFD, 0xFE) else "corrupt (no MAVLink start byte)"
+            warning = f"{path}: {kind} at byte {off}; read {n} messages before it"
+            break
+        buf = data[off + 8: off + 8 + size]
+        if len(buf) < size:
+            warning = f"{path}: truncated at byte {off}; read {n} messages before it"
+            break
+        try:
+            m = mav.decode(bytearray(buf))
+        except Exception as e:  # noqa: BLE001 - bad CRC, unknown id: the damage starts here
+            if "unknown MAVLink message ID" in str(e) or "Unknown MAVLink message" in str(e):
+                off += 8 + size  # a dialect we do not know: skip it, it is not damage
+                n += 1
+                continue
+            warning = f"{path}: corrupt record at byte {off} ({str(e).splitlines()[0][:80]}); read {n} messages before it"
+            break
+        off += 8 + size
+        n += 1
+        t = usec * 1e-6
+        if t < 1e8 or t > 1e10:  # a timestamp outside 1973..2286 is not a tlog timestamp
+            warning = f"{path}: corrupt timestamp at byte {off - 8 - size}; read {n - 1} messages before it"
+            break
+        typ = m.get_type()
+        if typ == "GLOBAL_POSITION_INT" and m.get_srcComponent() in (1, 0):
+            t_pos.append(t)
+            lla.append((m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3))
+        elif typ == "ATTITUDE":
+            rpy_at.append((t, (float(m.roll), float(m.pitch), float(m.yaw))))
+        elif typ == "CAMERA_IMAGE_CAPTURED":
+            url = m.file_url if isinstance(m.file_url, str) else bytes(m.file_url).decode(errors="replace")
+            caps.append(dict(t_s=t, lat=m.lat * 1e-7, lon=m.lon * 1e-7, alt=m.alt * 1e-3, q=list(m.q),
+                             index=int(m.image_index), url=url.rstrip("\x00"), ok=int(m.capture_result)))
+        elif typ == "HOME_POSITION" and home is None:
+            home = (m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3)
+    if n == 0 and warning is None:
+        raise LogError(f"{path}: no MAVLink messages (empty, or not a telemetry log)")
+    if n == 0:
+        raise LogError(warning.replace("; read 0 messages before it", "") + " (nothing readable)")
+    # the same capture is broadcast on every link the log may have recorded: keep the first of each index
+    seen, unique = set(), []
+    for c in caps:
+        if c["index"] not in seen and c["ok"] == 1:
+            seen.add(c["index"])
+            unique.append(c)
+    return TlogTrack(np.array(t_pos), np.array(lla).reshape(-1, 3), rpy_at, unique, home, n, warning)
+
+
+# --------------------------------------------------------------------------------------------------
+# One replayed episode, from either source
+
+
+@dataclass
+class ReplayData:
+    title: str
+    grid: Grid
+    labels: np.ndarray  # (N,) bool
+    fusion: str
+    maps: np.ndarray  # (T, N) fused p(occupied) after each view
+    p_occ: np.ndarray  # (T, N)
+    valid: np.ndarray  # (T, N)
+    positions_enu: np.ndarray  # (T, 3) camera positions of the views (reported)
+    track_enu: np.ndarray  # (K, 3) the flown track
+    images: list = field(default_factory=list)  # per view: RGB array or None
+    poses: list = field(default_factory=list)  # per view: CameraPose (for the grid overlay)
+    spec: object = None
+    true_positions_enu: np.ndarray | None = None
+    logged_maps: np.ndarray | None = None  # the maps the flight itself fused (run dirs)
+    warnings: list = field(default_factory=list)
+
+    @property
+    def acc(self) -> np.ndarray:
+        from ..search.metrics import map_accuracy
+
+        return map_accuracy(self.maps, np.broadcast_to(self.labels, self.maps.shape))
+
+    @property
+    def f1(self) -> np.ndarray:
+        from ..search.metrics import map_f1
+
+        return map_f1(self.maps, np.broadcast_to(self.labels, self.maps.shape))
+
+
+def _fuse_all(method: str, p, valid, area=None, scores=None, labels=None) -> np.ndarray:
+    from ..search.fusion import FUSION_METHODS, fuse_prefixes
+
+    if method not in FUSION_METHODS:
+        raise UavsearchError(f"unknown fusion method {method!r}; choose one of {', '.join(FUSION_METHODS)}")
+    kw = {}
+    if method == "size":
+        kw["area_px"] = area
+    elif method == "learned":
+        if scores is None:
+            raise LogError("learned fusion needs confidence scores, which this log does not hold "
+                           "(it was flown without a learned confidence network)")
+        kw["scores"] = scores
+    elif method == "oracle":
+        kw["labels"] = labels
+    return np.asarray(fuse_prefixes(method, np.asarray(p, float), np.asarray(valid, bool), **kw), dtype=float)
+
+
+def _track_from_tlog(path: Path, origin: GeodeticOrigin) -> np.ndarray:
+    if not path.is_file():
+        return np.zeros((0, 3))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            tr = read_tlog(path)
+        except LogError:
+            return np.zeros((0, 3))
+    return origin.geodetic_to_enu(tr.lla) if len(tr.lla) else np.zeros((0, 3))
+
+
+def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
+    """Re-fuse and re-score a `uavsearch fly` run directory."""
+    from ..geometry import camera_pose_from_vehicle as cpv
+    from ..missions import mission_from_dict
+    from .flight_log import read_flight_log
+
+    import warnings
+
+    run_dir = Path(run_dir)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        log = read_flight_log(run_dir)
+    if not log.steps:
+        raise LogError(f"{run_dir}: the flight log has no completed step to replay"
+                       + (f" ({log.failure.get('error')})" if log.failure else ""))
+    h = log.header
+    grid = Grid(int(h["grid"]["n"]), float(h["grid"]["cell_m"]))
+    labels = log.labels
+    method = fusion or h["fusion"]
+    p, valid, area = log.array("p_occ"), log.array("valid") > 0.5, log.array("cell_area_px")
+    scores = None if any(s.get("scores") is None for s in log.steps) else log.array("scores")
+    maps = _fuse_all(method, p, valid, area, scores, labels)
+    import cv2
+
+    images, poses = [], []
+    for s in log.steps:
+        img = cv2.imread(str(run_dir / s["image"]), cv2.IMREAD_COLOR)
+        images.append(None if img is None else img[..., ::-1].copy())
+        poses.append(cpv(s["reported_position_enu"], *s["reported_rpy_rad"]))
+    spec = None
+    try:
+        mission = mission_from_dict(h["mission"], h.get("mission_file"))
+        spec = mission.scene_spec()
+        origin = mission.origin()
+    except UavsearchError:
+        origin = GeodeticOrigin()
+    true_pos = [s["true_pose"]["position_enu"] if s.get("true_pose") else None for s in log.steps]
+    data = ReplayData(
+        title=f"{run_dir.name}: {h.get('agent', '')}" + (f", re-fused with {method}" if fusion else ""),
+        grid=grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,
+        positions_enu=log.array("reported_position_enu"), track_enu=_track_from_tlog(run_dir / "telemetry.tlog", origin),
+        images=images, poses=poses, spec=spec,
+        true_positions_enu=None if any(t is None for t in true_pos) else np.asarray(true_pos, float),
+        logged_maps=log.array("fused"),
+        warnings=[str(w.message) for w in caught] + ([f"flight ended early: {log.failure.get('error')}"]
+                                                    if log.failure else []),
+    )
+    return data
+
+
+def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float | None = None,
+                progress: bool = True) -> ReplayData:
+    """Re-render the camera along any MAVLink log's trajectory in `spec` and run perception + fusion."""
+    import torch
+    from tqdm import tqdm
+
+    from ..search.mission_controller import load_agent
+    from ..search.views import make_view
+    from ..world.render import SceneRenderer
+
+    path = Path(path)
+    tr = read_tlog(path)
+    warns = [tr.warning] if tr.warning else []
+    config = mission.search_config()
+    method = fusion or mission.fusion
+    origin = GeodeticOrigin(*tr.home) if tr.home else mission.origin()
+    shots = []  # (t, lla, rpy), in log time order
+    for c in tr.captures:
+        shots.append((c["t_s"], (c["lat"], c["lon"], c["alt"]), euler_from_quaternion(c["q"])))
+    if every_s:
+        t_next = -math.inf
+        for t, lla in zip(tr.t_s, tr.lla):
+            if t >= t_next and lla[2] - origin.alt_m > 5.0:  # in the air
+                shots.append((t, tuple(lla), tr.rpy(t)))
+                t_next = t + every_s
+        shots.sort(key=lambda s: s[0])
+    if not shots:
+        raise LogError(f"{path}: no CAMERA_IMAGE_CAPTURED in the log (and no --every S to sample the track)")
+    loaded_mission = mission.model_copy(update={"fusion": method, "policy": "random"})
+    loaded = load_agent(loaded_mission, config)
+    renderer = SceneRenderer(spec, config.intrinsics, config.render)
+    p_list, valid_list, area_list, score_list, images, poses, positions = [], [], [], [], [], [], []
+    try:
+        for _, lla, rpy in tqdm(shots, desc="re-rendering views", disable=not progress, file=sys.stderr):
+            pos = origin.geodetic_to_enu(np.asarray(lla, float))
+            pose = camera_pose_from_vehicle(pos, *rpy, gimbal_stabilised=True)
+            img = np.asarray(renderer.render(pose, None).rgb)
+            view = make_view(img, pose, config.grid, config.intrinsics, None, config.min_cell_area_px)
+            with torch.no_grad():
+                o = loaded.perception.forward_all(view.image[None], view.cell_label[None])
+                p_list.append(o.log_probs[0, :, 1].exp().numpy())
+                valid_list.append(np.asarray(view.cells_in_view) & (o.cell_pixels[0].numpy() > 0))
+                area_list.append(view.cell_area_px)
+                if loaded.log_confidence is not None:
+                    score_list.append(loaded.log_confidence(o.cell_features)[0].reshape(-1).numpy())
+            images.append(img)
+            poses.append(pose)
+            positions.append(pos)
+    finally:
+        renderer.close()
+    labels = np.asarray(spec.occupancy_array(), dtype=bool)
+    scores = np.stack(score_list) if len(score_list) == len(p_list) else None
+    p, valid, area = np.stack(p_list), np.stack(valid_list), np.stack(area_list)
+    maps = _fuse_all(method, p, valid, area, scores, labels)
+    track = origin.geodetic_to_enu(tr.lla) if len(tr.lla) else np.zeros((0, 3))
+    return ReplayData(title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
+                      grid=config.grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,
+                      positions_enu=np.asarray(positions), track_enu=track, images=images, poses=poses, spec=spec,
+                      warnings=warns)
+
+
+# --------------------------------------------------------------------------------------------------
+# Figures and video
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _draw_track(ax, d: ReplayData, upto: int | None = None) -> None:
+    from ..world.topdown import draw_topdown
+
+    if d.spec is not None:
+        draw_topdown(d.spec, ax=ax)
+    else:
+        h = d.grid.half_m
+        ax.set_xlim(-h - 20, h + 20)
+        ax.set_ylim(-h - 20, h + 20)
+        ax.set_aspect("equal")
+    n = len(d.positions_enu) if upto is None else upto + 1
+    if len(d.track_enu):
+        tr = d.track_enu
+        if upto is not None and len(d.positions_enu):
+            # the track up to the view: nearest track point to that view's position, first pass
+            k = int(np.argmin(np.linalg.norm(tr[:, :2] - d.positions_enu[upto][:2], axis=1) + 0.0))
+            tr = tr[: k + 1]
+        ax.plot(tr[:, 0], tr[:, 1], "-", color="white", lw=2.2, alpha=0.8)
+        ax.plot(tr[:, 0], tr[:, 1], "-", color="tab:blue", lw=1.2, label="flown track (telemetry)")
+    pos = d.positions_enu[:n]
+    ax.plot(pos[:, 0], pos[:, 1], "o-", color="tab:red", ms=6, lw=1, label="views (reported pose)")
+    for i, q in enumerate(pos):
+        ax.annotate(str(i + 1), (q[0], q[1]), textcoords="offset points", xytext=(5, 5), color="white",
+                    fontsize=9, weight="bold")
+    if d.true_positions_enu is not None:
+        tp = d.true_positions_enu[:n]
+        ax.plot(tp[:, 0], tp[:, 1], "x", color="black", ms=7, label="views (true pose)")
+    ax.legend(loc="lower left", fontsize=7)
+
+
+def _draw_map(ax, d: ReplayData, t: int, title: str | None = None) -> None:
+    n = d.grid.n
+    h = d.grid.half_m
+    ax.imshow(d.maps[t].reshape(n, n), cmap="magma", vmin=0, vmax=1, extent=[-h, h, -h, h])
+    y = d.labels.reshape(n, n)
+    for r, c in zip(*np.nonzero(y)):
+        x0, y0 = -h + c * d.grid.cell_m, h - (r + 1) * d.grid.cell_m
+        ax.add_patch(_plt().Rectangle((x0, y0), d.grid.cell_m, d.grid.cell_m, fill=False, ec="cyan", lw=1.5))
+    ax.set_title(title or f"fused after view {t + 1}: acc {d.acc[t]:.2f} F1 {d.f1[t]:.2f}", fontsize=9)
+    ax.set_xticks([])
+    ax.set_yticks([])
+
+
+def write_figures(d: ReplayData, out: Path) -> list[Path]:
+    from ..viz import save_figure
+
+    plt = _plt()
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    fig, ax = plt.subplots(figsize=(7, 7))
+    _draw_track(ax, d)
+    ax.set_title(d.title, fontsize=9)
+    paths.append(save_figure(fig, out / "trajectory.png"))
+
+    T = len(d.maps)
+    fig, axes = plt.subplots(1, T + 1, figsize=(2.6 * (T + 1), 2.9))
+    axes = np.atleast_1d(axes)
+    for t in range(T):
+        _draw_map(axes[t], d, t)
+    n = d.grid.n
+    axes[T].imshow(d.labels.reshape(n, n), cmap="magma", vmin=0, vmax=1)
+    axes[T].set_title("ground truth", fontsize=9)
+    axes[T].set_xticks([])
+    axes[T].set_yticks([])
+    fig.suptitle(f"{d.fusion} fusion: p(occupied) per cell (cyan: occupied cells)", fontsize=10)
+    paths.append(save_figure(fig, out / "maps.png"))
+
+    fig, ax = plt.subplots(figsize=(5, 3.4))
+    steps = np.arange(1, T + 1)
+    ax.plot(steps, d.acc, "o-", label="accuracy (Eq. 16)")
+    ax.plot(steps, d.f1, "s-", label="F1 (Eq. 17)")
+    if d.logged_maps is not None and d.fusion != "logged":
+        from ..search.metrics import map_accuracy, map_f1
+
+        y = np.broadcast_to(d.labels, d.logged_maps.shape)
+        ax.plot(steps, map_f1(d.logged_maps, y), "s--", color="grey", alpha=0.6, label="F1 as flown")
+        ax.plot(steps, map_accuracy(d.logged_maps, y), "o--", color="silver", alpha=0.6, label="accuracy as flown")
+    ax.set_xlabel("view t")
+    ax.set_ylim(0, 1.02)
+    ax.set_xticks(steps)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    ax.set_title(f"metrics vs. step ({d.fusion} fusion)", fontsize=9)
+    paths.append(save_figure(fig, out / "metrics.png"))
+    return paths
+
+
+def _frame(d: ReplayData, t: int) -> np.ndarray:
+    from ..viz import draw_grid_overlay
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(12, 4.2))
+    img = d.images[t] if t < len(d.images) else None
+    if img is not None:
+        axes[0].imshow(draw_grid_overlay(img, d.poses[t], d.grid, _intrinsics_of(img), d.labels, scale=2))
+    axes[0].set_title(f"view {t + 1} (grid at the reported pose)", fontsize=9)
+    axes[0].axis("off")
+    _draw_map(axes[1], d, t)
+    _draw_track(axes[2], d, upto=t)
+    axes[2].set_title("track so far", fontsize=9)
+    fig.suptitle(d.title, fontsize=9)
+    fig.tight_layout()
+    fig.canvas.draw()
+    buf = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    plt.close(fig)
+    return buf
+
+
+def _intrinsics_of(img):
+    from ..geometry import CameraIntrinsics
+
+    c = CameraIntrinsics()
+    return c if (c.height_px, c.width_px) == img.shape[:2] else CameraIntrinsics(img.shape[1], img.shape[0], c.hfov_deg)
+
+
+def write_video(d: ReplayData, out: Path, fmt: str = "gif", seconds_per_view: float = 1.0) -> Path:
+    import imageio.v2 as imageio
+
+    frames = [_frame(d, t) for t in range(len(d.maps))]
+    path = out / f"replay.{fmt}"
+    try:
+        if fmt == "gif":
+            imageio.mimsave(path, frames, duration=seconds_per_view * 1000, loop=0)
+        else:
+            imageio.mimsave(path, frames, fps=1.0 / seconds_per_view)
+    except Exception as e:  # noqa: BLE001 - a missing codec is one line
+        raise UavsearchError(f"cannot write {path}: {e} (try --video gif)") from None
+    for t, f in enumerate(frames):
+        imageio.imwrite(out / f"frame_{t + 1:02d}.png", f)
+    return path
+
+
+def write_replay(d: ReplayData, out, video: str = "gif") -> dict:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    figs = write_figures(d, out)
+    vid = write_video(d, out, video)
+    res = {"title": d.title, "fusion": d.fusion, "views": len(d.maps),
+           "acc": [float(a) for a in d.acc], "f1": [float(f) for f in d.f1],
+           "positions_enu": np.round(d.positions_enu, 3).tolist(), "final_map": np.round(d.maps[-1], 4).tolist(),
+           "labels": d.labels.astype(int).tolist(), "warnings": d.warnings,
+           "files": [p.name for p in figs] + [vid.name]}
+    (out / "replay.json").write_text(json.dumps(res, indent=2) + "\n")
+    return res
+
+
+# --------------------------------------------------------------------------------------------------
+# CLI
+
+
+def replay_command(args) -> int:
+    src = Path(args.log)
+    if src.is_dir():
+        d = replay_run_dir(src, args.fusion)
+    elif src.is_file():
+        from ..missions import load_mission
+        from ..world.scene import generate_scene
+        from ..world.settings import resolve_k
+
+        if args.scene is None:
+            raise UavsearchError("replaying a .tlog needs --scene SEED (the scene to re-render the camera in)")
+        k = resolve_k(args.occupied_cells, is_setting=False) if args.occupied_cells is not None \
+            else resolve_k(args.setting)
+        mission = load_mission(args.mission)
+        d = replay_tlog(src, generate_scene(args.scene, k), mission, args.fusion, args.every)
+    else:
+        raise LogError(f"{src}: no such run directory or telemetry log")
+    for w in d.warnings:
+        print(f"uavsearch: warning: {w}", file=sys.stderr)
+    res = write_replay(d, args.out, args.video)
+    print(f"{'view':>4} {'east':>7} {'north':>7} {'up':>6} {'acc':>6} {'F1':>6}")
+    for t, (pos, a, f) in enumerate(zip(d.positions_enu, res["acc"], res["f1"])):
+        print(f"{t + 1:>4} {pos[0]:7.1f} {pos[1]:7.1f} {pos[2]:6.1f} {a:6.3f} {f:6.3f}")
+    print(f"{d.fusion} fusion over {len(d.maps)} view(s): final Aacc {res['acc'][-1]:.3f}  F1 {res['f1'][-1]:.3f}")
+    print(f"wrote {', '.join(res['files'])}, frame_*.png, replay.json to {args.out}")
+    return 0
+
+
+__all__ = ["ReplayData", "TlogTrack", "read_tlog", "replay_command", "replay_run_dir", "replay_tlog", "write_replay"]
