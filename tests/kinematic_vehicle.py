@@ -84,7 +84,7 @@ class KinematicVehicle:
 
     @property
     def local_position(self):
-        return VehicleLocalPosition(self.time_us, self.p.copy(), self.v.copy(), self.yaw, True, True, 0.5, 0.8)
+        return VehicleLocalPosition(self.time_us, self.p.copy(), self.v.copy(), self.yaw, True, True, 0.5, 0.3)
 
     @property
     def attitude(self):

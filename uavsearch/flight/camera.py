@@ -44,8 +44,10 @@ class CaptureRecord:
 class Camera:
     """Single shots and interval capture; `render` maps a CameraPose to an RGB uint8 image."""
 
-    def __init__(self, vehicle, intrinsics: CameraIntrinsics, run_dir: Path, render: Callable[[CameraPose], np.ndarray] | None):
+    def __init__(self, vehicle, intrinsics: CameraIntrinsics, run_dir: Path, render: Callable[[CameraPose], np.ndarray] | None,
+                 home_alt_amsl_m: Callable[[], float] | None = None):
         self.vehicle = vehicle
+        self.home_alt_amsl_m = home_alt_amsl_m  # the autopilot's home, for relative altitudes
         self.intrinsics = intrinsics
         self.run_dir = Path(run_dir)
         self.render = render
@@ -117,7 +119,7 @@ class Camera:
             lat_deg=float(gp.lat_deg),
             lon_deg=float(gp.lon_deg),
             alt_amsl_m=float(gp.alt_amsl_m),
-            alt_rel_home_m=float(gp.alt_rel_home_m),
+            alt_rel_home_m=float(gp.alt_amsl_m - self.home_alt_amsl_m()) if self.home_alt_amsl_m else float(gp.alt_rel_home_m),
             q_wxyz=q,
             true_position_enu_m=tuple(float(x) for x in ts.position_enu_m),
             true_rpy_rad=(float(ts.roll_rad), float(ts.pitch_rad), float(ts.yaw_rad)),

@@ -172,6 +172,11 @@ class Commander:
             return LANDED_LANDING
         return LANDED_IN_AIR
 
+    @property
+    def home_alt_amsl_m(self) -> float:
+        """Relative altitudes (GLOBAL_POSITION_INT, camera captures) are above this home, as in PX4."""
+        return float(self.origin.alt_m - self.home_ned[2])
+
     def home_lla(self) -> np.ndarray:
         from ..geometry import ned_to_enu
 
@@ -475,7 +480,7 @@ class Commander:
         self.wall_s = wall_s
         lp = v.local_position
         ld = v.land_detected
-        if not self.home_set and lp.xy_valid and lp.z_valid:
+        if not self.home_set and self._estimate_settled(lp):
             self.home_ned = np.array(lp.position_ned_m, dtype=float)
             self.navigator.home_ned = self.home_ned.copy()
             self.home_set = True
@@ -493,6 +498,10 @@ class Commander:
                 )
             v.set_setpoint(sp)
             self._last_sp = sp
+
+    def _estimate_settled(self, lp) -> bool:
+        """Home is taken once the estimator has converged (its first fix is about a metre off)."""
+        return bool(lp.xy_valid and lp.z_valid and lp.eph_m < 1.5 and lp.epv_m < 0.5 and self.now_us >= 1_000_000)
 
     def _check_landing(self, ld) -> None:
         if not ld.landed:

@@ -413,7 +413,7 @@ class MavlinkEndpoint:
         hdg = int(round(math.degrees(lp.heading_rad) % 360.0 * 100)) % 36000
         return M.MAVLink_global_position_int_message(
             self._time_boot_ms(), int(round(gp.lat_deg * 1e7)), int(round(gp.lon_deg * 1e7)), int(round(gp.alt_amsl_m * 1000)),
-            int(round(gp.alt_rel_home_m * 1000)), int(round(v[0] * 100)), int(round(v[1] * 100)), int(round(v[2] * 100)), hdg,
+            int(round((gp.alt_amsl_m - self.cmd.home_alt_amsl_m) * 1000)), int(round(v[0] * 100)), int(round(v[1] * 100)), int(round(v[2] * 100)), hdg,
         )
 
     def _gps_raw(self):

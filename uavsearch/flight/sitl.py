@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -87,7 +88,8 @@ class Sitl:
         self._close_render = None
         if render is None and cfg.scene_seed is not None:
             render, self._close_render = scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, seed=cfg.seed)
-        self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render)
+        self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render,
+                             home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m)
         links = []
         if cfg.api_port:
             links.append(LinkConfig("api", cfg.api_port, local_port=cfg.api_local_port, signing_key=cfg.signing_key,
@@ -274,11 +276,20 @@ def run_sitl_command(args) -> int:
     print(sitl.banner(), flush=True)
     wall0 = time.monotonic()
     sim0 = sitl.time_s
+    stop = []
+
+    def request_stop(signum, _frame):
+        stop.append(signum)
+
+    # Explicit handlers: a background job's SIGINT may be ignored by the shell, and SIGTERM should be clean too.
+    previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
-        sitl.run(args.duration)
+        sitl.run(args.duration, stop=lambda: bool(stop))
     except KeyboardInterrupt:
         pass
     finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
         sitl.close()
         wall = time.monotonic() - wall0
         sim = sitl.time_s - sim0
