@@ -155,3 +155,33 @@ def test_mavsdk_mission_progress_rtl(sitl_no_scene):
 
     _run(flight())
 
+
+
+def test_mavsdk_offboard_position_then_hold(sitl_no_scene):
+    from mavsdk.asyncio.plugins.offboard import OffboardAsync
+    from mavsdk.plugins.offboard import PositionNedYaw
+
+    async def flight():
+        md, system = await _connect(sitl_no_scene.api_port)
+        try:
+            action, tel, offboard = ActionAsync(system), TelemetryAsync(system), OffboardAsync(system)
+            assert await _first(tel.subscribe_health_all_ok(), bool, 20)
+            await action.arm()
+            await offboard.set_position_ned(PositionNedYaw(0.0, 0.0, -5.0, 0.0))  # a setpoint before start
+            await offboard.start()
+            await _first(tel.subscribe_flight_mode(), lambda m: m.name == "OFFBOARD", 10)
+            await offboard.set_position_ned(PositionNedYaw(5.0, 5.0, -5.0, 0.0))
+            pv = await _first(
+                tel.subscribe_position_velocity_ned(),
+                lambda pv: math.dist((pv.position.north_m, pv.position.east_m, pv.position.down_m), (5, 5, -5)) < 0.4,
+                30,
+            )
+            assert pv is not None
+            await offboard.stop()  # MAVSDK switches to Hold
+            await _first(tel.subscribe_flight_mode(), lambda m: m.name == "HOLD", 10)
+            await action.land()
+            await _first(tel.subscribe_armed(), lambda armed: not armed, 60)
+        finally:
+            md.destroy()
+
+    _run(flight())
