@@ -38,7 +38,7 @@ def _timed(fn):
     return time.perf_counter() - w0, time.process_time() - c0
 
 
-def bench_fdm(seconds: float = 60.0, physics_hz: int = 200) -> list[tuple[str, float, str]]:
+def bench_fdm(seconds: float = 60.0, physics_hz: int = 100) -> list[tuple[str, float, str]]:
     rows = []
     # JSBSim alone: the airframe at hover thrust, commands written every step as the controller would
     fdm = QuadFdm(GeodeticOrigin(), physics_hz, start_enu=(0.0, 0.0, 20.0))

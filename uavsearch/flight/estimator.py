@@ -135,7 +135,7 @@ class NavigationEkf:
         self._H_baro_head[0, 2] = 1.0
         self._H_baro_head[1, 8] = 1.0
         self._H_all = np.vstack([self._H_gps, self._H_baro_head])
-        self._R = np.eye(3)
+        self._set_q(self.q)
         self.configure(params)
 
     def configure(self, p) -> None:
@@ -156,8 +156,7 @@ class NavigationEkf:
         roll = math.atan2(-ay, -az)
         pitch = math.atan2(ax, math.hypot(ay, az))
         yaw = mag_heading(mag_frd, roll, pitch)
-        self.q = quat_from_euler(roll, pitch, yaw)
-        self._R = quat_to_matrix(self.q)
+        self._set_q(quat_from_euler(roll, pitch, yaw))
         kf = self.kf
         kf.x = np.zeros((self.N, 1))
         kf.x[0:3, 0] = position_ned
@@ -170,19 +169,19 @@ class NavigationEkf:
         kf = self.kf
         if dt != self._dt_F:
             self._set_dt(dt)
-        xl = kf.x[9:15, 0].tolist()  # biases, as floats: the scalar work below stays in Python
-        f = np.array([accel_frd[0] - xl[3], accel_frd[1] - xl[4], accel_frd[2] - xl[5]])
-        R = self._R
-        a = R @ f  # specific force in NED
-        ax, ay, az = a.tolist()
+        xl = kf.x[:, 0].tolist()  # as floats: the 3-vector work below is cheaper in Python than in numpy
+        fx, fy, fz = accel_frd[0] - xl[12], accel_frd[1] - xl[13], accel_frd[2] - xl[14]
+        (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = self._Rl
+        ax = r00 * fx + r01 * fy + r02 * fz  # specific force in NED
+        ay = r10 * fx + r11 * fy + r12 * fz
+        az = r20 * fx + r21 * fy + r22 * fz
         F = kf.F
-        F[3:6, 6:9] = np.array([[0.0, az * dt, -ay * dt], [-az * dt, 0.0, ax * dt], [ay * dt, -ax * dt, 0.0]])
-        Rdt = R * -dt
+        F[3:6, 6:9] = ((0.0, az * dt, -ay * dt), (-az * dt, 0.0, ax * dt), (ay * dt, -ax * dt, 0.0))
+        Rdt = self._R * -dt
         F[3:6, 12:15] = Rdt
         F[6:9, 9:12] = Rdt
-        a[2] += self.g
-        w = (gyro_frd[0] - xl[0], gyro_frd[1] - xl[1], gyro_frd[2] - xl[2])
-        kf.predict(u=(w, a, dt))  # nominal state via predict_x, then P = F P F' + Q
+        w = (gyro_frd[0] - xl[9], gyro_frd[1] - xl[10], gyro_frd[2] - xl[11])
+        kf.predict(u=(xl, w, (ax, ay, az + self.g), dt))  # nominal state via predict_x, then P = F P F' + Q
 
     def _set_dt(self, dt: float) -> None:
         kf = self.kf
@@ -191,22 +190,31 @@ class NavigationEkf:
         kf.Q = np.diag([0.0, 0.0, 0.0, qv, qv, qv, qa, qa, qa, qbg, qbg, qbg, qba, qba, qba])
         self._dt_F = dt
 
-    def _propagate_nominal(self, w, a_ned: np.ndarray, dt: float) -> None:
+    def _propagate_nominal(self, xl, w, a_ned, dt: float) -> None:
         """Strapdown step: acceleration (NED, gravity added) into velocity and position, rate into attitude."""
-        x = self.kf.x
-        x[0:3, 0] += x[3:6, 0] * dt + (0.5 * dt * dt) * a_ned
-        x[3:6, 0] += a_ned * dt
+        h = 0.5 * dt * dt
+        self.kf.x[0:6, 0] = (
+            xl[0] + xl[3] * dt + h * a_ned[0],
+            xl[1] + xl[4] * dt + h * a_ned[1],
+            xl[2] + xl[5] * dt + h * a_ned[2],
+            xl[3] + a_ned[0] * dt,
+            xl[4] + a_ned[1] * dt,
+            xl[5] + a_ned[2] * dt,
+        )
         # attitude: body-frame increment, right-multiplied
-        self.q = quat_normalize(quat_multiply(self.q, quat_from_rotvec(w[0] * dt, w[1] * dt, w[2] * dt)))
-        self._R = quat_to_matrix(self.q)
+        self._set_q(quat_normalize(quat_multiply(self.q, quat_from_rotvec(w[0] * dt, w[1] * dt, w[2] * dt))))
+
+    def _set_q(self, q) -> None:
+        self.q = q
+        self._R = quat_to_matrix(q)
+        self._Rl = self._R.tolist()
 
     # ------------------------------------------------------------------ measurements
     def _fold_attitude_error(self) -> None:
         x = self.kf.x
         dq = quat_from_rotvec(x[6, 0], x[7, 0], x[8, 0])
-        self.q = quat_normalize(quat_multiply(dq, self.q))  # world-frame error: left-multiplied
+        self._set_q(quat_normalize(quat_multiply(dq, self.q)))  # world-frame error: left-multiplied
         x[6:9, 0] = 0.0
-        self._R = quat_to_matrix(self.q)
 
     def fuse_gps(self, position_ned, velocity_ned) -> None:
         z = np.array([[*position_ned, *velocity_ned]], dtype=float).T

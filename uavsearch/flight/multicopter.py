@@ -213,7 +213,8 @@ class Multicopter:
     def _sample_and_estimate(self, initial: bool) -> None:
         fdm, sens, ekf = self.fdm, self.sensors, self.ekf
         k = self.step_count
-        pos = fdm.position_enu_m()
+        if initial or k % self._baro_div == 0:
+            pos = fdm.position_enu_m()
         if initial:
             imu = sens.imu(fdm.body_rates_rad_s(), fdm.specific_force_frd_m_s2(), 1.0 / self.ctrl_hz)
             fix = sens.gps(self.time_us, pos, fdm.velocity_ned_m_s(), 1.0 / GPS_HZ)
@@ -238,8 +239,8 @@ class Multicopter:
                 else:
                     ekf.fuse_baro_heading(alt - self.home.alt_m, mag)
         self._q_out = ekf.q
-        self._bias_g = tuple(ekf.kf.x[9:12, 0].tolist())
         x = ekf.kf.x[:, 0].tolist()
+        self._bias_g = (x[9], x[10], x[11])
         self._est_pos = (x[0], x[1], x[2])
         self._est_vel = (x[3], x[4], x[5])
         self._est_time_us = self.time_us
