@@ -19,6 +19,7 @@ backstop for a vehicle that stopped talking. Every packet both ways goes to the 
 from __future__ import annotations
 
 import math
+import os
 import time
 import urllib.parse
 import urllib.request
@@ -44,6 +45,22 @@ MODE_RTL = (4, 5)
 # SYS_STATUS sensor bits the autopilot must report present and healthy before we arm.
 HEALTH_BITS = (M.MAV_SYS_STATUS_SENSOR_3D_GYRO | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL | M.MAV_SYS_STATUS_SENSOR_3D_MAG
                | M.MAV_SYS_STATUS_SENSOR_GPS)
+
+
+# Telemetry this client reads, at the rates it needs (Hz); everything else the autopilot streams on our link
+# is turned off with SET_MESSAGE_INTERVAL, as MAVSDK does. At --speed max the vehicle streams at N x real
+# time and a Python client must not fall behind its own socket (a late COMMAND_ACK looks like a lost one).
+STREAM_RATES_HZ = {
+    M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
+    M.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+    M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 2.0,
+    M.MAVLINK_MSG_ID_ATTITUDE: 2.0,
+    M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 0.0,
+    M.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 0.0,
+    M.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
+    M.MAVLINK_MSG_ID_VFR_HUD: 0.0,
+    M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 0.0,
+}
 
 
 class FlightError(UavsearchError):
@@ -132,6 +149,7 @@ class MavlinkVehicle:
         self.tlog = tlog
         self.image_dir = Path(image_dir) if image_dir else None
         self.progress = progress  # callable(str) for status lines, or None
+        os.environ["MAVLINK20"] = "1"  # speak MAVLink 2 from the first packet (pymavlink switches to it anyway)
         try:
             self.conn = mavutil.mavlink_connection(url, source_system=source_system,
                                                    source_component=source_component, dialect="common")
@@ -288,6 +306,8 @@ class MavlinkVehicle:
         self._say(f"connecting to {self.url} ...")
         self._wait(lambda: self._hb, st.connect_timeout_s, f"no heartbeat on {self.url}")
         self._heartbeat(force=True)
+        for mid, hz in STREAM_RATES_HZ.items():
+            self.command_long(M.MAV_CMD_SET_MESSAGE_INTERVAL, mid, 1e6 / hz if hz > 0 else -1)
         self._wait(self._healthy, st.connect_timeout_s, "vehicle not healthy (SYS_STATUS sensors, position)")
         self.connected_sim_s = self.sim_time_s
 

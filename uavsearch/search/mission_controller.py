@@ -229,6 +229,17 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
 # Starting the simulated vehicle as its own process
 
 
+def _die_with_parent() -> None:
+    """In the child: get SIGTERM when the controller dies, so a killed `uavsearch fly` leaves no vehicle running."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        try:
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+        except OSError:
+            pass
+
+
 class SitlProcess:
     """`uavsearch sitl` in its own process, its output in RUN_DIR/sitl.log; stopped with SIGINT."""
 
@@ -245,7 +256,7 @@ class SitlProcess:
                "--gcs-port", str(gcs_port), "--api-local-port", "0", "--gcs-local-port", "0"]
         self._out = open(self.log_path, "w")
         self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent)
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
             text = self.log_path.read_text()

@@ -1,0 +1,121 @@
+"""Flight log files: tlog records both directions over real UDP and reads back with pymavlink; search.jsonl
+survives a torn last line (a flight killed mid-write) with a warning."""
+
+import json
+import socket
+import struct
+import time
+
+import numpy as np
+import pytest
+from pymavlink import mavutil
+
+from uavsearch.errors import LogError
+from uavsearch.logs.flight_log import FlightLogWriter, read_flight_log
+from uavsearch.logs.replay import read_tlog
+from uavsearch.logs.tlog import TlogWriter
+
+M = mavutil.mavlink
+
+
+def _free_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+@pytest.fixture
+def recorded_tlog(tmp_path, monkeypatch):
+    """A pymavlink 'vehicle' and a recorded pymavlink client exchanging real UDP packets (MAVLink 2)."""
+    monkeypatch.setenv("MAVLINK20", "1")
+    port = _free_port()
+    path = tmp_path / "telemetry.tlog"
+    tlog = TlogWriter(path)
+    client = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=245, source_component=190,
+                                        dialect="common")
+    tlog.attach(client)
+    vehicle = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1,
+                                         dialect="common")
+    for i in range(5):
+        vehicle.mav.global_position_int_send(1000 * i, 473977420 + i, 85455940, 558000, 70000, 0, 0, 0, 0)
+    vehicle.mav.camera_image_captured_send(4000, 0, 0, 473977420, 85455940, 558000, 70000, [1, 0, 0, 0], 0, 1,
+                                           b"file:///tmp/img_0000.png")
+    got = []
+    end = time.monotonic() + 5
+    while len(got) < 6 and time.monotonic() < end:
+        m = client.recv_match(blocking=True, timeout=0.2)
+        if m is not None:
+            got.append(m)
+    client.mav.command_long_send(1, 100, M.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 0, 1, 1, 0, 0, 0)
+    assert vehicle.recv_match(type="COMMAND_LONG", blocking=True, timeout=5) is not None
+    tlog.close()
+    client.close()
+    vehicle.close()
+    return path
+
+
+def test_tlog_records_both_directions_and_pymavlink_reads_it(recorded_tlog):
+    log = mavutil.mavlink_connection(str(recorded_tlog), dialect="common")
+    types = []
+    while True:
+        m = log.recv_match()
+        if m is None:
+            break
+        types.append((m.get_type(), m.get_srcSystem()))
+        assert abs(m._timestamp - time.time()) < 600  # tlog timestamps are UNIX time
+    assert types.count(("GLOBAL_POSITION_INT", 1)) == 5
+    assert ("CAMERA_IMAGE_CAPTURED", 1) in types
+    assert ("COMMAND_LONG", 245) in types  # what the client sent is in the log too
+
+
+def test_read_tlog_stops_at_truncation_and_corruption(recorded_tlog, tmp_path):
+    full = read_tlog(recorded_tlog)
+    assert full.warning is None and full.messages == 7
+    assert len(full.lla) == 5 and len(full.captures) == 1
+    data = recorded_tlog.read_bytes()
+    cut = tmp_path / "cut.tlog"
+    cut.write_bytes(data[: len(data) - 5])
+    part = read_tlog(cut)
+    assert part.messages == 6 and "truncated" in part.warning and "\n" not in part.warning
+    bad = bytearray(data)
+    # the third record starts after two GLOBAL_POSITION_INT records: 8 + 10 + 28 + 2 bytes each (MAVLink 2)
+    rec = 8 + 10 + M.MAVLink_global_position_int_message.unpacker.size + 2
+    bad[2 * rec + 8] = 0x00  # destroy its start byte
+    broken = tmp_path / "broken.tlog"
+    broken.write_bytes(bytes(bad))
+    part = read_tlog(broken)
+    assert part.messages == 2 and "corrupt" in part.warning and len(part.lla) == 2
+    garbage = tmp_path / "garbage.tlog"
+    garbage.write_bytes(b"\x00" * 100)
+    with pytest.raises(LogError):
+        read_tlog(garbage)
+
+
+def test_flight_log_round_trip_and_torn_last_line(tmp_path):
+    w = FlightLogWriter(tmp_path, tlog=False)
+    labels = np.zeros(100, dtype=int)
+    labels[[3, 50]] = 1
+    w.header(labels=labels, fusion="bayes", grid={"n": 10, "cell_m": 5.0}, mission={})
+    for t in range(3):
+        w.step(t=t, p_occ=np.full(100, 0.1 * t), fused=np.full(100, 0.2), valid=np.ones(100, bool), reward=0.0,
+               sim_time_s=float("nan"))
+    w.close()
+    log = read_flight_log(tmp_path)
+    assert [s["t"] for s in log.steps] == [0, 1, 2] and log.warning is None
+    assert log.labels.sum() == 2 and log.array("p_occ").shape == (3, 100)
+    assert log.steps[0]["sim_time_s"] is None  # NaN is written as null: the file stays strict JSON
+    with open(tmp_path / "search.jsonl", "a") as f:
+        f.write('{"type": "step", "t": 3, "p_oc')  # killed while writing
+    with pytest.warns(UserWarning, match="damaged at line 5"):
+        log = read_flight_log(tmp_path)
+    assert len(log.steps) == 3
+
+
+def test_not_a_flight_log(tmp_path):
+    with pytest.raises(LogError, match="no search.jsonl"):
+        read_flight_log(tmp_path)
+    (tmp_path / "search.jsonl").write_text(json.dumps({"type": "step"}) + "\n")
+    with pytest.raises(LogError, match="no header"):
+        read_flight_log(tmp_path)

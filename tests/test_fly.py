@@ -1,0 +1,139 @@
+"""`uavsearch fly` end to end: real processes (the controller and `uavsearch sitl`), real UDP, real JSBSim.
+
+One SHORT mission (T = 2, --speed max) is flown once for the module; the tests then read what it left:
+the console output, the flight log (search.jsonl, telemetry.tlog, images, summary.json) and a replay of
+its tlog in the scene. The shipped models are used when they are in models/; otherwise a seeded untrained
+perception net stands in (the flight and the log do not depend on the weights).
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from pymavlink import mavutil
+
+from uavsearch.paths import MODELS_DIR
+from uavsearch.search.config import ACTIONS
+from uavsearch.search.fusion import fuse
+from uavsearch.search.metrics import map_accuracy, map_f1
+
+M = mavutil.mavlink
+T = 2
+
+
+def _mission(tmp: Path) -> dict:
+    m = {"name": "test_short", "scene": {"seed": 3, "setting": 2}, "search": {"budget_T": T}, "policy_seed": 0,
+         "flight": {"speed": "max", "end_action": "land"}}
+    if (MODELS_DIR / "perception.pt").is_file() and (MODELS_DIR / "search_s2_learned.pt").is_file():
+        m.update(fusion="learned", policy="learned")
+    else:
+        import torch
+
+        from uavsearch.search.perception import PerceptionNet, save_perception
+
+        torch.manual_seed(0)
+        save_perception(PerceptionNet(), tmp / "perception.pt")
+        m.update(fusion="bayes", policy="coverage", perception=str(tmp / "perception.pt"))
+    return m
+
+
+@pytest.fixture(scope="module")
+def flown(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("fly")
+    mission = _mission(tmp)
+    (tmp / "m.yaml").write_text(yaml.safe_dump(mission))
+    run = tmp / "run"
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp / "m.yaml"), "--out", str(run),
+                        "--gcs-port", "0"], capture_output=True, text=True, timeout=240)
+    return r, run, mission
+
+
+def test_fly_prints_progress_map_and_metrics(flown):
+    r, run, _ = flown
+    assert r.returncode == 0, r.stdout + r.stderr
+    out = r.stdout
+    assert "starting uavsearch sitl" in out
+    assert "step 1/2  at E" in out and "step 2/2  at E" in out and "cells found" in out
+    assert "\nlanded\n" in out
+    assert "found" in out and "truth" in out and out.count("\n. ") + out.count("\n# ") + out.count("\n! ") + \
+        out.count("\nx ") == 10
+    assert "completed: 2 view(s); Aacc" in out and "F1" in out and "sim time" in out and "wall time" in out
+    assert str(run) in out
+    assert "Traceback" not in r.stderr
+
+
+def test_flight_log_records_every_step(flown):
+    _, run, mission = flown
+    lines = [json.loads(ln) for ln in (run / "search.jsonl").read_text().splitlines()]
+    header, steps = lines[0], [ln for ln in lines if ln["type"] == "step"]
+    assert header["type"] == "header" and len(steps) == T
+    labels = np.array(header["labels"], dtype=bool)
+    assert labels.sum() == 5
+    assert steps[0]["waypoint_enu"] == [0.0, 0.0, 70.0]
+    move = ACTIONS[steps[0]["action_name"]]
+    assert steps[1]["waypoint_enu"] == [10.0 * move[0], 10.0 * move[1], 70.0]
+    for s in steps:
+        wp, rep = np.array(s["waypoint_enu"]), np.array(s["reported_position_enu"])
+        true = np.array(s["true_pose"]["position_enu"])
+        assert np.linalg.norm(rep - wp) < 1.0  # settled within the arrival radius (plus drift until the shot)
+        assert np.linalg.norm(true - rep) < 3.0  # estimation error: metre-level GPS, not a different place
+        assert (run / s["image"]).is_file()
+        assert s["sim_time_s"] > 0 and len(s["p_occ"]) == 100 and len(s["fused"]) == 100
+    # the log is self-consistent: the logged fused map is the fusion of the logged per-view outputs
+    p = np.array([s["p_occ"] for s in steps])
+    valid = np.array([s["valid"] for s in steps], dtype=bool)
+    kw = {}
+    if mission["fusion"] == "learned":
+        kw["scores"] = np.array([s["scores"] for s in steps])
+    np.testing.assert_allclose(fuse(mission["fusion"], p, valid, **kw), steps[-1]["fused"], atol=1e-5)
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["status"] == "completed" and summary["end"] == "landed" and summary["steps"] == T
+    assert summary["acc"] == pytest.approx(float(map_accuracy(np.array(steps[-1]["fused"]), labels)))
+    assert summary["f1"] == pytest.approx(float(map_f1(np.array(steps[-1]["fused"]), labels)))
+    assert summary["wall_s"] > 0 and summary["sim_time_s"] > 0
+
+
+def test_tlog_has_the_whole_conversation(flown):
+    _, run, _ = flown
+    log = mavutil.mavlink_connection(str(run / "telemetry.tlog"), dialect="common")
+    sent, got = [], []
+    while True:
+        m = log.recv_match()
+        if m is None:
+            break
+        (sent if m.get_srcSystem() == 245 else got).append(m)
+    cmds = [(m.get_type(), m.command) for m in sent if m.get_type() in ("COMMAND_LONG", "COMMAND_INT")]
+    assert cmds.count(("COMMAND_INT", M.MAV_CMD_DO_REPOSITION)) == T
+    assert cmds.count(("COMMAND_LONG", M.MAV_CMD_IMAGE_START_CAPTURE)) == T
+    assert ("COMMAND_LONG", M.MAV_CMD_COMPONENT_ARM_DISARM) in cmds and ("COMMAND_LONG", M.MAV_CMD_NAV_LAND) in cmds
+    assert sum(m.get_type() == "CAMERA_IMAGE_CAPTURED" for m in got) == T
+    ext = [m for m in got if m.get_type() == "EXTENDED_SYS_STATE"]
+    assert ext[-1].landed_state == M.MAV_LANDED_STATE_ON_GROUND
+    assert max(m.relative_alt for m in got if m.get_type() == "GLOBAL_POSITION_INT") > 69000
+
+
+def test_replay_the_flight_and_its_tlog(flown, tmp_path):
+    r, run, mission = flown
+    out = tmp_path / "replay"
+    rr = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(run), "--out", str(out)],
+                        capture_output=True, text=True, timeout=120)
+    assert rr.returncode == 0, rr.stderr
+    res = json.loads((out / "replay.json").read_text())
+    summary = json.loads((run / "summary.json").read_text())
+    assert res["views"] == T and res["acc"][-1] == pytest.approx(summary["acc"])
+    for name in ("trajectory.png", "maps.png", "metrics.png", "replay.gif"):
+        assert (out / name).stat().st_size > 1000
+    # any tlog: re-render the camera at each CAMERA_IMAGE_CAPTURED in the scene and run perception + fusion
+    mfile = run / "m.yaml"
+    mfile.write_text(yaml.safe_dump(mission))
+    out2 = tmp_path / "replay_tlog"
+    rr = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(run / "telemetry.tlog"), "--scene", "3",
+                         "--mission", str(mfile), "--out", str(out2)], capture_output=True, text=True, timeout=120)
+    assert rr.returncode == 0, rr.stderr
+    res2 = json.loads((out2 / "replay.json").read_text())
+    assert res2["views"] == T and res2["labels"] == res["labels"]
+    np.testing.assert_allclose(np.array(res2["positions_enu"])[:, :2], np.array(res["positions_enu"])[:, :2], atol=1.5)

@@ -1,0 +1,86 @@
+"""Mission files: the shipped ones validate; every kind of bad file is one line naming the field."""
+
+import subprocess
+import sys
+
+import pytest
+
+from uavsearch.errors import MissionError
+from uavsearch.missions import DEFAULT_MISSION, load_mission, mission_from_dict
+from uavsearch.paths import MISSIONS_DIR
+
+
+def test_default_mission_is_paper_setting_2():
+    m = load_mission()
+    assert m.source == str(DEFAULT_MISSION)
+    assert (m.scene.setting, m.scene.k) == (2, 5)
+    c = m.search_config()
+    assert (c.altitude_m, c.step_m, c.budget_T) == (70.0, 10.0, 5)
+    assert c.actions == ("MoveAhead", "MoveRight", "MoveLeft", "MoveBack")
+    assert (m.fusion, m.policy) == ("learned", "learned")
+    assert m.checkpoint_path.name == "search_s2_learned.pt"
+    assert m.flight_settings().arrive_radius_m == 0.5 and m.flight_settings().settle_speed_m_s == 0.3
+
+
+@pytest.mark.parametrize("path", sorted(MISSIONS_DIR.glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_mission_validates(path):
+    m = load_mission(path)
+    assert m.search_config().budget_T >= 1
+    assert m.flight.end_action in ("land", "rtl", "none")
+
+
+def test_overrides_revalidate():
+    m = load_mission().with_overrides(**{"scene.seed": 9, "flight.speed": 4.0})
+    assert m.scene.seed == 9 and m.speed_factor == 4.0
+    with pytest.raises(MissionError, match="flight.speed"):
+        load_mission().with_overrides(**{"flight.speed": -1})
+
+
+BAD = [
+    ({"search": {"budget_T": 0}}, "search.budget_T", "greater than or equal to 1"),
+    ({"search": {"altitude_m": "high"}}, "search.altitude_m", "valid number"),
+    ({"search": {"actions": ["MoveUp"]}}, "search.actions", "unknown action"),
+    ({"fusion": "median"}, "fusion", "'learned'"),
+    ({"policy": "magic"}, "policy", "'learned'"),
+    ({"flight": {"speed": "fast"}}, "flight.speed", ""),
+    ({"flight": {"end_action": "crash"}}, "flight.end_action", "'land'"),
+    ({"home": {"lat_deg": 123}}, "home.lat_deg", "less than or equal to 90"),
+    ({"scene": {"seed": 1, "setting": 7}}, "scene.setting", "less than or equal to 3"),
+    ({"scene": {"seed": 1, "setting": 2, "occupied_cells": 4}}, "setting OR occupied_cells", ""),
+    ({"budget_T": 5}, "budget_T", "unknown field"),
+    ({"search": {"budgetT": 5}}, "search.budgetT", "unknown field"),
+]
+
+
+@pytest.mark.parametrize("data,field,problem", BAD, ids=[b[1] for b in BAD])
+def test_bad_mission_is_one_line_naming_the_field(data, field, problem):
+    with pytest.raises(MissionError) as e:
+        mission_from_dict(data, "x.yaml")
+    msg = str(e.value)
+    assert "\n" not in msg
+    assert msg.startswith("mission x.yaml: ")
+    assert field in msg and problem in msg
+
+
+def test_bad_files(tmp_path):
+    cases = {"syntax.yaml": "search: {budget_T: 5\n", "list.yaml": "- 1\n- 2\n", "empty.yaml": ""}
+    for name, text in cases.items():
+        (tmp_path / name).write_text(text)
+    with pytest.raises(MissionError, match="not valid YAML at line"):
+        load_mission(tmp_path / "syntax.yaml")
+    with pytest.raises(MissionError, match="YAML mapping"):
+        load_mission(tmp_path / "list.yaml")
+    assert load_mission(tmp_path / "empty.yaml").search.budget_T == 5  # every field has a default
+    with pytest.raises(MissionError, match="cannot read"):
+        load_mission(tmp_path / "missing.yaml")
+
+
+def test_cli_bad_mission_prints_one_line_and_exits_2(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("search:\n  budget_T: -3\n")
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(bad)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip() and not ln.startswith("pybullet build time")]
+    assert lines == [f"uavsearch: error: mission {bad}: search.budget_T: Input should be greater than or equal to 1 (got -3)"]
+    assert "Traceback" not in r.stderr
