@@ -123,6 +123,23 @@ def test_param_change_takes_effect_in_flight():
     assert f.trace.arrays()["true_vel"][i0:, 0].min() < -3.0
 
 
+def test_wind_is_held_against_and_gps_loss_is_reported():
+    f = Flight(seed=2, params={"SIM_WIND_N": 6.0})
+    v = f.vehicle
+    v.arm()
+    f.goto(0.0, 0.0, -10.0)
+    f.run(15.0)
+    ts = v.true_state
+    assert 5.0 < math.degrees(ts.pitch_rad) < 12.0  # leaning into the wind (nose up, thrust to the south)
+    assert np.hypot(*ts.position_enu_m[:2]) < 1.5
+    f.params.set("SIM_GPS_BLOCK", 1)
+    f.run(1.5)
+    assert not v.sensor_health.gps and v.gps_fix.fix_type == 0
+    f.params.set("SIM_GPS_BLOCK", 0)
+    f.run(0.5)
+    assert v.sensor_health.gps and v.gps_fix.fix_type == 3
+
+
 def test_bad_construction_is_a_clear_error():
     with pytest.raises(UavsearchError, match="does not divide"):
         Multicopter(ParamStore(MC_PARAMS), GeodeticOrigin(), seed=0, physics_hz=200, ctrl_hz=30)

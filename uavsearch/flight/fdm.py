@@ -110,6 +110,12 @@ class QuadFdm:
         self._fdm.run()
         self.steps += 1
 
+    def set_wind_ned(self, north_m_s: float, east_m_s: float, down_m_s: float = 0.0) -> None:
+        """Steady wind (the air's velocity over ground); the body drag acts on the airspeed."""
+        self._fdm["atmosphere/wind-north-fps"] = north_m_s / FT
+        self._fdm["atmosphere/wind-east-fps"] = east_m_s / FT
+        self._fdm["atmosphere/wind-down-fps"] = down_m_s / FT
+
     # ---------------------------------------------------------------- truth (SI)
     @property
     def mass_kg(self) -> float:

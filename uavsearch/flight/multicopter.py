@@ -42,7 +42,14 @@ from .messages import (
 from .params import ParamDef, ParamStore
 from .sensors import SENSOR_PARAMS, GpsFix, SensorSuite
 
-MC_PARAMS: list[ParamDef] = [*CONTROL_PARAMS, *EKF_PARAMS, *SENSOR_PARAMS, *LAND_PARAMS, *BATTERY_PARAMS]
+WIND_PARAMS: list[ParamDef] = [
+    ParamDef("SIM_WIND_N", 0.0, -20.0, 20.0, "m/s", description="steady wind towards north"),
+    ParamDef("SIM_WIND_E", 0.0, -20.0, 20.0, "m/s", description="steady wind towards east"),
+]
+
+MC_PARAMS: list[ParamDef] = [
+    *CONTROL_PARAMS, *EKF_PARAMS, *SENSOR_PARAMS, *LAND_PARAMS, *BATTERY_PARAMS, *WIND_PARAMS
+]
 
 GPS_HZ = 5
 BARO_MAG_HZ = 10
@@ -132,6 +139,7 @@ class Multicopter:
         self.rate_ctrl.configure(p)
         self.ekf.configure(p)
         self.sensors.configure(p)
+        self.fdm.set_wind_ned(p["SIM_WIND_N"], p["SIM_WIND_E"])
 
     def set_cruise_speed(self, speed_m_s: float | None) -> None:
         """Override MPC_XY_CRUISE for position setpoints (MAV_CMD_DO_CHANGE_SPEED); None goes back to the param."""
@@ -232,7 +240,7 @@ class Multicopter:
             if k % self._baro_div == 0:
                 alt = sens.baro(pos[2], 1.0 / BARO_MAG_HZ)
                 mag = sens.mag(*fdm.euler_rad())
-                if k % self._gps_div == 0:  # all three at once: one filter update
+                if k % self._gps_div == 0 and not self.params["SIM_GPS_BLOCK"]:  # all three: one update
                     fix = sens.gps(self.time_us, pos, fdm.velocity_ned_m_s(), 1.0 / GPS_HZ)
                     ekf.fuse_all(fix.position_ned_m, fix.velocity_ned_m_s, alt - self.home.alt_m, mag)
                     self._gps_time_us = self.time_us
@@ -349,8 +357,13 @@ class Multicopter:
 
     @property
     def gps_fix(self) -> GpsFix:
-        """The latest GPS solution (for GPS_RAW_INT): fix_type, satellites, eph, epv, lat, lon, alt, ..."""
-        return self.sensors.last_gps
+        """The latest GPS solution (for GPS_RAW_INT): fix_type, satellites, eph, epv, lat, lon, alt, ...
+
+        Older than a second (SIM_GPS_BLOCK): the last solution with fix_type 0 and no satellites."""
+        fix = self.sensors.last_gps
+        if self.time_us - self._gps_time_us >= 1_000_000:
+            return fix._replace(fix_type=0, satellites_visible=0)
+        return fix
 
     @property
     def motor_outputs(self) -> tuple:

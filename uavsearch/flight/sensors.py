@@ -27,6 +27,7 @@ SENSOR_PARAMS: list[ParamDef] = [
     ParamDef("SIM_GPS_VNOISE", 0.1, 0.0, 5.0, "m/s", description="GPS velocity white noise (1 sigma)"),
     ParamDef("SIM_BARO_NOISE", 0.1, 0.0, 10.0, "m", description="barometer altitude white noise (1 sigma)"),
     ParamDef("SIM_MAG_NOISE", 0.005, 0.0, 1.0, "gauss", description="magnetometer white noise (1 sigma)"),
+    ParamDef("SIM_GPS_BLOCK", 0, 0, 1, "", type="int", description="1: the GPS delivers nothing (failure test)"),
 ]
 
 GPS_DRIFT_TAU_S = 60.0
