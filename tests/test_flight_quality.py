@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from uavsearch.errors import UavsearchError
+from uavsearch.flight.fdm import QUADX, QuadFdm
 from uavsearch.flight.messages import TrajectorySetpoint
 from uavsearch.flight.multicopter import MC_PARAMS, Multicopter
 from uavsearch.flight.params import ParamStore
@@ -19,6 +20,39 @@ from uavsearch.flight.step_response import Flight, mission_profile
 from uavsearch.geometry import GeodeticOrigin
 
 NAN = math.nan
+
+
+def _airborne_fdm(hz: int = 100) -> QuadFdm:
+    return QuadFdm(GeodeticOrigin(), hz, start_enu=(0.0, 0.0, 50.0))
+
+
+def test_airframe_matches_its_declared_constants():
+    """The XML and AirframeInfo agree: thrust/weight, motor lag, yaw moment, roll sign."""
+    af = QUADX
+    fdm = _airborne_fdm()
+    fdm.set_motor_commands([1.0] * 4)
+    steps = 0
+    while fdm.rotor_thrusts_n()[0] < 0.63 * af.rotor_thrust_max_n:
+        fdm.step()
+        steps += 1
+    assert 0.03 <= steps * fdm.dt <= 0.06  # first-order lag, tau 0.04 s (+ one step of the FCS)
+    for _ in range(50):
+        fdm.step()
+    thrust_n = -fdm.specific_force_frd_m_s2()[2] * fdm.mass_kg
+    assert thrust_n / (fdm.mass_kg * fdm.gravity_m_s2) == pytest.approx(2.0, rel=0.05)  # thrust/weight ~2
+    fdm = _airborne_fdm()
+    fdm.set_motor_commands([0.6, 0.6, 0.4, 0.4])  # CCW rotors harder: yaw right
+    for _ in range(50):
+        fdm.step()
+    torque = af.yaw_moment_per_thrust_m * 2 * 0.2 * af.rotor_thrust_max_n
+    expected_r = torque / af.inertia_kg_m2[2] * (0.5 - 0.04)  # lag costs about one time constant
+    assert fdm.body_rates_rad_s()[2] == pytest.approx(expected_r, rel=0.1)
+    fdm = _airborne_fdm()
+    fdm.set_motor_commands([0.45, 0.55, 0.55, 0.45])  # left rotors harder: roll right
+    for _ in range(10):
+        fdm.step()
+    p, q, r = fdm.body_rates_rad_s()
+    assert p > 0.1 and abs(q) < 1e-3 and abs(r) < 1e-3
 
 
 @pytest.fixture(scope="module")
