@@ -152,6 +152,30 @@ def _add_replay_parser(sub) -> None:
 
 
 # --------------------------------------------------------------------------------------------------
+# train / eval: groups whose subcommands live with their code
+
+
+def _add_train_parser(sub) -> None:
+    from .search.train_perception import add_train_perception_parser
+    from .search.train_policy import add_train_policy_parser
+
+    train = sub.add_parser("train", help="train in teleport mode: perception (stage 1), then fusion + policy (stage 2)")
+    tsub = train.add_subparsers(dest="train_cmd", required=True, metavar="{perception,policy}")
+    add_train_perception_parser(tsub)
+    add_train_policy_parser(tsub)
+
+
+def _add_eval_parser(sub) -> None:
+    from .search.eval_search import add_eval_search_parser
+    from .search.eval_single_view import add_eval_single_view_parser
+
+    ev = sub.add_parser("eval", help="evaluate: single-view perception (Table I, Fig. 4), search methods (Table II, Fig. 6)")
+    esub = ev.add_subparsers(dest="eval_cmd", required=True, metavar="{single-view,search}")
+    add_eval_single_view_parser(esub)
+    add_eval_search_parser(esub)
+
+
+# --------------------------------------------------------------------------------------------------
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -165,6 +189,8 @@ def build_parser() -> argparse.ArgumentParser:
     from .flight.sitl import add_sitl_parser
 
     add_sitl_parser(sub)
+    _add_train_parser(sub)
+    _add_eval_parser(sub)
     _add_fly_parser(sub)
     _add_replay_parser(sub)
     return parser
