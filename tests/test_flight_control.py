@@ -222,3 +222,32 @@ def test_rates_that_do_not_divide_are_refused(rates):
     with pytest.raises(UavsearchError):
         _check_rates(*rates)
     _check_rates(200, 100, 50)  # the default passes
+
+
+def test_sensor_noise_matches_its_parameters_and_the_seed(params):
+    from uavsearch.flight.sensors import SensorSuite
+    from uavsearch.geometry import GeodeticOrigin
+
+    params.set("SIM_GYRO_NOISE", 0.01)
+    params.set("SIM_GPS_DRIFT", 0.0)
+    home = GeodeticOrigin()
+
+    def record(seed):
+        s = SensorSuite(params, home, np.random.default_rng(seed))
+        gyro = np.array([s.imu((0.0, 0.0, 0.0), (0.0, 0.0, -G), 0.01)[0] for _ in range(4000)])
+        gps = np.array([s.gps(0, (1.0, 2.0, 30.0), (0.0, 0.0, 0.0), 0.2).position_ned_m for _ in range(2000)])
+        return s, gyro, gps
+
+    s, gyro, gps = record(5)
+    assert gyro.std(axis=0) == pytest.approx([0.01] * 3, rel=0.1)
+    assert gyro.mean(axis=0) == pytest.approx(s.gyro_bias, abs=0.002)  # the bias is there, and known to the test
+    assert gps.mean(axis=0) == pytest.approx([2.0, 1.0, -30.0], abs=0.1)  # NED from ENU
+    assert gps.std(axis=0) == pytest.approx([0.5, 0.5, 0.8], rel=0.1)
+    fix = s.last_gps
+    assert home.geodetic_to_enu([fix.lat_deg, fix.lon_deg, fix.alt_amsl_m]) == pytest.approx(
+        [fix.position_ned_m[1], fix.position_ned_m[0], -fix.position_ned_m[2]], abs=1e-6
+    )
+    _, gyro2, gps2 = record(5)
+    _, gyro3, _ = record(6)
+    assert np.array_equal(gyro, gyro2) and np.array_equal(gps, gps2)
+    assert not np.array_equal(gyro, gyro3)
