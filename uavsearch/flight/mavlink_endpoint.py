@@ -100,6 +100,7 @@ ALWAYS_OK_BITS = (
 )
 
 MISSION_RETRY_WALL_S = 0.25
+DATAGRAM_BYTES = 1400  # below a typical MTU; frames are never split across datagrams
 SIGNING_EPOCH = 1420070400  # 2015-01-01 UTC
 MISSION_MAX_RETRIES = 8
 PX4_VERSION = (1 << 24) | (15 << 16) | (0 << 8) | 255  # reported as PX4 v1.15.0 (official release)
@@ -189,6 +190,7 @@ class Link:
         self.rx_packets = 0
         self.rx_dropped = 0
         self.tx_packets = 0
+        self._out = bytearray()
         self.upload: _Upload | None = None
 
     @property
@@ -196,11 +198,20 @@ class Link:
         return self.sock.getsockname()[1]
 
     def send_raw(self, buf: bytes) -> None:
+        """Queue one frame; flush() packs queued frames into datagrams of at most DATAGRAM_BYTES (as PX4 does)."""
+        if self._out and len(self._out) + len(buf) > DATAGRAM_BYTES:
+            self.flush()
+        self._out += buf
+        self.tx_packets += 1
+
+    def flush(self) -> None:
+        if not self._out:
+            return
         try:
-            self.sock.sendto(buf, self.remote)
-            self.tx_packets += 1
+            self.sock.sendto(bytes(self._out), self.remote)
         except OSError:
             pass  # nobody listening (ICMP port unreachable) or a full buffer: telemetry is best effort
+        self._out.clear()
 
     def send(self, msg, compid: int = AUTOPILOT_COMPID) -> None:
         self.mav.srcComponent = compid
@@ -276,6 +287,7 @@ class MavlinkEndpoint:
 
     def close(self) -> None:
         for l in self.links:
+            l.flush()
             l.close()
         if self._tlog:
             self._tlog.close()
@@ -307,7 +319,12 @@ class MavlinkEndpoint:
                     self.cmd.text(3, f"dropped {m.get_type()}: {type(e).__name__}")
             self._mission_retry(link)
         self._flush_events()
+        self._flush_links()
         return n
+
+    def _flush_links(self) -> None:
+        for link in self.links:
+            link.flush()
 
     def send_streams(self) -> None:
         now = int(self.vehicle.time_us)
@@ -333,6 +350,7 @@ class MavlinkEndpoint:
         if self.camera is not None:
             for rec in self.camera.update():
                 self._broadcast_capture(rec)
+        self._flush_links()
 
     def _flush_events(self) -> None:
         for t in self.cmd.texts:
@@ -660,6 +678,7 @@ class MavlinkEndpoint:
                 return Result.DENIED
             # ACK first, then the capture(s): clients wait for the ACK before listening for images.
             self._ack(link, m, command, Result.ACCEPTED, CAMERA_COMPID)
+            link.flush()  # the ACK leaves before the render
             for rec in c.start(interval, count):
                 self._broadcast_capture(rec)
             return None
