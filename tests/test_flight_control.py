@@ -139,6 +139,20 @@ def test_attitude_control_commands_rates_towards_setpoint(params):
     assert ac.update()[0] == pytest.approx(math.radians(params["MC_ROLLRATE_MAX"]))  # rate limit
 
 
+def test_attitude_control_puts_tilt_before_heading(params):
+    """Level at heading 0, asked for 0.3 rad of roll at heading ~180 deg: the tilt is served at full gain,
+    the heading at MC_YAW_P / MC_ROLL_P of it (a plain quaternion error would mix the two)."""
+    ac = AttitudeControl()
+    ac.configure(params)
+    ac.set_state(tuple(quaternion_from_euler(0.0, 0.0, 0.0)))
+    ac.set_setpoint(tuple(quaternion_from_euler(0.3, 0.0, math.pi - 0.01)))
+    p, q, r = ac.update()
+    assert math.hypot(p, q) == pytest.approx(2 * params["MC_ROLL_P"] * math.sin(0.15), rel=0.05)
+    assert abs(r) == pytest.approx(math.radians(params["MC_YAWRATE_MAX"]))  # heading: rate-limited
+    # a plain quaternion error would ask for the tilt about the wrong axis (pitch instead of roll)
+    assert abs(p) > abs(q)
+
+
 def test_rate_control_pid_and_integrator_limit(params):
     rc = RateControl()
     rc.configure(params)

@@ -174,6 +174,23 @@ def test_wind_is_held_against_and_gps_loss_is_reported():
     assert v.sensor_health.gps and v.gps_fix.fix_type == 3
 
 
+def test_heading_reversal_during_a_move_keeps_the_tilt_limit():
+    f = Flight(seed=0)
+    v = f.vehicle
+    v.arm()
+    f.goto(0.0, 0.0, -20.0, yaw=0.0)
+    f.run(10.0)
+    f.goto(30.0, 0.0, -20.0, yaw=math.pi - 0.001)
+    tilt = []
+    for _ in range(150):
+        f.run(0.1)
+        ts = v.true_state
+        tilt.append(math.degrees(math.acos(math.cos(ts.roll_rad) * math.cos(ts.pitch_rad))))
+    assert max(tilt) < v.params["MPC_TILTMAX_AIR"]
+    assert abs(math.degrees(v.true_state.yaw_rad)) > 178.0
+    assert np.hypot(v.true_state.position_enu_m[1] - 30.0, v.true_state.position_enu_m[0]) < 1.5
+
+
 def test_bad_construction_is_a_clear_error():
     with pytest.raises(UavsearchError, match="does not divide"):
         Multicopter(ParamStore(MC_PARAMS), GeodeticOrigin(), seed=0, physics_hz=200, ctrl_hz=30)

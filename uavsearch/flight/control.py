@@ -275,8 +275,24 @@ def attitude_from_thrust(zx: float, zy: float, zz: float, yaw: float) -> tuple:
 
 
 # ==================================================================================================
+def _qmul(a, b) -> tuple:
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    )
+
+
 class AttitudeControl:
-    """Quaternion attitude error -> body rate setpoint (proportional, rate-limited, yaw-rate feedforward)."""
+    """Quaternion attitude error -> body rate setpoint, tilt before heading (as PX4's mc_att_control).
+
+    The desired attitude is split into the tilt that brings the thrust axis where it must be and the
+    remaining rotation about it (heading); the heading part is scaled by MC_YAW_P / MC_ROLL_P, so a large
+    heading change cannot drag the vehicle through a large tilt (a plain quaternion error would).
+    """
 
     def __init__(self):
         self.q = (1.0, 0.0, 0.0, 0.0)
@@ -284,8 +300,31 @@ class AttitudeControl:
         self.yawspeed_ff = 0.0
 
     def configure(self, p) -> None:
-        self.k = (p["MC_ROLL_P"], p["MC_PITCH_P"], p["MC_YAW_P"])
+        kr, kp, ky = p["MC_ROLL_P"], p["MC_PITCH_P"], p["MC_YAW_P"]
+        self.yaw_w = min(1.0, max(0.0, ky / kr)) if kr > 0 else 1.0
+        self.k = (kr, kp, kr)  # the heading error arrives pre-scaled by yaw_w
         self.rmax = tuple(math.radians(p[n]) for n in ("MC_ROLLRATE_MAX", "MC_PITCHRATE_MAX", "MC_YAWRATE_MAX"))
+
+    def _reduced_setpoint(self) -> tuple:
+        q, qd = self.q, self.q_d
+        w, x, y, z = q
+        dw, dx, dy, dz = qd
+        # body z axes (third columns of the rotation matrices), in NED
+        ez = (2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y))
+        ezd = (2 * (dx * dz + dw * dy), 2 * (dy * dz - dw * dx), 1 - 2 * (dx * dx + dy * dy))
+        c = ez[0] * ezd[0] + ez[1] * ezd[1] + ez[2] * ezd[2]
+        if c < -0.99:  # thrust axis nearly reversed: no well-defined shortest tilt, use the full setpoint
+            return qd
+        cr = (ez[1] * ezd[2] - ez[2] * ezd[1], ez[2] * ezd[0] - ez[0] * ezd[2], ez[0] * ezd[1] - ez[1] * ezd[0])
+        n = math.sqrt((1.0 + c) ** 2 + cr[0] ** 2 + cr[1] ** 2 + cr[2] ** 2)
+        tilt = ((1.0 + c) / n, cr[0] / n, cr[1] / n, cr[2] / n)  # shortest rotation ez -> ezd, NED frame
+        q_red = _qmul(tilt, q)  # current heading, desired thrust axis
+        # what is left is a rotation about the body z axis: keep a yaw_w share of its angle
+        mw, _, _, mz = _qmul((q_red[0], -q_red[1], -q_red[2], -q_red[3]), qd)
+        if mw < 0.0:
+            mw, mz = -mw, -mz
+        half = self.yaw_w * math.atan2(mz, mw)
+        return _qmul(q_red, (math.cos(half), 0.0, 0.0, math.sin(half)))
 
     def set_state(self, q) -> None:
         self.q = q
@@ -295,7 +334,7 @@ class AttitudeControl:
 
     def update(self, dt: float = 0.0) -> tuple:
         w, x, y, z = self.q
-        dw, dx, dy, dz = self.q_d
+        dw, dx, dy, dz = self._reduced_setpoint()
         # q_e = conj(q) * q_d: the rotation from the current to the desired attitude, in body axes
         ew = w * dw + x * dx + y * dy + z * dz
         ex = w * dx - x * dw - y * dz + z * dy
