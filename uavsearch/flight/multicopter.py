@@ -19,6 +19,7 @@ detector (estimate-based) ends it, after which the rotors idle again until the a
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 
@@ -111,7 +112,8 @@ class Multicopter:
         self.land_detector = LandDetector(params)
         self.battery_model = Battery(params)
         self._configure()
-        params.on_change(lambda _name, _value: self._configure())
+        me = weakref.ref(self)  # the store must not keep a finished vehicle alive
+        params.on_change(lambda _name, _value: (v := me()) is not None and v._configure())
 
         self.step_count = 0
         self.time_us = 0
