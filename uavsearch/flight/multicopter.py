@@ -301,14 +301,15 @@ class Multicopter:
     def local_position(self) -> VehicleLocalPosition:
         """The EKF's position/velocity, stamped with the time of the filter update that made it."""
         if self._lp_cache is None:
-            std = np.sqrt(np.diag(self.ekf.kf.P)[0:3])
+            P = self.ekf.kf.P
+            w, x, y, z = self.ekf.q
             self._lp_cache = VehicleLocalPosition(
                 self._est_time_us,
                 np.array(self._est_pos),
                 np.array(self._est_vel),
-                quat_to_euler(self.ekf.q)[2],
-                eph_m=float(math.hypot(std[0], std[1])),
-                epv_m=float(std[2]),
+                math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)),
+                eph_m=math.sqrt(float(P[0, 0]) + float(P[1, 1])),
+                epv_m=math.sqrt(float(P[2, 2])),
             )
         return self._lp_cache
 
