@@ -63,6 +63,8 @@ PX4_MODES = {
 }
 PX4_AUTO = 4
 
+FAILSAFE_HZ = 10.0  # failsafe checks run at PX4 commander's rate, the navigator at the autopilot rate
+
 # MAV_LANDED_STATE numbers.
 LANDED_ON_GROUND = 1
 LANDED_IN_AIR = 2
@@ -149,6 +151,9 @@ class Commander:
         self._fence_breached = False
         self._battery_stage = 0
         self._last_sp: TrajectorySetpoint | None = None
+        self.local_position = None  # the estimate read at the last tick
+        self._tick = 0
+        self._failsafe_div = max(1, int(round(autopilot_hz / FAILSAFE_HZ)))
 
     # ------------------------------------------------------------------ state for telemetry
     @property
@@ -478,15 +483,16 @@ class Commander:
         v = self.vehicle
         self.now_us = int(v.time_us)
         self.wall_s = wall_s
-        lp = v.local_position
+        lp = self.local_position = v.local_position  # shared with the endpoint for this instant
         ld = v.land_detected
+        self._tick += 1
         if not self.home_set and self._estimate_settled(lp):
             self.home_ned = np.array(lp.position_ned_m, dtype=float)
             self.navigator.home_ned = self.home_ned.copy()
             self.home_set = True
         if self.armed:
             self._check_landing(ld)
-        if self.armed:
+        if self.armed and self._tick % self._failsafe_div == 0:
             self._check_failsafes(lp, ld)
         s = NavState(self.now_us, lp, ld)
         sp = self.navigator.update(s)

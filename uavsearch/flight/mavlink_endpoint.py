@@ -401,7 +401,14 @@ class MavlinkEndpoint:
         try:
             return self._snap[name]
         except KeyError:
-            value = self._snap[name] = getattr(self.vehicle, name)
+            value = None
+            if name == "local_position":  # the commander read it at this very instant: reuse it
+                lp = self.cmd.local_position
+                if lp is not None and lp.timestamp_us == self.vehicle.time_us:
+                    value = lp
+            if value is None:
+                value = getattr(self.vehicle, name)
+            self._snap[name] = value
             return value
 
     def _attitude(self):

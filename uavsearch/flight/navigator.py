@@ -37,6 +37,9 @@ NAV_PARAMS = [
     ParamDef("RTL_LAND_DELAY", 0.0, -1.0, 300.0, "s", description="hover above home before landing (-1: never land)"),
 ]
 
+_NAN3 = np.full(3, math.nan)
+_NAN3.flags.writeable = False
+
 # Flight-core limits the navigator follows; used with these fallbacks if no table declares them.
 _FALLBACKS = {
     "MPC_XY_CRUISE": 5.0,
@@ -398,6 +401,11 @@ class Navigator:
         self.active_name = "HOLD"
         self._needs_activation = True
         self.cruise_speed: float | None = None  # DO_CHANGE_SPEED outside missions
+        self._limits_cache = None
+        self.params.on_change(self._params_changed)
+
+    def _params_changed(self, _name, _value) -> None:
+        self._limits_cache = None
 
     # ---- used by the commander
     def activate(self, name: str) -> None:
@@ -448,18 +456,23 @@ class Navigator:
             and self.carrot.arrived(target_ned)
         )
 
+    def _limits(self) -> tuple:
+        """(cruise, up, down, acc_xy, acc_z), re-read only after a parameter change."""
+        if self._limits_cache is None:
+            p = self.params
+            self._limits_cache = (
+                param(p, "MPC_XY_CRUISE"),
+                param(p, "MPC_Z_V_AUTO_UP"),
+                param(p, "MPC_Z_V_AUTO_DN"),
+                param(p, "MPC_ACC_HOR"),
+                min(param(p, "MPC_ACC_UP_MAX"), param(p, "MPC_ACC_DOWN_MAX")),
+            )
+        return self._limits_cache
+
     def follow(self, s: NavState, target_ned, yaw_rad: float, speed_m_s: float | None) -> TrajectorySetpoint:
-        v_xy = speed_m_s or self.cruise_speed or param(self.params, "MPC_XY_CRUISE")
-        self.carrot.step(
-            target_ned,
-            self.dt_s,
-            v_xy,
-            param(self.params, "MPC_Z_V_AUTO_UP"),
-            param(self.params, "MPC_Z_V_AUTO_DN"),
-            param(self.params, "MPC_ACC_HOR"),
-            min(param(self.params, "MPC_ACC_UP_MAX"), param(self.params, "MPC_ACC_DOWN_MAX")),
-        )
-        return TrajectorySetpoint(s.now_us, self.carrot.pos.copy(), self.carrot.vel.copy(), yaw_rad=yaw_rad)
+        cruise, up, down, acc_xy, acc_z = self._limits()
+        self.carrot.step(target_ned, self.dt_s, speed_m_s or self.cruise_speed or cruise, up, down, acc_xy, acc_z)
+        return TrajectorySetpoint(s.now_us, self.carrot.pos, self.carrot.vel, _NAN3, yaw_rad)
 
     def descend(self, s: NavState, xy, yaw_rad: float) -> TrajectorySetpoint:
         """x/y held, z velocity-controlled: fast high up, MPC_LAND_SPEED below MPC_LAND_ALT1."""
