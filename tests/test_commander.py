@@ -204,3 +204,15 @@ def test_battery_critical_returns():
     r.v.remaining = 0.06
     r.run(0.1)
     assert r.c.mode == "RTL"
+
+
+def test_armed_without_takeoff_disarms_after_com_disarm_prflt_in_both_clocks():
+    r = Rig(COM_DISARM_PRFLT=3.0)
+    r.run(0.5)
+    assert r.cmd(400, 1) == Result.ACCEPTED
+    r.wall_rate = 0.02  # 50x real time: 5 simulated seconds are only 0.1 s for the operator
+    r.run(5.0)
+    assert r.c.armed
+    r.wall_rate = 1.0
+    assert r.run(4.0, until=lambda: not r.c.armed)
+    assert any("no takeoff" in t for t in r.texts())

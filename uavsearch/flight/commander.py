@@ -142,7 +142,7 @@ class Commander:
         self.state_changed = True  # tells the endpoint to send a heartbeat at once
         self.now_us = 0
         self.wall_s = 0.0
-        self._armed_at_us = 0
+        self._armed_at = (0, 0.0)
         self._took_off = False
         self._landed_since_us: int | None = None
         self._gcs_seen: tuple[int, float] | None = None  # (sim us, wall s) of the last GCS heartbeat
@@ -309,7 +309,7 @@ class Commander:
         self.home_ned = np.array(self.vehicle.local_position.position_ned_m, dtype=float)
         self.home_set = True
         self.navigator.home_ned = self.home_ned.copy()
-        self._armed_at_us = self.now_us
+        self._armed_at = (self.now_us, self.wall_s)
         self._took_off = False
         self._landed_since_us = None
         self._fence_breached = False
@@ -522,8 +522,10 @@ class Commander:
             if t >= 0 and landed_s >= t and self.mode not in ("TAKEOFF",):
                 self.disarm("Landed: disarmed")
         else:
+            # Waiting for a person or a client to take off: a link-style time-out (both clocks), so that
+            # at --speed max an operator still has COM_DISARM_PRFLT wall seconds.
             t = self.params["COM_DISARM_PRFLT"]
-            if t >= 0 and (self.now_us - self._armed_at_us) * 1e-6 >= t and self.mode not in ("TAKEOFF", "MISSION", "OFFBOARD"):
+            if t >= 0 and self._elapsed_link_s(self._armed_at) >= t and self.mode not in ("TAKEOFF", "MISSION", "OFFBOARD"):
                 self.disarm("Disarmed: no takeoff")
 
     def _failsafe(self, action: str | None, reason: str) -> None:
