@@ -230,12 +230,13 @@ def test_land_detector_needs_time_and_low_thrust(params):
 
 @pytest.mark.parametrize(
     "rates",
-    [(200, 30, 10), (200, 100, 30), (250, 125, 50), (200, 0, 50), (200.0, 100, 50), (50, 50, 50)],
+    [(200, 30, 10), (200, 100, 30), (250, 125, 50), (200, 0, 50), (200.0, 100, 50), (50, 50, 50), (100, 100, 4)],
 )
 def test_rates_that_do_not_divide_are_refused(rates):
     with pytest.raises(UavsearchError):
         _check_rates(*rates)
-    _check_rates(200, 100, 50)  # the default passes
+    _check_rates(100, 100, 50)  # the default passes
+    _check_rates(200, 100, 25)
 
 
 def test_sensor_noise_matches_its_parameters_and_the_seed(params):

@@ -9,7 +9,8 @@ Rates (all in simulated time; each must divide the one above it):
   physics_hz  JSBSim step                           (default 100; the contacts are stable there)
   ctrl_hz     IMU sample, attitude + rate control   (default 100)
   ekf_hz      EKF prediction, position control,     (default 50; GPS fused at 5 Hz, baro and
-              land detector, battery                 magnetometer at 10 Hz)
+              land detector, battery                 magnetometer at 10 Hz, 5 Hz if
+                                                     ekf_hz is not a multiple of 10)
 
 Ground handling (PX4's takeoff / land states): armed on the ground the rotors idle and nothing
 integrates; a setpoint asking to climb (position above, or upward velocity) starts the flight; the land
@@ -53,7 +54,11 @@ MC_PARAMS: list[ParamDef] = [
 ]
 
 GPS_HZ = 5
-BARO_MAG_HZ = 10
+BARO_MAG_HZ = 10  # 5 when ekf_hz is not a multiple of 10 (e.g. 25): fused with the GPS then
+
+
+def _baro_mag_hz(ekf_hz: int) -> int:
+    return BARO_MAG_HZ if ekf_hz % BARO_MAG_HZ == 0 else GPS_HZ
 IDLE_THRUST = 0.05
 TAKEOFF_CLIMB_M = 0.3  # a position setpoint this far above the vehicle (or an upward velocity) means "take off"
 
@@ -66,8 +71,8 @@ def _check_rates(physics_hz, ctrl_hz, ekf_hz) -> None:
         raise UavsearchError(f"ctrl_hz={ctrl_hz} does not divide physics_hz={physics_hz}")
     if ctrl_hz % ekf_hz:
         raise UavsearchError(f"ekf_hz={ekf_hz} does not divide ctrl_hz={ctrl_hz}")
-    if ekf_hz % BARO_MAG_HZ:
-        raise UavsearchError(f"ekf_hz={ekf_hz} must be a multiple of {BARO_MAG_HZ} (baro/mag rate)")
+    if ekf_hz % GPS_HZ:
+        raise UavsearchError(f"ekf_hz={ekf_hz} must be a multiple of {GPS_HZ} (the GPS rate)")
     if not 100 <= physics_hz <= 1000:
         raise UavsearchError(f"physics_hz={physics_hz} outside [100, 1000] (the contacts need >= 100 Hz)")
 
@@ -97,9 +102,10 @@ class Multicopter:
         self._dt_ctrl = 1.0 / ctrl_hz
         self._ekf_div = physics_hz // ekf_hz
         self._gps_div = physics_hz // GPS_HZ if physics_hz % GPS_HZ == 0 else None
-        self._baro_div = physics_hz // BARO_MAG_HZ if physics_hz % BARO_MAG_HZ == 0 else None
+        self._baro_mag_hz = _baro_mag_hz(ekf_hz)
+        self._baro_div = physics_hz // self._baro_mag_hz if physics_hz % self._baro_mag_hz == 0 else None
         if self._gps_div is None or self._baro_div is None or self._gps_div % self._baro_div:
-            raise UavsearchError(f"physics_hz={physics_hz} must be a multiple of {GPS_HZ} and {BARO_MAG_HZ}")
+            raise UavsearchError(f"physics_hz={physics_hz} must be a multiple of {GPS_HZ} and {self._baro_mag_hz}")
         self.fdm = QuadFdm(home, physics_hz, start_enu, start_yaw_rad)
         self.rng = np.random.default_rng(seed)
         self.sensors = SensorSuite(params, home, self.rng)
@@ -228,7 +234,7 @@ class Multicopter:
         if initial:
             imu = sens.imu(fdm.body_rates_rad_s(), fdm.specific_force_frd_m_s2(), 1.0 / self.ctrl_hz)
             fix = sens.gps(self.time_us, pos, fdm.velocity_ned_m_s(), 1.0 / GPS_HZ)
-            sens.baro(pos[2], 1.0 / BARO_MAG_HZ)
+            sens.baro(pos[2], 1.0 / self._baro_mag_hz)
             mag = sens.mag(*fdm.euler_rad())
             ekf.initialize(fix.position_ned_m, fix.velocity_ned_m_s, imu.accel_frd_m_s2, mag)
             self._gps_time_us = self.time_us
@@ -240,7 +246,7 @@ class Multicopter:
             self._acc_accel = [0.0, 0.0, 0.0]
             self._acc_n = 0
             if k % self._baro_div == 0:
-                alt = sens.baro(pos[2], 1.0 / BARO_MAG_HZ)
+                alt = sens.baro(pos[2], 1.0 / self._baro_mag_hz)
                 mag = sens.mag(*fdm.euler_rad())
                 if k % self._gps_div == 0 and not self.params["SIM_GPS_BLOCK"]:  # all three: one update
                     fix = sens.gps(self.time_us, pos, fdm.velocity_ned_m_s(), 1.0 / GPS_HZ)
