@@ -129,6 +129,31 @@ def _add_fly_parser(sub) -> None:
     p.set_defaults(func=_cmd_fly)
 
 
+def _add_vehicle_option(p) -> None:
+    """`uavsearch eval search --vehicle mavlink`: fly the test scenes instead (mission_controller)."""
+    p.add_argument("--vehicle", choices=("teleport", "mavlink"), default="teleport",
+                   help="mavlink: fly every test scene over MAVLink and compare with teleport (one setting)")
+    p.add_argument("--mission", default=None, metavar="FILE", help="(--vehicle mavlink) mission to fly")
+    p.add_argument("--speed", type=_speed_arg, default="max", help="(--vehicle mavlink) speed factor (default max)")
+    p.add_argument("--scenes", type=int, nargs="+", default=None, metavar="SEED",
+                   help="(--vehicle mavlink) these scene seeds instead of the setting's test scenes")
+    teleport = p.get_default("func")
+
+    def run(args):
+        if args.vehicle == "teleport":
+            return teleport(args)
+        from .search.mission_controller import eval_flight_vs_teleport
+
+        setting = 2 if str(args.setting) == "all" else int(args.setting)
+        res = eval_flight_vs_teleport(setting, args.split, args.mission, args.speed, args.out, args.scenes,
+                                      progress=args.progress)
+        print(res["table"].read_text())
+        print(f"wrote {res['table']}")
+        return 0
+
+    p.set_defaults(func=run)
+
+
 def _cmd_replay(args) -> int:
     from .logs.replay import replay_command
 
@@ -173,6 +198,7 @@ def _add_eval_parser(sub) -> None:
     esub = ev.add_subparsers(dest="eval_cmd", required=True, metavar="{single-view,search}")
     add_eval_single_view_parser(esub)
     add_eval_search_parser(esub)
+    _add_vehicle_option(esub.choices["search"])
 
 
 # --------------------------------------------------------------------------------------------------
