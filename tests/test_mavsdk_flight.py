@@ -97,6 +97,10 @@ def test_mavsdk_takeoff_goto_photo_land(sitl, tmp_path):
             assert abs(info.position.relative_altitude_m - up_m) < 1.0  # the estimated pose at the shot
             png = Path(info.file_url.removeprefix("file://"))
             assert png.exists() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+            await cam.start_photo_interval(100, 1.0)  # every simulated second until stopped
+            info = await _first(captures, lambda c: c.index == 2, 20)
+            await cam.stop_photo_interval(100)
+            assert info.is_success and Path(info.file_url.removeprefix("file://")).exists()
 
             await action.land()
             await _first(tel.subscribe_armed(), lambda armed: not armed, 60)
