@@ -137,3 +137,39 @@ def test_replay_the_flight_and_its_tlog(flown, tmp_path):
     res2 = json.loads((out2 / "replay.json").read_text())
     assert res2["views"] == T and res2["labels"] == res["labels"]
     np.testing.assert_allclose(np.array(res2["positions_enu"])[:, :2], np.array(res["positions_enu"])[:, :2], atol=1.5)
+
+
+@pytest.mark.slow
+def test_killed_mid_air_leaves_a_readable_log(tmp_path):
+    """SIGKILL the controller after its first view: the log reads up to that step, and the vehicle process
+    it started goes away with it (PR_SET_PDEATHSIG)."""
+    import signal
+    import time
+
+    from uavsearch.logs.flight_log import read_flight_log
+    from uavsearch.logs.replay import read_tlog
+
+    mission = _mission(tmp_path)
+    mission["search"]["budget_T"] = 5
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(mission))
+    run = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp_path / "m.yaml"), "--out",
+                             str(run), "--gcs-port", "0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        end = time.monotonic() + 180
+        while time.monotonic() < end:
+            p = run / "search.jsonl"
+            if p.is_file() and '"type":"step"' in p.read_text():
+                break
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    log = read_flight_log(run)
+    assert len(log.steps) >= 1 and log.summary is None and log.steps[0]["waypoint_enu"] == [0.0, 0.0, 70.0]
+    tr = read_tlog(run / "telemetry.tlog")
+    assert len(tr.captures) >= 1 and tr.lla[:, 2].max() > 488.0 + 69.0
+    time.sleep(2)
+    sitl_log = (run / "sitl.log").read_text()
+    out = subprocess.run(["pgrep", "-f", f"uavsearch.flight.sitl.*{run}"], capture_output=True, text=True)
+    assert out.stdout.strip() == "", sitl_log
