@@ -86,7 +86,8 @@ def evaluate_agent(cache, agent: Agent, episodes_per_scene: int = 10, seed: int 
             m.eval()
     rows = np.repeat(np.arange(cache.num_scenes), episodes_per_scene)
     gen = torch.Generator().manual_seed(int(seed))
-    ep = run_search(CachedViews(cache, rows, config), agent, 1 if single_view else budget_T, generator=gen)
+    conf = agent.confidence if agent.fusion == "learned" else None
+    ep = run_search(CachedViews(cache, rows, config, conf), agent, 1 if single_view else budget_T, generator=gen)
     return score_episode(ep)
 
 
@@ -313,3 +314,22 @@ def cmd_eval_search(args) -> int:
                          models_dir=args.models_dir, episodes=args.episodes, seeds=args.seeds, argmax=args.argmax,
                          workers=args.workers, progress=args.progress))
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m uavsearch.search.eval_search [flags]`: the same as `uavsearch eval search [flags]`."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m uavsearch.search.eval_search")
+    add_eval_search_parser(parser.add_subparsers(dest="cmd", required=True))
+    args = parser.parse_args(["search", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return args.func(args)
+    except UavsearchError as e:
+        print(f"uavsearch: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

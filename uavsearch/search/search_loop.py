@@ -85,10 +85,11 @@ class Observation(NamedTuple):
     """What the frozen perception says about one view, batched over episodes."""
 
     log_probs: torch.Tensor  # (B, N, 2)
-    cell_features: torch.Tensor  # (B, N, D) the confidence network's input
+    cell_features: torch.Tensor | None  # (B, N, D) the confidence network's input (None when scores are given)
     global_feature: torch.Tensor  # (B, G) the image embedding's input
     cell_area_px: torch.Tensor  # (B, N) F_size
     valid: torch.Tensor  # (B, N) bool: the view measured the cell (c^t)
+    scores: torch.Tensor | None = None  # (B, N) confidence scores s_i, if the source precomputed them
 
 
 class ViewSource(Protocol):
@@ -102,21 +103,33 @@ class ViewSource(Protocol):
 
 
 class CachedViews:
-    """B episodes over cached scenes: `scene_rows[b]` is episode b's row in the view cache."""
+    """B episodes over cached scenes: `scene_rows[b]` is episode b's row in the view cache.
 
-    def __init__(self, cache, scene_rows, config: SearchConfig | None = None):
+    With `confidence` (a net whose scores need no gradient: evaluation, rollouts) the scores of every
+    (scene, position) in the batch are computed once up front instead of once per episode and step.
+    """
+
+    def __init__(self, cache, scene_rows, config: SearchConfig | None = None, confidence=None):
         self.cache = cache
-        self.rows = torch.as_tensor(np.asarray(scene_rows), dtype=torch.long)
+        self.rows = torch.as_tensor(np.asarray(scene_rows), dtype=torch.long).reshape(-1)
         self.config = config or SearchConfig()
         self.batch_size = int(self.rows.numel())
         self.labels = cache.occupancy[self.rows]
         if cache.num_positions != self.config.lattice_size ** 2:
             raise UavsearchError(f"view cache has {cache.num_positions} positions, the config's lattice "
                                  f"{self.config.lattice_size ** 2}")
+        self._scores = self._inv = None
+        if confidence is not None:
+            uniq, self._inv = torch.unique(self.rows, return_inverse=True)
+            with torch.no_grad():
+                self._scores = confidence(cache.cell_features[uniq])  # (U, P, N)
 
     def observe(self, lattice_idx: torch.Tensor) -> Observation:
         r, p = self.rows, lattice_idx
         c = self.cache
+        if self._scores is not None:
+            return Observation(c.log_probs[r, p], None, c.global_feature[r, p], c.cell_area_px[r, p], c.valid[r, p],
+                               self._scores[self._inv, p])
         return Observation(c.log_probs[r, p], c.cell_features[r, p], c.global_feature[r, p], c.cell_area_px[r, p],
                            c.valid[r, p])
 
@@ -230,7 +243,10 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
         positions.append(idx)
         o = source.observe(idx)
         obs.append(o)
-        scores.append(agent.confidence(o.cell_features) if agent.fusion == "learned" else None)
+        if agent.fusion == "learned":
+            scores.append(o.scores if o.scores is not None else agent.confidence(o.cell_features))
+        else:
+            scores.append(None)
         fused = fuse_views(agent, obs, scores, source.labels)
         maps.append(fused)
         if t == T - 1:

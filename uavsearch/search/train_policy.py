@@ -206,7 +206,8 @@ def train(args: Args, caches=None) -> TrainResult:
         groups.append({"params": conf.parameters(), "lr": args.lr_confidence})
     opt = torch.optim.Adam(groups, weight_decay=args.weight_decay)
     agent = Agent(args.fusion, policy, conf)  # evaluation
-    rollout_agent = Agent(args.fusion, policy, _EvalScores(conf) if conf is not None else None)
+    rollout_conf = _EvalScores(conf) if conf is not None else None
+    rollout_agent = Agent(args.fusion, policy, rollout_conf)
     T, S = config.budget_T, train_cache.num_scenes
     ema = torch.zeros(T - 1)
     rows: list[dict] = []
@@ -223,7 +224,7 @@ def train(args: Args, caches=None) -> TrainResult:
         t0 = time.perf_counter()
         scenes = torch.randint(S, (args.scenes_per_batch,), generator=gen)
         rows_b = scenes.repeat_interleave(args.episodes_per_scene)
-        ep = run_search(CachedViews(train_cache, rows_b, config), rollout_agent, generator=gen)
+        ep = run_search(CachedViews(train_cache, rows_b, config, rollout_conf), rollout_agent, generator=gen)
         y = ep.labels
         final = ep.maps[:, -1]
         R, r_cls = returns(ep, final, y, args)
@@ -292,21 +293,33 @@ def train(args: Args, caches=None) -> TrainResult:
 # CLI
 
 
+def _field_help() -> dict[str, str]:
+    """The one-line comment after each Args field is its --help text (one source of truth)."""
+    import inspect
+    import re
+
+    out = {}
+    for line in inspect.getsource(Args).splitlines():
+        m = re.match(r"\s+(\w+):[^#]*#\s*(.*)$", line)
+        if m:
+            out[m.group(1)] = m.group(2).replace("%", "%%")
+    return out
+
+
 def add_train_policy_parser(subparsers) -> None:
     """`uavsearch train policy ...` (subparsers: the `train` command's); one flag per Args field."""
-    p = subparsers.add_parser("policy", help="stage 2: confidence fusion + REINFORCE view-selection policy")
-    helps = {
-        "setting": "paper setting 1|2|3 (2, 5, 10 occupied cells)", "fusion": "learned|average|bayes|size|oracle",
-        "out": "copy the best checkpoint here (e.g. models/search_s2_learned.pt)",
-    }
+    p = subparsers.add_parser("policy", help="stage 2: confidence fusion + REINFORCE view-selection policy",
+                              description="Stage 2 (paper Sec. V-B) on cached teleport views; see "
+                                          "uavsearch/search/train_policy.py.")
+    helps = _field_help()
     for name, value in asdict(Args()).items():
         flag = "--" + name.replace("_", "-")
+        h = f"{helps.get(name, '')} (default {value})"
         if isinstance(value, bool):
-            p.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes"), default=value,
-                           help=f"true|false (default {value})")
+            p.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes"), default=value, metavar="BOOL",
+                           help=h)
         else:
-            typ = type(value) if value is not None else str
-            p.add_argument(flag, type=typ, default=value, help=helps.get(name, f"default {value}"))
+            p.add_argument(flag, type=type(value) if value is not None else str, default=value, help=h)
     p.set_defaults(func=cmd_train_policy)
 
 
@@ -317,3 +330,22 @@ def cmd_train_policy(args) -> int:
     print(f"{res.seconds:.0f} s, {res.steps_per_s:.0f} policy steps/s in training; run {res.run_dir}; "
           f"checkpoint {res.checkpoint}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m uavsearch.search.train_policy [flags]`: the same as `uavsearch train policy [flags]`."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m uavsearch.search.train_policy")
+    add_train_policy_parser(parser.add_subparsers(dest="cmd", required=True))
+    args = parser.parse_args(["policy", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        return args.func(args)
+    except UavsearchError as e:
+        print(f"uavsearch: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -7,10 +7,12 @@ position, perception weights). It is computed once and kept on disk; training an
 Two layers, both under the gitignored ``cache/`` folder:
 
 1. Renders: every lattice position of every scene of one (split, setting, part), as a dataset.py view set
-   (``cache/lattice_views/<split>_s<setting>_<part>/``, views_per_scene = all positions). Independent of
-   the perception weights, so retraining perception never re-renders.
-2. Perception outputs, one ``.npz`` per (perception weights, split, setting, part):
-   ``cache/search_views/<perception tag>/<split>_s<setting>_<part>.npz`` (numpy.savez, uncompressed):
+   (``cache/lattice_views/<world tag>/<split>_s<setting>_<part>/``, views_per_scene = all positions).
+   Independent of the perception weights, so retraining perception never re-renders. The world tag
+   hashes the scene generator's and renderer's source and the search config, so a change to how scenes
+   are made or drawn never silently reuses old renders.
+2. Perception outputs, one ``.npz`` per (world, perception weights, split, setting, part):
+   ``cache/search_views/<world tag>-<perception tag>/<split>_s<setting>_<part>.npz`` (numpy.savez):
 
        format           () str        "uavsearch-search-views/1"
        perception_tag   () str        first 16 hex of sha256 over the perception state dict
@@ -98,6 +100,19 @@ class CacheKey:
         return [(int(s), SETTINGS[self.setting]) for s in scene_seeds(self.setting, self.split, self.part)]
 
 
+def world_tag() -> str:
+    """A hash of what decides the pixels: scene generator and renderer source, scene splits, search config."""
+    from uavsearch.world import render, scene, settings
+
+    from .config import SearchConfig
+
+    h = hashlib.sha256(repr(SearchConfig()).encode())
+    for mod in (scene, render):
+        h.update(Path(mod.__file__).read_bytes())
+    h.update(Path(settings.SETTINGS_FILE).read_bytes())
+    return h.hexdigest()[:12]
+
+
 def perception_tag(net: torch.nn.Module) -> str:
     """A content hash of the weights, so caches of different perception checkpoints never mix."""
     h = hashlib.sha256()
@@ -128,7 +143,7 @@ def render_lattice_views(key: CacheKey, scenes=None, root=None, workers: int = 2
     n_pos = len(lattice_positions(SearchConfig()))
     spec = ViewSetSpec(name=f"lattice-{key.name}", scenes=tuple((int(s), int(k)) for s, k in scenes),
                        views_per_scene=n_pos, include_start=True, seed=0)
-    root = Path(root) if root is not None else CACHE_DIR / "lattice_views" / key.name
+    root = Path(root) if root is not None else CACHE_DIR / "lattice_views" / world_tag() / key.name
     return generate_views(spec, root=root, workers=workers, progress=progress)
 
 
@@ -139,11 +154,12 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
 
     cache_dir = Path(cache_dir) if cache_dir is not None else CACHE_DIR
     tag = perception_tag(net)
-    out = cache_dir / "search_views" / tag / f"{key.name}.npz"
+    world = world_tag()
+    out = cache_dir / "search_views" / f"{world}-{tag}" / f"{key.name}.npz"
     if out.is_file():
         return out
     scenes = list(scenes) if scenes is not None else key.scenes()
-    root = render_lattice_views(key, scenes, root=cache_dir / "lattice_views" / key.name, workers=workers,
+    root = render_lattice_views(key, scenes, root=cache_dir / "lattice_views" / world / key.name, workers=workers,
                                 progress=progress)
     parts: dict[str, list] = {k: [] for k in ("log_probs", "cell_features", "global_feature", "cell_area_px",
                                               "valid", "occupancy", "scene_seed", "occupied_cells")}
