@@ -63,6 +63,13 @@ IDLE_THRUST = 0.05
 TAKEOFF_CLIMB_M = 0.3  # a position setpoint this far above the vehicle (or an upward velocity) means "take off"
 
 
+def _frozen(values) -> np.ndarray:
+    """A read-only array: cached messages are shared between readers, so nobody may edit them in place."""
+    a = np.array(values, dtype=float)
+    a.flags.writeable = False
+    return a
+
+
 def _check_rates(physics_hz, ctrl_hz, ekf_hz) -> None:
     for name, v in (("physics_hz", physics_hz), ("ctrl_hz", ctrl_hz), ("ekf_hz", ekf_hz)):
         if not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v <= 0:
@@ -311,8 +318,8 @@ class Multicopter:
             w, x, y, z = self.ekf.q
             self._lp_cache = VehicleLocalPosition(
                 self._est_time_us,
-                np.array(self._est_pos),
-                np.array(self._est_vel),
+                _frozen(self._est_pos),
+                _frozen(self._est_vel),
                 math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)),
                 eph_m=math.sqrt(float(P[0, 0]) + float(P[1, 1])),
                 epv_m=math.sqrt(float(P[2, 2])),
@@ -322,7 +329,7 @@ class Multicopter:
     @property
     def attitude(self) -> VehicleAttitude:
         if self._att_cache is None or self._att_cache.timestamp_us != self._att_time_us:
-            self._att_cache = VehicleAttitude(self._att_time_us, np.array(self._q_out), np.array(self._rates))
+            self._att_cache = VehicleAttitude(self._att_time_us, _frozen(self._q_out), _frozen(self._rates))
         return self._att_cache
 
     @property
