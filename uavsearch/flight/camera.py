@@ -130,7 +130,8 @@ class Camera:
         return rec
 
 
-def scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntrinsics, options=None, seed: int = 0):
+def scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntrinsics, options=None, seed: int = 0,
+                   spec=None):
     """The foundation's renderer for a generated scene as (render(pose) -> RGB, close()).
 
     Sensor randomisation (if the options enable it) draws from a generator seeded by (seed, shot
@@ -139,7 +140,8 @@ def scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntri
     from ..world.render import RenderOptions, SceneRenderer
     from ..world.scene import generate_scene
 
-    spec = generate_scene(scene_seed, occupied_cells)
+    if spec is None:  # a saved spec (uavsearch scene save) is rendered as it is
+        spec = generate_scene(scene_seed, occupied_cells)
     renderer = SceneRenderer(spec, intrinsics, options if options is not None else RenderOptions())
     shots = [0]
 

@@ -33,6 +33,7 @@ class SitlConfig:
     seed: int = 0  # vehicle noise (sensors, estimator): the same seed flies the same trajectory
     scene_seed: int | None = 0  # None: no camera rendering (captures fail with capture_result 0)
     occupied_cells: int = 5
+    scene_file: Path | None = None  # a saved scene spec (JSON) instead of generating scene_seed
     home: GeodeticOrigin = field(default_factory=GeodeticOrigin)
     speed: float = 1.0  # math.inf = as fast as possible
     api_port: int = 14540  # remote ports: 0 disables the link
@@ -87,7 +88,14 @@ class Sitl:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._close_render = None
         if render is None and cfg.scene_seed is not None:
-            render, self._close_render = scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, seed=cfg.seed)
+            spec = None
+            if cfg.scene_file is not None:
+                from ..world.scene import load_scene
+
+                spec = load_scene(cfg.scene_file)
+                cfg.scene_seed = spec.seed
+            render, self._close_render = scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, seed=cfg.seed,
+                                                        spec=spec)
         self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render,
                              home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m)
         links = []
@@ -229,6 +237,8 @@ def add_sitl_parser(subparsers) -> argparse.ArgumentParser:
 def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", type=int, default=0, metavar="SEED", help="scene seed for the camera (default 0)")
     p.add_argument("--no-camera-scene", action="store_true", help="do not build the scene (faster start; captures fail)")
+    p.add_argument("--scene-file", type=Path, default=None, metavar="JSON",
+                   help="render a saved scene spec (uavsearch scene save) instead of --scene")
     p.add_argument("--cells", type=int, default=5, metavar="K", help="occupied cells in the scene (default 5)")
     p.add_argument("--seed", type=int, default=0, help="vehicle noise seed (default 0)")
     p.add_argument("--speed", type=_parse_speed, default=1.0, help="1 (real time, default), N (N x real time) or max")
@@ -254,6 +264,7 @@ def config_from_args(args) -> SitlConfig:
         seed=args.seed,
         scene_seed=None if args.no_camera_scene else args.scene,
         occupied_cells=args.cells,
+        scene_file=args.scene_file,
         home=args.home,
         speed=args.speed,
         api_port=args.api_port,

@@ -246,13 +246,11 @@ class SitlProcess:
     def __init__(self, run_dir: Path, mission, api_port: int, gcs_port: int = 0, timeout_s: float = 120.0):
         self.log_path = Path(run_dir) / "sitl.log"
         s, h = mission.flight, mission.home
-        if mission.spec_path is not None:
-            raise MissionError(f"mission {mission.source}: scene.spec: uavsearch sitl renders generated scenes only; "
-                               "fly a spec file with --connect to a vehicle that renders it")
         speed = "max" if s.speed == "max" else f"{float(s.speed):g}"
-        cmd = [sys.executable, "-m", "uavsearch.flight.sitl", "--scene", str(mission.scene.seed), "--cells",
-               str(mission.scene.k), "--seed", str(s.vehicle_seed), "--speed", speed, "--out", str(run_dir),
-               "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}", "--api-port", str(api_port),
+        scene = ["--scene-file", str(mission.spec_path)] if mission.spec_path is not None else \
+            ["--scene", str(mission.scene.seed), "--cells", str(mission.scene.k)]
+        cmd = [sys.executable, "-m", "uavsearch.flight.sitl", *scene, "--seed", str(s.vehicle_seed), "--speed", speed,
+               "--out", str(run_dir), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}", "--api-port", str(api_port),
                "--gcs-port", str(gcs_port), "--api-local-port", "0", "--gcs-local-port", "0"]
         self._out = open(self.log_path, "w")
         self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
