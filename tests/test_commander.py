@@ -14,7 +14,7 @@ from uavsearch.flight.commander import Commander, Result, VehicleCommand, autopi
 from uavsearch.flight.messages import SensorHealth, TrajectorySetpoint
 from uavsearch.flight.mission import MissionItem
 from uavsearch.flight.params import ParamStore
-from uavsearch.geometry import GeodeticOrigin, enu_to_ned
+from uavsearch.geometry import GeodeticOrigin
 
 NAN = math.nan
 ORIGIN = GeodeticOrigin()

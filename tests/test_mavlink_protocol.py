@@ -1,7 +1,6 @@
 """pymavlink against a real `uavsearch sitl` process (real UDP, real JSBSim): params, commands,
 message intervals, the mission protocol, and robustness to malformed bytes."""
 
-import math
 import struct
 
 import numpy as np

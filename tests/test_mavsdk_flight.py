@@ -74,7 +74,7 @@ def test_mavsdk_takeoff_goto_photo_land(sitl, tmp_path):
             await action.arm()
             await action.takeoff()
             await _first(tel.subscribe_in_air(), bool, 20)
-            pos = await _first(tel.subscribe_position(), lambda p: abs(p.relative_altitude_m - 5.0) < 0.3, 30)
+            await _first(tel.subscribe_position(), lambda p: abs(p.relative_altitude_m - 5.0) < 0.3, 30)
             home = await tel.home()
             assert home.relative_altitude_m == pytest.approx(0.0, abs=0.1)
             assert (await tel.flight_mode()).name == "HOLD"
@@ -82,7 +82,7 @@ def test_mavsdk_takeoff_goto_photo_land(sitl, tmp_path):
             north_m, up_m = 10.0, 8.0
             target_lat = home.latitude_deg + north_m / M_PER_DEG_LAT
             await action.goto_location(target_lat, home.longitude_deg, home.absolute_altitude_m + up_m, 0.0)
-            pos = await _first(
+            await _first(
                 tel.subscribe_position(),
                 lambda p: abs(p.latitude_deg - target_lat) * M_PER_DEG_LAT < 0.5 and abs(p.relative_altitude_m - up_m) < 0.4,
                 60,

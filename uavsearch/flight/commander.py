@@ -19,7 +19,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from ..geometry import GeodeticOrigin, wrap_pi
+from ..geometry import GeodeticOrigin, enu_to_ned, ned_to_enu, wrap_pi
 from .messages import TrajectorySetpoint
 from .mission import Mission, MissionItem, check_item, MissionError, MISSION_DENIED
 from .navigator import NAV_PARAMS, NavState, Navigator
@@ -183,8 +183,6 @@ class Commander:
         return float(self.origin.alt_m - self.home_ned[2])
 
     def home_lla(self) -> np.ndarray:
-        from ..geometry import ned_to_enu
-
         return self.origin.enu_to_geodetic(ned_to_enu(self.home_ned))
 
     def text(self, severity: int, text: str) -> None:
@@ -306,6 +304,7 @@ class Commander:
             self.text(SEV_CRITICAL, "Arming denied: " + ", ".join(fails))
             return Result.DENIED
         self.vehicle.arm()
+        self._last_sp = None
         self.home_ned = np.array(self.vehicle.local_position.position_ned_m, dtype=float)
         self.home_set = True
         self.navigator.home_ned = self.home_ned.copy()
@@ -321,6 +320,7 @@ class Commander:
 
     def disarm(self, reason: str = "Disarmed") -> None:
         self.vehicle.disarm()
+        self._last_sp = None
         if self.mode in ("LAND", "RTL", "TAKEOFF"):
             self.mode = "HOLD"
         self.navigator.activate(self.mode)
@@ -426,8 +426,6 @@ class Commander:
                 alt_amsl = self.origin.alt_m - self.home_ned[2] + alt
             else:
                 alt_amsl = alt
-            from ..geometry import enu_to_ned
-
             tgt = enu_to_ned(self.origin.geodetic_to_enu([lat, lon, alt_amsl]))
         elif math.isfinite(alt):
             tgt = np.array([p[0], p[1], p[2]], dtype=float)
@@ -468,8 +466,6 @@ class Commander:
         if cmd.param1 == 1.0:
             self.home_ned = np.array(self.vehicle.local_position.position_ned_m, dtype=float)
         elif all(math.isfinite(x) for x in (cmd.param5, cmd.param6, cmd.param7)):
-            from ..geometry import enu_to_ned
-
             self.home_ned = enu_to_ned(self.origin.geodetic_to_enu([cmd.param5, cmd.param6, cmd.param7]))
         else:
             return Result.DENIED
@@ -497,7 +493,7 @@ class Commander:
         s = NavState(self.now_us, lp, ld)
         sp = self.navigator.update(s)
         self._handle_nav_events()
-        if self.armed and sp is not None:
+        if self.armed and sp is not None and sp is not self._last_sp:
             if math.isnan(sp.yaw_rad) and math.isnan(sp.yawspeed_rad_s):
                 sp = TrajectorySetpoint(
                     sp.timestamp_us, sp.position_ned_m, sp.velocity_ned_m_s, sp.acceleration_ned_m_s2, lp.heading_rad

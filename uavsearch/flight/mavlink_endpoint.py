@@ -27,7 +27,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from .camera import CAMERA_COMPID, Camera, CaptureRecord
-from .commander import PX4_MODES, Commander, Result, VehicleCommand
+from .commander import Commander, Result, VehicleCommand
 from .mission import MissionItem
 from .params import ParamError, ParamStore
 

@@ -402,6 +402,7 @@ class Navigator:
         self._needs_activation = True
         self.cruise_speed: float | None = None  # DO_CHANGE_SPEED outside missions
         self._limits_cache = None
+        self._held = None  # (key, setpoint) of the last follow()
         self.params.on_change(self._params_changed)
 
     def _params_changed(self, _name, _value) -> None:
@@ -411,6 +412,7 @@ class Navigator:
     def activate(self, name: str) -> None:
         self.active_name = name
         self._needs_activation = True
+        self._held = None
 
     def update(self, s: NavState) -> TrajectorySetpoint | None:
         mode = self.modes[self.active_name]
@@ -472,7 +474,12 @@ class Navigator:
     def follow(self, s: NavState, target_ned, yaw_rad: float, speed_m_s: float | None) -> TrajectorySetpoint:
         cruise, up, down, acc_xy, acc_z = self._limits()
         self.carrot.step(target_ned, self.dt_s, speed_m_s or self.cruise_speed or cruise, up, down, acc_xy, acc_z)
-        return TrajectorySetpoint(s.now_us, self.carrot.pos, self.carrot.vel, _NAN3, yaw_rad)
+        key = (tuple(self.carrot._p), tuple(self.carrot._v), yaw_rad)
+        if self._held is not None and self._held[0] == key:
+            return self._held[1]  # at rest on the target: the same setpoint object, nothing to resend
+        sp = TrajectorySetpoint(s.now_us, self.carrot.pos, self.carrot.vel, _NAN3, yaw_rad)
+        self._held = (key, sp)
+        return sp
 
     def descend(self, s: NavState, xy, yaw_rad: float) -> TrajectorySetpoint:
         """x/y held, z velocity-controlled: fast high up, MPC_LAND_SPEED below MPC_LAND_ALT1."""
