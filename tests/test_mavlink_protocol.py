@@ -185,3 +185,27 @@ def test_malformed_bytes_are_dropped_and_counted(gcs):
     assert gcs.command(31999).result == M.MAV_RESULT_UNSUPPORTED
     st = gcs.recv("SYS_STATUS", timeout=5.0, cond=lambda m: m.errors_comm > before)
     assert st is not None and st.errors_comm - before >= len(valid)
+
+
+def test_commands_with_hostile_numbers_are_answered_not_fatal(gcs):
+    """Valid frames, absurd contents: NaN, infinities and huge values in every command parameter."""
+    rng = np.random.default_rng(11)
+    values = [float("nan"), float("inf"), -float("inf"), 1e30, -1e30, 0.0, 1.0, -1.0, 21196.0]
+    commands = [M.MAV_CMD_COMPONENT_ARM_DISARM, M.MAV_CMD_NAV_TAKEOFF, M.MAV_CMD_DO_SET_MODE, M.MAV_CMD_DO_REPOSITION,
+                M.MAV_CMD_DO_CHANGE_SPEED, M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAV_CMD_REQUEST_MESSAGE,
+                M.MAV_CMD_MISSION_START, M.MAV_CMD_DO_SET_HOME, M.MAV_CMD_IMAGE_START_CAPTURE, M.MAV_CMD_NAV_LAND]
+    answered = 0
+    for i in range(60):
+        cmd = commands[i % len(commands)]
+        params = [values[j] for j in rng.integers(0, len(values), 7)]
+        ack = gcs.command(cmd, *params, target_component=100 if cmd == M.MAV_CMD_IMAGE_START_CAPTURE else 1,
+                          timeout=2.0)
+        answered += ack is not None
+    for _ in range(20):
+        p = [values[j] for j in rng.integers(0, len(values), 11)]
+        gcs.mav.set_position_target_local_ned_send(0, 1, 1, M.MAV_FRAME_LOCAL_NED, 0, *p[:9], p[9], p[10])
+    assert answered == 60  # every command got an ACK (accepted, denied, unsupported or failed)
+    # Whatever that did, the vehicle still flies its loop: disarm it and check it answers.
+    gcs.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196)
+    assert gcs.command(31999).result == M.MAV_RESULT_UNSUPPORTED
+    assert gcs.wait_heartbeat() is not None

@@ -19,6 +19,7 @@ from enum import IntEnum
 
 import numpy as np
 
+from ..errors import UavsearchError
 from ..geometry import GeodeticOrigin, enu_to_ned, ned_to_enu, wrap_pi
 from .messages import TrajectorySetpoint
 from .mission import Mission, MissionItem, check_item, MissionError, MISSION_DENIED
@@ -498,7 +499,11 @@ class Commander:
                 sp = TrajectorySetpoint(
                     sp.timestamp_us, sp.position_ned_m, sp.velocity_ned_m_s, sp.acceleration_ned_m_s2, lp.heading_rad
                 )
-            v.set_setpoint(sp)
+            try:
+                v.set_setpoint(sp)
+            except UavsearchError as e:  # a setpoint the vehicle refuses: keep flying the previous one
+                self.text(SEV_CRITICAL, f"setpoint refused: {e}")
+                return
             self._last_sp = sp
 
     def _estimate_settled(self, lp) -> bool:

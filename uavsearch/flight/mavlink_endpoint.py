@@ -613,6 +613,12 @@ class MavlinkEndpoint:
         self._command(link, m, m.command, p, frame, m.target_component)
 
     def _command(self, link, m, command: int, p: list, frame: int, target_comp: int) -> None:
+        try:
+            self._dispatch_command(link, m, command, p, frame, target_comp)
+        except (ValueError, OverflowError):  # e.g. a message id or count of NaN / inf
+            self._ack(link, m, command, Result.DENIED, CAMERA_COMPID if target_comp == CAMERA_COMPID else AUTOPILOT_COMPID)
+
+    def _dispatch_command(self, link, m, command: int, p: list, frame: int, target_comp: int) -> None:
         to_camera = target_comp == CAMERA_COMPID or (target_comp == 0 and command in CAMERA_COMMANDS)
         if to_camera:
             if self.camera is None:
@@ -876,6 +882,9 @@ class MavlinkEndpoint:
         a = np.array([nan if mask & b else x for b, x in ((64, m.afx), (128, m.afy), (256, m.afz))], dtype=float)
         yaw = nan if mask & 1024 else float(m.yaw)
         yawrate = nan if mask & 2048 else float(m.yaw_rate)
+        if any(math.isinf(x) for x in (*p, *v, *a, yaw, yawrate)):
+            link.rx_dropped += 1  # NaN means "not controlled"; infinity means nothing
+            return
         frame = m.coordinate_frame
         if frame == M.MAV_FRAME_BODY_NED or frame == M.MAV_FRAME_BODY_OFFSET_NED:
             hdg = float(self._v("local_position").heading_rad)
