@@ -216,3 +216,13 @@ def test_armed_without_takeoff_disarms_after_com_disarm_prflt_in_both_clocks():
     r.wall_rate = 1.0
     assert r.run(4.0, until=lambda: not r.c.armed)
     assert any("no takeoff" in t for t in r.texts())
+
+
+def test_gps_loss_in_flight_lands():
+    r = Rig()
+    r.takeoff()
+    r.v.sensor_health = SensorHealth(gps=False)
+    r.run(0.2)
+    assert r.c.mode == "LAND"
+    assert any("GPS lost" in t for t in r.texts())
+    assert r.run(30, until=lambda: not r.c.armed)

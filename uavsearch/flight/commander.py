@@ -549,6 +549,10 @@ class Commander:
                     self._failsafe(act, "Data link lost")
                 else:
                     self.text(SEV_WARNING, "Data link lost")
+        # Position lost (no GPS): land where it is, as PX4 does without a position estimate.
+        gps_ok = self.vehicle.sensor_health.gps and lp.xy_valid
+        if not gps_ok and in_air and self.mode != "LAND":
+            self._failsafe("LAND", "GPS lost")
         # Offboard setpoints stopped.
         if self.mode == "OFFBOARD" and not self._offboard_fresh():
             act = {3: "RTL", 4: "LAND"}.get(int(self.params["COM_OBL_RC_ACT"]), "HOLD")
