@@ -3,7 +3,9 @@
 Rendering is the data bottleneck (PyBullet on CPU), so every (scene, lattice position) view is rendered
 once and kept. A dataset is a directory:
 
-    <dir>/manifest.json        format version, the ViewSetSpec, the SearchConfig it was rendered with
+    <dir>/manifest.json        format version, the ViewSetSpec (without its scene list), the camera, grid and
+                               render options it was rendered with; a directory can grow by more scenes
+                               of the same kind (e.g. 40 then 80 test scenes per density) and reuse shards
     <dir>/shards/s<seed>_k<K>.npz   one compressed shard per scene (numpy.savez_compressed):
         images         (V, H, W, 3) uint8   RGB, north up
         lattice_index  (V,) int16           index into config.lattice_positions (row-major from the NW corner)
@@ -167,11 +169,17 @@ def _manifest(spec: ViewSetSpec) -> dict:
     intr, grid = config.intrinsics, config.grid
     return {
         "format": FORMAT,
-        "spec": spec.to_json(),
+        "spec": {k: v for k, v in spec.to_json().items() if k != "scenes"},
         "camera": {"width_px": intr.width_px, "height_px": intr.height_px, "hfov_deg": intr.hfov_deg},
         "grid": {"n": grid.n, "cell_m": grid.cell_m},
         "render": repr(config.render),
     }
+
+
+def _comparable(manifest: dict) -> dict:
+    """What must match for shards to be shared: everything but the set's name and scene list."""
+    spec = {k: v for k, v in manifest.get("spec", {}).items() if k not in ("name", "scenes")}
+    return {**manifest, "spec": spec}
 
 
 def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: bool = True) -> Path:
@@ -181,7 +189,7 @@ def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: boo
     manifest = json.loads(json.dumps(_manifest(spec)))  # as it reads back from disk
     if man_path.is_file():
         old = json.loads(man_path.read_text())
-        if old != manifest:
+        if _comparable(old) != _comparable(manifest):
             raise UavsearchError(
                 f"{root} holds a different view set (manifest differs); choose another directory or delete it"
             )
@@ -250,15 +258,27 @@ def read_manifest(root) -> dict:
     return man
 
 
+def shards_in(root) -> list[tuple[int, int]]:
+    """(seed, K) of every finished shard in a view-set directory, sorted."""
+    out = []
+    for p in (Path(root) / "shards").glob("s*_k*.npz"):
+        if ".tmp" in p.name:
+            continue
+        s, k = p.stem.split("_")
+        out.append((int(s[1:]), int(k[1:])))
+    return sorted(out)
+
+
 def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only: bool = False) -> ViewSet:
-    """Load a generated view set (all of its scenes, or the given ones); `start_only` keeps the centre views."""
+    """Load the given scenes of a view set (default: every finished shard, sorted); `start_only` keeps the
+    start (lattice centre) views."""
     man = read_manifest(root)
-    spec = ViewSetSpec.from_json(man["spec"])
+    spec = ViewSetSpec.from_json({**man["spec"], "scenes": [[0, 0]]})
     config = search_config(spec)
     from .config import lattice_positions
 
     centre = len(lattice_positions(config)) // 2
-    wanted = list(scenes) if scenes is not None else list(spec.scenes)
+    wanted = list(scenes) if scenes is not None else shards_in(root)
     parts: dict[str, list] = {k: [] for k in ("images", "lattice_index", "position_enu", "cell_area_px",
                                               "cells_in_view", "person_px", "occupancy", "scene_seed",
                                               "occupied_cells")}

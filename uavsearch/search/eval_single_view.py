@@ -14,6 +14,7 @@ which is what actually limits recall: people are 1-3 px blobs at 70 m and trees 
 
 from __future__ import annotations
 
+import argparse
 import csv
 import time
 from dataclasses import dataclass
@@ -77,11 +78,11 @@ def evaluate_single_view(args: EvalArgs) -> dict:
     torch.set_num_threads(max(1, args.threads))
     net, extra = load_perception(args.checkpoint)
     scenes, _ = density_test_scenes(args.scenes_per_pair)
-    spec = ViewSetSpec(f"density_n{args.scenes_per_pair}_v{args.views_per_scene}_s{args.seed}", tuple(scenes),
+    spec = ViewSetSpec(f"density_v{args.views_per_scene}_s{args.seed}", tuple(scenes),
                        views_per_scene=args.views_per_scene, seed=args.seed)
     t0 = time.perf_counter()
     root = generate_views(spec, Path(args.data_dir) / spec.name, args.workers, args.progress)
-    views = load_views(root)
+    views = load_views(root, scenes)
     t_data = time.perf_counter() - t0
     t0 = time.perf_counter()
     p, pixels = predict_views(net, views, progress=args.progress)
@@ -183,7 +184,8 @@ def _plot_fig4(area, correct, person_px, correct_pos, path: Path) -> Path:
 
 
 def add_eval_single_view_parser(subparsers) -> None:
-    p = subparsers.add_parser("single-view", help="Table I and Fig. 4: single-view perception on the density set")
+    p = subparsers.add_parser("single-view", help="Table I and Fig. 4: single-view perception on the density set",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     d = EvalArgs()
     p.add_argument("--out", default=d.out, help="output directory (table1.md, table1.csv, fig4.png)")
     p.add_argument("--checkpoint", default=d.checkpoint, help="perception checkpoint")

@@ -19,6 +19,7 @@ to `args.out` (models/perception.pt by default).
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import shutil
@@ -50,14 +51,14 @@ class Args:
     val_views_per_scene: int = 4  # lattice positions per validation scene (the start view included)
     data_dir: str = str(DATA_DIR)  # where rendered view sets are cached
     workers: int = 2  # rendering processes
-    steps: int = 1000  # optimiser steps
+    steps: int = 400  # optimiser steps
     batch_size: int = 32  # views per mini-batch (paper: 32)
     lr: float = 1e-3  # Adam learning rate (cosine-decayed to 5% of it); from scratch, not fine-tuning
     weight_decay: float = 1e-5  # Adam L2 (paper's alpha: 1e-6)
     pos_weight: float = 3.0  # loss weight of the occupied class (class imbalance; see module docstring)
     augment: bool = True  # random flips / 90-degree rotations of image + label image
     min_cell_px: float = 16.0  # cells smaller than this in a view are not trained on
-    eval_every: int = 200  # steps between validations
+    eval_every: int = 100  # steps between validations
     threads: int = 2  # torch CPU threads
     out: str = str(MODELS_DIR / "perception.pt")  # where the best checkpoint is copied
     runs_dir: str = str(RUNS_DIR)  # parent of the run directory
@@ -162,10 +163,10 @@ def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     """Render (or reuse) the training and validation view sets; returns them and the start-view index."""
     from .config import SearchConfig, lattice_positions
 
-    train_spec = ViewSetSpec(f"train_n{args.train_scenes}_v{args.train_views_per_scene}_s{args.seed}",
+    train_spec = ViewSetSpec(f"train_v{args.train_views_per_scene}_s{args.seed}",
                              perception_scenes("train", args.train_scenes, args.seed),
                              views_per_scene=args.train_views_per_scene, seed=args.seed)
-    val_spec = ViewSetSpec(f"val_n{args.val_scenes}_v{args.val_views_per_scene}_s{args.seed}",
+    val_spec = ViewSetSpec(f"val_v{args.val_views_per_scene}_s{args.seed}",
                            perception_scenes("val", args.val_scenes, args.seed),
                            views_per_scene=args.val_views_per_scene, seed=args.seed)
     root = Path(args.data_dir)
@@ -173,7 +174,7 @@ def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     tr_root = generate_views(train_spec, root / train_spec.name, args.workers, args.progress)
     va_root = generate_views(val_spec, root / val_spec.name, args.workers, args.progress)
     render_s = time.perf_counter() - t0
-    train, val = load_views(tr_root), load_views(va_root)
+    train, val = load_views(tr_root, train_spec.scenes), load_views(va_root, val_spec.scenes)
     print(f"data: {len(train)} training views of {args.train_scenes} scenes, {len(val)} validation views of "
           f"{args.val_scenes} scenes ({render_s:.0f} s to render / load from {root})")
     return train, val, len(lattice_positions(SearchConfig())) // 2
@@ -270,9 +271,10 @@ def _print_report(r: dict) -> None:
 
 def add_train_perception_parser(subparsers) -> None:
     """Add `perception` to the `uavsearch train` subcommands; options mirror Args."""
-    p = subparsers.add_parser("perception", help="stage 1: train the per-cell perception (one-view training)")
+    p = subparsers.add_parser("perception", help="stage 1: train the per-cell perception (one-view training)",
+                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     d = Args()
-    p.add_argument("--out", default=d.out, help="checkpoint to write (default: models/perception.pt)")
+    p.add_argument("--out", default=d.out, help="checkpoint to write")
     p.add_argument("--seed", type=int, default=d.seed, help="seed of the scene draw, init and batches")
     p.add_argument("--steps", type=int, default=d.steps, help="optimiser steps")
     p.add_argument("--batch-size", type=int, default=d.batch_size, help="views per mini-batch")
