@@ -145,6 +145,8 @@ class ReplayData:
     spec: object = None
     true_positions_enu: np.ndarray | None = None
     logged_maps: np.ndarray | None = None  # the maps the flight itself fused (run dirs)
+    track_t: np.ndarray | None = None  # (K,) log time of each track point
+    view_t: np.ndarray | None = None  # (T,) log time of each view (to cut the track "so far")
     warnings: list = field(default_factory=list)
 
     @property
@@ -178,18 +180,18 @@ def _fuse_all(method: str, p, valid, area=None, scores=None, labels=None) -> np.
     return np.asarray(fuse_prefixes(method, np.asarray(p, float), np.asarray(valid, bool), **kw), dtype=float)
 
 
-def _track_from_tlog(path: Path, origin: GeodeticOrigin) -> np.ndarray:
+def _track_from_tlog(path: Path, origin: GeodeticOrigin):
+    """(track ENU (K, 3), track times (K,), {image index: capture time}) from a run directory's tlog."""
+    empty = (np.zeros((0, 3)), np.zeros(0), {})
     if not path.is_file():
-        return np.zeros((0, 3))
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            tr = read_tlog(path)
-        except LogError:
-            return np.zeros((0, 3))
-    return origin.geodetic_to_enu(tr.lla) if len(tr.lla) else np.zeros((0, 3))
+        return empty
+    try:
+        tr = read_tlog(path)
+    except LogError:
+        return empty
+    if not len(tr.lla):
+        return empty
+    return origin.geodetic_to_enu(tr.lla), tr.t_s, {c["index"]: c["t_s"] for c in tr.captures}
 
 
 def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
@@ -229,10 +231,13 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
     except UavsearchError:
         origin = GeodeticOrigin()
     true_pos = [s["true_pose"]["position_enu"] if s.get("true_pose") else None for s in log.steps]
+    track, track_t, cap_t = _track_from_tlog(run_dir / "telemetry.tlog", origin)
+    view_t = [cap_t.get(s.get("image_index")) for s in log.steps]
     data = ReplayData(
         title=f"{run_dir.name}: {h.get('agent', '')}" + (f", re-fused with {method}" if fusion else ""),
         grid=grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,
-        positions_enu=log.array("reported_position_enu"), track_enu=_track_from_tlog(run_dir / "telemetry.tlog", origin),
+        positions_enu=log.array("reported_position_enu"), track_enu=track, track_t=track_t,
+        view_t=None if any(t is None for t in view_t) else np.asarray(view_t, float),
         images=images, poses=poses, spec=spec,
         true_positions_enu=None if any(t is None for t in true_pos) else np.asarray(true_pos, float),
         logged_maps=log.array("fused"),
@@ -297,7 +302,7 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     p, valid, area = np.stack(p_list), np.stack(valid_list), np.stack(area_list)
     maps = _fuse_all(method, p, valid, area, scores, labels)
     track = origin.geodetic_to_enu(tr.lla) if len(tr.lla) else np.zeros((0, 3))
-    return ReplayData(title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
+    return ReplayData(track_t=tr.t_s, view_t=np.array([t for t, _, _ in shots]),title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
                       grid=config.grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,
                       positions_enu=np.asarray(positions), track_enu=track, images=images, poses=poses, spec=spec,
                       warnings=warns)
@@ -329,20 +334,18 @@ def _draw_track(ax, d: ReplayData, upto: int | None = None) -> None:
     n = len(d.positions_enu) if upto is None else upto + 1
     if len(d.track_enu):
         tr = d.track_enu
-        if upto is not None and len(d.positions_enu):
-            # the track up to the view: nearest track point to that view's position, first pass
-            k = int(np.argmin(np.linalg.norm(tr[:, :2] - d.positions_enu[upto][:2], axis=1) + 0.0))
-            tr = tr[: k + 1]
-        ax.plot(tr[:, 0], tr[:, 1], "-", color="white", lw=2.2, alpha=0.8)
-        ax.plot(tr[:, 0], tr[:, 1], "-", color="tab:blue", lw=1.2, label="flown track (telemetry)")
+        if upto is not None and d.view_t is not None and d.track_t is not None and len(d.track_t) == len(tr):
+            tr = tr[d.track_t <= d.view_t[upto]]  # the track up to the moment of that view
+        ax.plot(tr[:, 0], tr[:, 1], "-", color="white", lw=3.5, alpha=0.9, zorder=3)
+        ax.plot(tr[:, 0], tr[:, 1], "-", color="tab:blue", lw=2.0, label="flown track (telemetry)", zorder=4)
     pos = d.positions_enu[:n]
-    ax.plot(pos[:, 0], pos[:, 1], "o-", color="tab:red", ms=6, lw=1, label="views (reported pose)")
+    ax.plot(pos[:, 0], pos[:, 1], "o", color="tab:red", ms=7, mec="white", label="views (reported pose)", zorder=5)
     for i, q in enumerate(pos):
         ax.annotate(str(i + 1), (q[0], q[1]), textcoords="offset points", xytext=(5, 5), color="white",
-                    fontsize=9, weight="bold")
+                    fontsize=9, weight="bold", zorder=7)
     if d.true_positions_enu is not None:
         tp = d.true_positions_enu[:n]
-        ax.plot(tp[:, 0], tp[:, 1], "x", color="black", ms=7, label="views (true pose)")
+        ax.plot(tp[:, 0], tp[:, 1], "x", color="black", ms=7, label="views (true pose)", zorder=6)
     ax.legend(loc="lower left", fontsize=7)
 
 
