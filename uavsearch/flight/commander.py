@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import UavsearchError
 from ..geometry import GeodeticOrigin, enu_to_ned, ned_to_enu, wrap_pi
 from .messages import TrajectorySetpoint
-from .mission import Mission, MissionItem, check_item, MissionError, MISSION_DENIED
+from .mission import MISSION_DENIED, MISSION_INVALID, Mission, MissionError, MissionItem, check_item
 from .navigator import NAV_PARAMS, NavState, Navigator
 from .params import ParamDef, ParamStore
 
@@ -64,6 +64,8 @@ PX4_MODES = {
 }
 PX4_AUTO = 4
 
+MAX_RANGE_M = 10_000.0  # targets farther from the origin, or higher above home, are nonsense
+MAX_REL_ALT_M = 1_000.0
 FAILSAFE_HZ = 10.0  # failsafe checks run at PX4 commander's rate, the navigator at the autopilot rate
 
 # MAV_LANDED_STATE numbers.
@@ -221,6 +223,14 @@ class Commander:
             fails.append("no offboard setpoint")
         return fails
 
+    def plausible(self, p_ned) -> bool:
+        """A finite target within MAX_RANGE_M of the origin and -100 .. MAX_REL_ALT_M m about home."""
+        n, e, d = (float(x) for x in p_ned)
+        if not all(math.isfinite(x) for x in (n, e, d)):
+            return False
+        rel = float(self.home_ned[2]) - d
+        return math.hypot(n, e) <= MAX_RANGE_M and -100.0 <= rel <= MAX_REL_ALT_M
+
     def inside_fence(self, p_ned) -> bool:
         hor, ver = self.params["GF_MAX_HOR_DIST"], self.params["GF_MAX_VER_DIST"]
         h = self.home_ned
@@ -257,6 +267,8 @@ class Commander:
         probe = Mission()
         probe.replace(items)
         for p in probe.positions_ned(self.origin, self.home_ned):
+            if not self.plausible(p):
+                return MISSION_INVALID, "mission position out of range"
             if not self.inside_fence(p):
                 self.text(SEV_CRITICAL, "Mission rejected: outside geofence")
                 return MISSION_DENIED, "mission outside geofence"
@@ -355,6 +367,9 @@ class Commander:
         if ver > 0 and tgt_rel > ver:
             self.text(SEV_CRITICAL, "Takeoff denied: above geofence")
             return Result.DENIED
+        if tgt_rel > MAX_REL_ALT_M:
+            self.text(SEV_CRITICAL, "Takeoff denied: altitude out of range")
+            return Result.DENIED
         self.navigator.modes["TAKEOFF"].requested_alt_amsl = alt
         self._set_mode("TAKEOFF")
         return Result.ACCEPTED
@@ -433,6 +448,9 @@ class Commander:
             tgt[2] = self.origin.alt_m - alt if cmd.frame not in (3, 6) else self.home_ned[2] - alt
         else:
             return Result.DENIED
+        if not self.plausible(tgt):
+            self.text(SEV_CRITICAL, "Reposition denied: target out of range")
+            return Result.DENIED
         if not self.inside_fence(tgt):
             self.text(SEV_CRITICAL, "Reposition denied: outside geofence")
             return Result.DENIED
@@ -465,11 +483,16 @@ class Commander:
 
     def _cmd_set_home(self, cmd: VehicleCommand) -> Result:
         if cmd.param1 == 1.0:
-            self.home_ned = np.array(self.vehicle.local_position.position_ned_m, dtype=float)
-        elif all(math.isfinite(x) for x in (cmd.param5, cmd.param6, cmd.param7)):
-            self.home_ned = enu_to_ned(self.origin.geodetic_to_enu([cmd.param5, cmd.param6, cmd.param7]))
+            home = np.array(self.vehicle.local_position.position_ned_m, dtype=float)
+        elif all(math.isfinite(x) for x in (cmd.param5, cmd.param6, cmd.param7)) and abs(cmd.param5) <= 90 and abs(cmd.param6) <= 180:
+            home = enu_to_ned(self.origin.geodetic_to_enu([cmd.param5, cmd.param6, cmd.param7]))
         else:
             return Result.DENIED
+        n, e, d = (float(x) for x in home)
+        if not (math.hypot(n, e) <= MAX_RANGE_M and abs(d) <= MAX_REL_ALT_M):
+            self.text(SEV_CRITICAL, "Set home denied: out of range")
+            return Result.DENIED
+        self.home_ned = home
         self.navigator.home_ned = self.home_ned.copy()
         self.home_set = True
         return Result.ACCEPTED

@@ -341,9 +341,13 @@ class MavlinkEndpoint:
                 if interval <= 0 or now < link.next_due_us.get(mid, 0):
                     continue
                 link.next_due_us[mid] = now + interval
-                msg = built[mid] if mid in built else built.setdefault(mid, self._build(mid))
+                msg = built[mid] if mid in built else built.setdefault(mid, self._build_safe(mid))
                 if msg is not None:
-                    link.send(msg)
+                    try:
+                        link.send(msg)
+                    except (struct.error, OverflowError, ValueError):  # a field out of its wire range
+                        log.warning("cannot pack %s", msg.get_type(), exc_info=True)
+                        built[mid] = None
             if self.camera is not None and now >= link.next_due_us.get("camera_hb", 0):
                 link.next_due_us["camera_hb"] = now + 1_000_000
                 link.send(link.mav.heartbeat_encode(M.MAV_TYPE_CAMERA, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE), CAMERA_COMPID)
@@ -521,6 +525,14 @@ class MavlinkEndpoint:
         return M.MAVLink_autopilot_version_message(
             caps, PX4_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x5541565345415243, [0] * 18
         )
+
+    def _build_safe(self, mid: int):
+        """A telemetry message, or None when the state cannot be encoded (e.g. a NaN estimate)."""
+        try:
+            return self._build(mid)
+        except (ValueError, OverflowError):
+            log.warning("cannot build message %d", mid, exc_info=True)
+            return None
 
     def _build(self, mid: int):
         f = {
