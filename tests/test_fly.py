@@ -173,3 +173,18 @@ def test_killed_mid_air_leaves_a_readable_log(tmp_path):
     sitl_log = (run / "sitl.log").read_text()
     out = subprocess.run(["pgrep", "-f", f"uavsearch.flight.sitl.*{run}"], capture_output=True, text=True)
     assert out.stdout.strip() == "", sitl_log
+
+
+@pytest.mark.slow
+def test_a_step_that_does_not_settle_fails_cleanly_and_lands(tmp_path):
+    mission = _mission(tmp_path)
+    mission["flight"]["step_timeout_s"] = 0.2  # no goto settles (0.5 m, 0.3 m/s for 0.5 s) this fast
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(mission))
+    run = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp_path / "m.yaml"), "--out", str(run),
+                        "--gcs-port", "0"], capture_output=True, text=True, timeout=240)
+    assert r.returncode == 1 and "Traceback" not in r.stderr
+    assert "step 1 failed: goto [0.0, 0.0, 70.0]: not done after 0.2 s of flight" in r.stdout
+    assert "\nlanded\n" in r.stdout
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["status"].startswith("failed: goto") and summary["end"] == "landed" and summary["steps"] == 0

@@ -230,7 +230,7 @@ class MavlinkVehicle:
                 raise FlightError(f"{what}: no answer from the vehicle within {wall_timeout_s:.0f} s (wall clock)")
             if sim_timeout_s is not None and sim0 is not None and self.sim_time_s is not None \
                     and self.sim_time_s - sim0 > sim_timeout_s:
-                raise StepFailed(f"{what}: not done after {sim_timeout_s:.0f} s of flight")
+                raise StepFailed(f"{what}: not done after {sim_timeout_s:g} s of flight")
             self.pump()
 
     @property
