@@ -18,7 +18,6 @@ record (for evaluation and replay; the search itself never reads it).
 from __future__ import annotations
 
 import json
-import math
 import os
 import signal
 import subprocess
