@@ -270,6 +270,8 @@ class MavlinkEndpoint:
         self._sent_state = None
         self._tlog = open(tlog_path, "ab") if tlog_path else None
         self._snap: dict = {}
+        self._fds = [link.sock.fileno() for link in self.links]
+        self._next_due_any = 0  # the earliest stream deadline over every link
 
     # ------------------------------------------------------------------ plumbing
     def fileno_list(self) -> list[int]:
@@ -308,7 +310,15 @@ class MavlinkEndpoint:
         self.wall_s = wall_s
         self._snap.clear()
         n = 0
+        try:  # one select() tells which sockets have data: idle links cost no recv call
+            readable = set(select.select(self._fds, [], [], 0)[0])
+        except (OSError, ValueError):
+            readable = set(self._fds)
         for link in self.links:
+            if link.upload is not None:
+                self._mission_retry(link)
+            if link.sock.fileno() not in readable:
+                continue
             for m in link.receive():
                 n += 1
                 try:
@@ -317,8 +327,8 @@ class MavlinkEndpoint:
                     link.rx_dropped += 1
                     log.debug("dropped %s", m, exc_info=True)
                     self.cmd.text(3, f"dropped {m.get_type()}: {type(e).__name__}")
-            self._mission_retry(link)
-        self._flush_events()
+        if self.cmd.texts or self.cmd.mission_events or self.cmd.captures:
+            self._flush_events()
         self._flush_links()
         return n
 
@@ -335,6 +345,11 @@ class MavlinkEndpoint:
             self._sent_state = state
             self._broadcast(self._heartbeat())
             self._broadcast(self._extended_sys_state())
+        if self.camera is not None and self.camera.capturing_interval:
+            for rec in self.camera.update():
+                self._broadcast_capture(rec)
+        if now < self._next_due_any:
+            return self._flush_links()
         built: dict = {}  # one message object per id and tick, packed per link (own sequence, signing)
         for link in self.links:
             for mid, interval in link.intervals_us.items():
@@ -351,9 +366,9 @@ class MavlinkEndpoint:
             if self.camera is not None and now >= link.next_due_us.get("camera_hb", 0):
                 link.next_due_us["camera_hb"] = now + 1_000_000
                 link.send(link.mav.heartbeat_encode(M.MAV_TYPE_CAMERA, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE), CAMERA_COMPID)
-        if self.camera is not None:
-            for rec in self.camera.update():
-                self._broadcast_capture(rec)
+        due = [t for link in self.links for mid, t in link.next_due_us.items()
+               if mid == "camera_hb" or link.intervals_us.get(mid, 0) > 0]
+        self._next_due_any = min(due) if due else now + 1_000_000
         self._flush_links()
 
     def _flush_events(self) -> None:
@@ -682,6 +697,7 @@ class MavlinkEndpoint:
         else:
             link.intervals_us[mid] = max(int(iv), 1000)  # at most 1 kHz of simulation time
         link.next_due_us[mid] = 0
+        self._next_due_any = 0
         return Result.ACCEPTED
 
     def _camera_command(self, link, m, command: int, p) -> Result | None:
