@@ -226,3 +226,16 @@ def test_gps_loss_in_flight_lands():
     assert r.c.mode == "LAND"
     assert any("GPS lost" in t for t in r.texts())
     assert r.run(30, until=lambda: not r.c.armed)
+
+
+def test_takeoff_in_air_never_descends_and_rtl_on_ground_is_denied():
+    r = Rig(MIS_TAKEOFF_ALT=3.0)
+    r.run(0.5)
+    assert r.cmd(400, 1) == Result.ACCEPTED
+    assert r.cmd(20) == Result.DENIED  # return to launch from the ground
+    assert r.cmd(22, *[NAN] * 6, ORIGIN.alt_m + 8.0) == Result.ACCEPTED
+    assert r.run(30, until=lambda: r.c.mode == "HOLD")
+    r.run(3)
+    assert r.cmd(22) == Result.ACCEPTED  # NaN altitude: MIS_TAKEOFF_ALT (3 m) is below us
+    r.run(5)
+    assert r.alt == pytest.approx(8.0, abs=0.4)

@@ -381,8 +381,8 @@ class Commander:
         return Result.ACCEPTED
 
     def _cmd_rtl(self, cmd: VehicleCommand) -> Result:
-        if not self.armed:
-            self.text(SEV_CRITICAL, "Return denied: disarmed")
+        if not self.armed or self.vehicle.land_detected.landed:
+            self.text(SEV_CRITICAL, "Return denied: not flying")
             return Result.DENIED
         self._set_mode("RTL")
         return Result.ACCEPTED
@@ -416,7 +416,10 @@ class Commander:
         if name == "OFFBOARD" and not self._offboard_fresh():
             self.text(SEV_CRITICAL, "Offboard denied: no setpoint")
             return Result.DENIED
-        if name in ("TAKEOFF", "RTL") and not self.armed:
+        if name == "TAKEOFF" and not self.armed:
+            return Result.DENIED
+        if name == "RTL" and (not self.armed or self.vehicle.land_detected.landed):
+            self.text(SEV_CRITICAL, "Return denied: not flying")
             return Result.DENIED
         if name == "LAND" and not self.armed and not self.vehicle.land_detected.landed:
             return Result.DENIED

@@ -182,6 +182,8 @@ class Takeoff(Mode):
         min_alt = home_alt_amsl + self.nav.params["MIS_TAKEOFF_ALT"]
         alt = self.requested_alt_amsl if math.isfinite(self.requested_alt_amsl) else min_alt
         alt = max(alt, min_alt)  # PX4: a takeoff below MIS_TAKEOFF_ALT is raised to it
+        if not s.landed.landed:
+            alt = max(alt, self.nav.origin.alt_m - p[2])  # already flying: a takeoff never descends
         self.target = np.array([p[0], p[1], self.nav.origin.alt_m - alt])
         self.yaw = self.nav.current_yaw(s)
         self.nav.carrot.reset([p[0], p[1], p[2]])
