@@ -22,7 +22,7 @@ import numpy as np
 from ..errors import UavsearchError
 from ..geometry import GeodeticOrigin, enu_to_ned, ned_to_enu, wrap_pi
 from .messages import TrajectorySetpoint
-from .mission import MISSION_DENIED, MISSION_INVALID, Mission, MissionError, MissionItem, check_item
+from .mission import MISSION_DENIED, MISSION_INVALID, Mission, MissionItemError, MissionItem, check_item
 from .navigator import NAV_PARAMS, NavState, Navigator
 from .params import ParamDef, ParamStore
 
@@ -262,7 +262,7 @@ class Commander:
         try:
             for it in items:
                 check_item(it)
-        except MissionError as e:
+        except MissionItemError as e:
             return e.mission_result, str(e)
         probe = Mission()
         probe.replace(items)

@@ -81,7 +81,7 @@ class MissionItem:
         return enu_to_ned(enu)
 
 
-class MissionError(ValueError):
+class MissionItemError(ValueError):
     """An item the autopilot cannot fly; carries the MAV_MISSION_RESULT to answer with."""
 
     def __init__(self, message: str, mission_result: int):
@@ -103,16 +103,16 @@ MAX_ITEMS = 500
 
 
 def check_item(item: MissionItem) -> None:
-    """Raise MissionError for a command or frame the navigator does not execute."""
+    """Raise MissionItemError for a command or frame the navigator does not execute."""
     if item.command not in SUPPORTED_COMMANDS:
-        raise MissionError(f"mission item {item.seq}: command {item.command} not supported", MISSION_UNSUPPORTED)
+        raise MissionItemError(f"mission item {item.seq}: command {item.command} not supported", MISSION_UNSUPPORTED)
     if item.frame not in SUPPORTED_FRAMES:
-        raise MissionError(f"mission item {item.seq}: frame {item.frame} not supported", MISSION_UNSUPPORTED_FRAME)
+        raise MissionItemError(f"mission item {item.seq}: frame {item.frame} not supported", MISSION_UNSUPPORTED_FRAME)
     if item.command in POSITIONED_COMMANDS and item.frame != FRAME_MISSION:
         if not (-90.0 <= item.lat_deg <= 90.0 and -180.0 <= item.lon_deg <= 180.0) or not math.isfinite(item.z):
-            raise MissionError(f"mission item {item.seq}: position out of range", MISSION_INVALID)
+            raise MissionItemError(f"mission item {item.seq}: position out of range", MISSION_INVALID)
     if item.command == NAV_LOITER_TIME and not (item.param1 >= 0.0):
-        raise MissionError(f"mission item {item.seq}: negative loiter time", MISSION_INVALID)
+        raise MissionItemError(f"mission item {item.seq}: negative loiter time", MISSION_INVALID)
 
 
 class Mission:
