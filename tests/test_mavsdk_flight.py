@@ -5,6 +5,7 @@ and mission upload -> start -> progress to the end -> return to launch -> disarm
 """
 
 import asyncio
+import json
 import math
 from pathlib import Path
 
@@ -94,6 +95,13 @@ def test_mavsdk_takeoff_goto_photo_land(sitl, tmp_path):
             await cam.take_photo(100)
             info = await _first(captures, lambda c: True, 20)
             assert info.is_success and info.index == 0
+            # The message carries the ESTIMATED pose; the run dir's record has it beside the TRUE one.
+            rec = json.loads((tmp_path / "captures.jsonl").read_text().splitlines()[0])
+            assert info.position.latitude_deg == pytest.approx(rec["lat_deg"], abs=2e-7)
+            assert info.position.absolute_altitude_m == pytest.approx(rec["alt_amsl_m"], abs=2e-3)
+            true_n, true_up = rec["true_position_enu_m"][1], rec["true_position_enu_m"][2]
+            est_n = (rec["lat_deg"] - home.latitude_deg) * M_PER_DEG_LAT
+            assert 0.0 < abs(est_n - true_n) < 3.0 and abs(true_up - up_m) < 1.5  # close, but not the truth
             assert abs(info.position.relative_altitude_m - up_m) < 1.0  # the estimated pose at the shot
             png = Path(info.file_url.removeprefix("file://"))
             assert png.exists() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
