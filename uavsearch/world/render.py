@@ -30,11 +30,42 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pybullet as pb
 
 from ..geometry import CameraIntrinsics, CameraPose
 from .scene import SceneObject, SceneSpec
 from .topdown import ground_raster, paint_ground
+
+
+def _import_pybullet():
+    """Import pybullet without its 'pybullet build time' banner on stdout (printed from C at import)."""
+    import ctypes
+
+    sys.stdout.flush()
+    saved, devnull = os.dup(1), os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    try:
+        import pybullet
+
+        ctypes.CDLL(None).fflush(None)
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+    return pybullet
+
+
+class _LazyPybullet:
+    """pybullet, imported on first use: a parent process whose worlds live in workers never loads it."""
+
+    _mod = None
+
+    def __getattr__(self, name):
+        if _LazyPybullet._mod is None:
+            _LazyPybullet._mod = _import_pybullet()
+        return getattr(_LazyPybullet._mod, name)
+
+
+pb = _LazyPybullet()
 
 NEAR_M = 1.0
 FAR_M = 1000.0
@@ -434,7 +465,7 @@ class _World:
         if getattr(self, "_client", -1) >= 0:
             try:
                 pb.disconnect(physicsClientId=self._client)
-            except pb.error:
+            except Exception:  # pybullet.error: already disconnected
                 pass
             self._client = -1
 
@@ -458,6 +489,7 @@ class _Worker:
         self.proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=subprocess.DEVNULL, env=env)  # fmt: skip
         self.scenes = 0
+        self.owner_pid = os.getpid()
 
     def call(self, *msg):
         try:
@@ -517,7 +549,13 @@ def _worker_main(out_fd: int) -> None:
 @atexit.register
 def _stop_idle_workers() -> None:
     while _IDLE:
-        _IDLE.pop().kill()
+        w = _IDLE.pop()
+        if w.owner_pid == os.getpid():
+            w.kill()
+
+
+# A forked child must not talk to its parent's workers over the inherited pipes.
+os.register_at_fork(after_in_child=_IDLE.clear)
 
 
 class SceneRenderer:
@@ -577,7 +615,7 @@ class SceneRenderer:
             self._world.close()
             self._world = None
         worker, self._worker = self._worker, None
-        if worker is not None:
+        if worker is not None and worker.owner_pid == os.getpid():  # never a worker inherited through fork
             try:
                 worker.call("unload")
             except RuntimeError:
