@@ -750,5 +750,5 @@ def scene_summary(spec: SceneSpec) -> dict:
 
 __all__ = [
     "GENERATOR_VERSION", "SceneParams", "SceneObject", "SceneSpec", "generate_scene", "save_scene", "load_scene",
-    "scene_to_json", "scene_from_json", "footprint_corners", "Raster", "scene_summary", "json",
+    "scene_to_json", "scene_from_json", "footprint_corners", "Raster", "scene_summary",
 ]  # fmt: skip
