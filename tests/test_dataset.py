@@ -110,3 +110,16 @@ def test_stage1_smoke_trains_and_writes_a_run(tmp_path, tiny_root):
     net2, _ = load_perception(tmp_path / "p2.pt")
     for (k, a), (_, b) in zip(net.state_dict().items(), net2.state_dict().items()):
         assert torch.equal(a, b), k
+
+
+def test_table1_scenes_are_balanced_per_density_pair_and_disjoint_from_training():
+    from uavsearch.search.eval_single_view import PAPER_TABLE1, density_test_scenes
+
+    scenes, pairs = density_test_scenes(4)
+    assert len(scenes) == 24
+    for (s, k), pair in zip(scenes, pairs):
+        assert k in pair
+    assert {p for p in pairs} == set(PAPER_TABLE1)
+    assert not {s for s, _ in scenes} & {s for s, _ in perception_scenes("train", 150, seed=1)}
+    with pytest.raises(UavsearchError, match="scenes per pair"):
+        density_test_scenes(0)
