@@ -8,8 +8,10 @@ by the image border are smaller, so Fig. 4 pools every in-view cell of every ren
 view and `views_per_scene - 1` random lattice positions per scene).
 
 Outputs in --out: table1.md, table1.csv, fig4.png (left: cell accuracy vs pixel area, with the number of
-cells per bin; right: accuracy on occupied cells vs how many pixels of a person are visible in them,
-which is what actually limits recall: people are 1-3 px blobs at 70 m and trees hide some).
+cells per bin, the paper's Fig. 4; middle: cell accuracy vs the cell's horizontal distance from the
+camera, which is what varies between our views; right: accuracy on occupied cells vs how many pixels of
+a person are visible in them, which is what limits recall: people are a few-pixel blobs at 70 m and
+trees and buildings hide some of them).
 """
 
 from __future__ import annotations
@@ -122,7 +124,9 @@ def evaluate_single_view(args: EvalArgs) -> dict:
 
     seen = views.cells_in_view & (pixels > 0)
     correct = cell_correct(p, y)
-    fig = _plot_fig4(views.cell_area_px[seen], correct[seen], views.person_px[seen & (y == 1)],
+    grid = SearchConfig().grid
+    dist = np.linalg.norm(views.position_enu[:, None, :2] - grid.centers_enu[None, :, :2], axis=-1)
+    fig = _plot_fig4(views.cell_area_px[seen], correct[seen], dist[seen], views.person_px[seen & (y == 1)],
                      correct[seen & (y == 1)], out / "fig4.png")
     print("\n".join(lines[4:]))
     print(f"wrote {out / 'table1.md'}, {out / 'table1.csv'}, {fig}")
@@ -140,13 +144,13 @@ def _binned(x: np.ndarray, ok: np.ndarray, edges: np.ndarray):
     return np.array(acc), np.array(n)
 
 
-def _plot_fig4(area, correct, person_px, correct_pos, path: Path) -> Path:
+def _plot_fig4(area, correct, dist, person_px, correct_pos, path: Path) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    fig, (a, c, b) = plt.subplots(1, 3, figsize=(15, 4))
     acc, n = _binned(area, correct, AREA_BINS)
     centres = (AREA_BINS[:-1] + AREA_BINS[1:]) / 2
     a2 = a.twinx()
@@ -162,19 +166,33 @@ def _plot_fig4(area, correct, person_px, correct_pos, path: Path) -> Path:
     a.set_ylim(0.5, 1.0)
     a.set_title("Fig. 4: accuracy vs mapped cell size")
     a.grid(alpha=0.3)
+    # Nadir camera over flat ground: F_size is ~196 px for every whole cell, so also show what does vary
+    # between views: how far off-nadir the cell is (parallax, occlusion by buildings and trees).
+    edges = np.arange(0.0, 50.0 + 1e-9, 5.0)
+    acc3, n3 = _binned(dist, correct, edges)
+    mids = (edges[:-1] + edges[1:]) / 2
+    ok3 = ~np.isnan(acc3)
+    c.plot(mids[ok3], acc3[ok3], "o-", color="C2")
+    for x, v, k in zip(mids[ok3], acc3[ok3], n3[ok3]):
+        c.text(x, v + 0.01, f"{k}", ha="center", fontsize=7, color="0.4")
+    c.set_xlabel("horizontal distance camera -> cell centre (m)")
+    c.set_ylabel("single-view cell accuracy")
+    c.set_ylim(0.5, 1.0)
+    c.set_title("accuracy vs off-nadir distance (n per bin)")
+    c.grid(alpha=0.3)
     acc2, n2 = _binned(person_px, correct_pos, PERSON_PX_BINS)
     labels = ["0", "1", "2", "3-4", "5-8", "9-16", "17+"]
     b.bar(range(len(labels)), np.nan_to_num(acc2), color="C1")
-    for i, (v, c) in enumerate(zip(acc2, n2)):
-        b.text(i, (0 if np.isnan(v) else v) + 0.02, f"n={c}", ha="center", fontsize=8)
+    for i, (v, k) in enumerate(zip(acc2, n2)):
+        b.text(i, (0 if np.isnan(v) else v) + 0.02, f"n={k}", ha="center", fontsize=8)
     b.set_xticks(range(len(labels)), labels)
     b.set_ylim(0, 1.1)
     b.set_xlabel("visible person pixels in the cell")
     b.set_ylabel("accuracy on occupied cells (recall)")
-    b.set_title("why: people are 1-3 px blobs at 70 m")
+    b.set_title("recall vs visible person pixels")
     b.grid(alpha=0.3, axis="y")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
 
