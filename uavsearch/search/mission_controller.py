@@ -430,7 +430,8 @@ def eval_flight_vs_teleport(setting: int = 2, split: str = "paper", mission_file
                    wall_s_per_mission=mean("wall_s"), flight_wall_s_per_mission=mean("flight_wall_s"),
                    sim_s_per_mission=mean("sim_s"), speed=speed)
     lines = [f"# Flight vs. teleport, setting {setting} ({split} split, {len(ok)}/{len(rows)} test scenes flown, "
-             f"speed {speed}, {base.fusion} fusion + {base.policy} policy, greedy)", "",
+             f"speed {speed}, {base.fusion} fusion + {base.policy} policy"
+             f"{' acting greedily' if base.policy == 'learned' else ''})", "",
              "| mode | Aacc (%) | AF1 |", "|---|---|---|",
              f"| teleport | {100 * summary['teleport_Aacc']:.3f} | {summary['teleport_AF1']:.3f} |",
              f"| flight (MAVLink) | {100 * summary['flight_Aacc']:.3f} | {summary['flight_AF1']:.3f} |",
