@@ -357,7 +357,7 @@ def _draw_map(ax, d: ReplayData, t: int, title: str | None = None) -> None:
     for r, c in zip(*np.nonzero(y)):
         x0, y0 = -h + c * d.grid.cell_m, h - (r + 1) * d.grid.cell_m
         ax.add_patch(_plt().Rectangle((x0, y0), d.grid.cell_m, d.grid.cell_m, fill=False, ec="cyan", lw=1.5))
-    ax.set_title(title or f"fused after view {t + 1}: acc {d.acc[t]:.2f} F1 {d.f1[t]:.2f}", fontsize=9)
+    ax.set_title(title or f"fused after view {t + 1}\nacc {d.acc[t]:.2f}  F1 {d.f1[t]:.2f}", fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
 
@@ -380,7 +380,7 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
         _draw_map(axes[t], d, t)
     n = d.grid.n
     axes[T].imshow(d.labels.reshape(n, n), cmap="magma", vmin=0, vmax=1)
-    axes[T].set_title("ground truth", fontsize=9)
+    axes[T].set_title("ground truth\n", fontsize=9)
     axes[T].set_xticks([])
     axes[T].set_yticks([])
     fig.suptitle(f"{d.fusion} fusion: p(occupied) per cell (cyan: occupied cells)", fontsize=10)
@@ -390,7 +390,7 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
     steps = np.arange(1, T + 1)
     ax.plot(steps, d.acc, "o-", label="accuracy (Eq. 16)")
     ax.plot(steps, d.f1, "s-", label="F1 (Eq. 17)")
-    if d.logged_maps is not None and d.fusion != "logged":
+    if d.logged_maps is not None and not np.allclose(d.logged_maps, d.maps, atol=1e-5):  # re-fused: show both
         from ..search.metrics import map_accuracy, map_f1
 
         y = np.broadcast_to(d.labels, d.logged_maps.shape)
