@@ -107,3 +107,15 @@ def test_cli_bad_inputs_are_one_line(tmp_path, capsys):
         assert main(["replay", *args, "--out", str(tmp_path / "o")]) == 2
         lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
         assert len(lines) == 1 and lines[0].startswith("uavsearch: error: ") and expect in lines[0], lines
+
+
+def test_mp4_video_through_opencv(run_dir, tmp_path):
+    import cv2
+
+    from uavsearch.logs.replay import write_video
+
+    path = write_video(replay_run_dir(run_dir[0]), tmp_path, "mp4", seconds_per_view=0.2)
+    cap, n = cv2.VideoCapture(str(path)), 0
+    while cap.read()[0]:
+        n += 1
+    assert n == 2 * T  # 10 fps x 0.2 s per view

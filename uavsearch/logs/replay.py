@@ -439,13 +439,21 @@ def write_video(d: ReplayData, out: Path, fmt: str = "gif", seconds_per_view: fl
 
     frames = [_frame(d, t) for t in range(len(d.maps))]
     path = out / f"replay.{fmt}"
-    try:
-        if fmt == "gif":
-            imageio.mimsave(path, frames, duration=seconds_per_view * 1000, loop=0)
-        else:
-            imageio.mimsave(path, frames, fps=1.0 / seconds_per_view)
-    except Exception as e:  # noqa: BLE001 - a missing codec is one line
-        raise UavsearchError(f"cannot write {path}: {e} (try --video gif)") from None
+    if fmt == "gif":
+        imageio.mimsave(path, frames, duration=seconds_per_view * 1000, loop=0)
+    else:  # MP4 through OpenCV's bundled FFmpeg (no extra imageio plugin needed)
+        import cv2
+
+        h, w = frames[0].shape[:2]
+        fps = 10
+        vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w - w % 2, h - h % 2))
+        if not vw.isOpened():
+            raise UavsearchError(f"cannot write {path}: OpenCV has no MP4 encoder here (try --video gif)")
+        for f in frames:
+            bgr = np.ascontiguousarray(f[: h - h % 2, : w - w % 2, ::-1])
+            for _ in range(max(1, int(round(seconds_per_view * fps)))):
+                vw.write(bgr)
+        vw.release()
     for t, f in enumerate(frames):
         imageio.imwrite(out / f"frame_{t + 1:02d}.png", f)
     return path
