@@ -53,6 +53,16 @@ class LoadedAgent:
     description: str
 
 
+def _check_tag(extra, perception, path) -> None:
+    """A policy / confidence net trained on another perception net's outputs reads them wrongly: say so."""
+    from .view_cache import perception_tag
+
+    tag = (extra or {}).get("perception_tag") if isinstance(extra, dict) else None
+    if tag and tag != perception_tag(perception):
+        print(f"uavsearch: warning: {path} was trained with perception {tag}, the mission's perception is "
+              f"{perception_tag(perception)}", file=sys.stderr)
+
+
 def load_agent(mission, config) -> LoadedAgent:
     """Perception + fusion + policy of a mission, from its checkpoints (clear one-line errors)."""
     from .perception import load_perception
@@ -61,7 +71,8 @@ def load_agent(mission, config) -> LoadedAgent:
     perception, _ = load_perception(mission.perception_path)
     policy, confidence, log_conf = None, None, None
     if mission.policy == "learned":
-        fusion, net, conf, _ = load_search_model(mission.checkpoint_path)
+        fusion, net, conf, extra = load_search_model(mission.checkpoint_path)
+        _check_tag(extra, perception, mission.checkpoint_path)
         if fusion != mission.fusion:
             raise MissionError(f"mission {mission.source}: checkpoint {mission.checkpoint_path} holds a policy trained "
                                f"with {fusion!r} fusion, the mission asks for {mission.fusion!r}")
