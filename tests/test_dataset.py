@@ -16,22 +16,25 @@ from uavsearch.search.dataset import (
     shard_path,
 )
 
-SPEC = ViewSetSpec("tiny", ((100000, 3), (110000, 7)), views_per_scene=2, seed=5)
+# The smoke training run below (seed 3, 2 training scenes x 2 views) finds these shards and renders only
+# its validation scene.
+SPEC = ViewSetSpec("train_v2_s3", perception_scenes("train", 2, 3), views_per_scene=2, seed=3)
+(S0, K0), (S1, K1) = SPEC.scenes
 
 
 @pytest.fixture(scope="module")
 def tiny_root(tmp_path_factory):
-    root = tmp_path_factory.mktemp("views") / "tiny"
+    root = tmp_path_factory.mktemp("views") / "train_v2_s3"
     generate_views(SPEC, root, workers=1, progress=False)
     return root
 
 
 def test_positions_are_deterministic_distinct_and_include_the_start():
-    a = positions_for_scene(SPEC, 100000, 3, 25)
-    assert np.array_equal(a, positions_for_scene(SPEC, 100000, 3, 25))
+    a = positions_for_scene(SPEC, S0, K0, 25)
+    assert np.array_equal(a, positions_for_scene(SPEC, S0, K0, 25))
     assert 12 in a and len(set(a.tolist())) == 2
     spec9 = ViewSetSpec("x", SPEC.scenes, views_per_scene=9, seed=5)
-    b = positions_for_scene(spec9, 100000, 3, 25)
+    b = positions_for_scene(spec9, S0, K0, 25)
     assert len(set(b.tolist())) == 9 and 12 in b
 
 
@@ -51,17 +54,17 @@ def test_perception_scenes_avoid_test_seeds_and_cover_densities():
 def test_shards_hold_the_documented_arrays(tiny_root):
     man = json.loads((tiny_root / "manifest.json").read_text())
     assert man["format"] == "uavsearch-views/1" and man["spec"]["views_per_scene"] == 2
-    with np.load(shard_path(tiny_root, 100000, 3)) as z:
+    with np.load(shard_path(tiny_root, S0, K0)) as z:
         assert z["images"].shape == (2, 224, 224, 3) and z["images"].dtype == np.uint8
         assert z["cell_area_px"].shape == (2, 100) and z["cells_in_view"].dtype == bool
-        assert int(z["occupancy"].sum()) == 3 and int(z["occupied_cells"]) == 3
+        assert int(z["occupancy"].sum()) == K0 and int(z["occupied_cells"]) == K0
         assert z["person_px"].shape == (2, 100)
 
 
 def test_load_views_and_label_images(tiny_root):
     vs = load_views(tiny_root)
     assert len(vs) == 4
-    assert vs.occupancy.sum(1).tolist() == [3, 3, 7, 7]
+    assert vs.occupancy.sum(1).tolist() == [K0, K0, K1, K1]
     lab = vs.label_images(np.arange(4))
     assert lab.shape == (4, 224, 224)
     # The label image agrees with the stored pixel areas (exact pixel counts vs polygon areas).
@@ -72,7 +75,7 @@ def test_load_views_and_label_images(tiny_root):
 
 
 def test_resume_rerenders_a_missing_shard_identically(tiny_root):
-    path = shard_path(tiny_root, 110000, 7)
+    path = shard_path(tiny_root, S1, K1)
     with np.load(path) as z:
         before = z["images"].copy()
     path.unlink()
@@ -82,7 +85,7 @@ def test_resume_rerenders_a_missing_shard_identically(tiny_root):
 
 
 def test_a_different_spec_in_the_same_directory_is_refused(tiny_root):
-    other = ViewSetSpec("tiny", SPEC.scenes, views_per_scene=3, seed=5)
+    other = ViewSetSpec("train_v2_s3", SPEC.scenes, views_per_scene=3, seed=3)
     with pytest.raises(UavsearchError, match="different view set"):
         generate_views(other, tiny_root, workers=1, progress=False)
     with pytest.raises(UavsearchError, match="not a view set"):
@@ -90,11 +93,12 @@ def test_a_different_spec_in_the_same_directory_is_refused(tiny_root):
 
 
 def test_stage1_smoke_trains_and_writes_a_run(tmp_path, tiny_root):
+    data = tiny_root.parent
     from uavsearch.search.perception import load_perception
     from uavsearch.search.train_perception import Args, train
 
     args = Args(exp_name="smoke", seed=3, train_scenes=2, train_views_per_scene=2, val_scenes=1,
-                val_views_per_scene=1, data_dir=str(tmp_path / "data"), workers=1, steps=4, batch_size=4,
+                val_views_per_scene=1, data_dir=str(data), workers=1, steps=4, batch_size=4,
                 eval_every=2, out=str(tmp_path / "p.pt"), runs_dir=str(tmp_path / "runs"), progress=False)
     rep = train(args)
     run = next((tmp_path / "runs").iterdir())

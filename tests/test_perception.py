@@ -57,14 +57,14 @@ def test_pooled_forward_equals_literal_masked_forward_for_a_pointwise_backbone()
     cfg = PerceptionConfig(layers=((8, 1, 1), (8, 1, 1)), hidden=(16, 8))
     torch.manual_seed(1)
     net = PerceptionNet(cfg).eval()
-    lab = _labels((10.0, 0.0))
+    lab = _labels((40.0, 40.0))  # a corner of the grid in view: ~36 cells keep the literal pass short
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (1, 224, 224, 3), dtype=np.uint8)
     with torch.no_grad():
         pooled = net(img, lab)
         literal = net.forward_literal(img, lab)
     seen = cell_pooling(lab, 1).pixels[0] > 0
-    assert seen.sum() > 50
+    assert 30 <= seen.sum() < 100
     assert torch.allclose(pooled[0, seen], literal[0, seen], atol=1e-4)
 
 
