@@ -22,7 +22,7 @@ Stage 2 freezes the backbone and classifier and caches `PerceptionNet.views_outp
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import NamedTuple
 
