@@ -59,7 +59,7 @@ class Args:
     out: str | None = None  # copy the best checkpoint here (e.g. models/search_s2_learned.pt)
     name: str | None = None  # run name (default policy_s<setting>_<fusion>)
     seed: int = 0  # seeds random, numpy, torch and the episode sampling
-    iterations: int = 600  # optimiser steps
+    iterations: int = 400  # optimiser steps
     scenes_per_batch: int = 16  # training scenes per batch (drawn with replacement)
     episodes_per_scene: int = 8  # episodes per scene per batch (>= 2 for the "loo" baseline)
     lr_policy: float = 1e-3  # Adam, policy + state + embedding
@@ -71,10 +71,10 @@ class Args:
     baseline: str = "loo"  # loo (other episodes of the same scene) | ema (moving average per step)
     ema_decay: float = 0.95  # decay of the "ema" baseline
     entropy_coef: float = 0.01  # entropy bonus weight
-    conf_pos_weight: float = 1.0  # weight of occupied cells in the confidence loss
+    conf_pos_weight: float = 3.0  # weight of occupied cells in the confidence loss (F1 needs the few positives)
     conf_episodes: int = 32  # episodes of each batch the confidence loss is taken over (dropout is costly)
     state_extras: bool = True  # position / visited / step in the policy state (see policy.py)
-    eval_every: int = 50  # iterations between validations
+    eval_every: int = 25  # iterations between validations
     eval_episodes: int = 8  # episodes per validation scene
     threads: int = 1  # torch CPU threads
     cache_dir: str | None = None  # view cache root (default cache/)

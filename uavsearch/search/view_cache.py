@@ -9,8 +9,8 @@ Two layers, both under the gitignored ``cache/`` folder:
 1. Renders: every lattice position of every scene of one (split, setting, part), as a dataset.py view set
    (``cache/lattice_views/<world tag>/<split>_s<setting>_<part>/``, views_per_scene = all positions).
    Independent of the perception weights, so retraining perception never re-renders. The world tag
-   hashes the scene generator's and renderer's source and the search config, so a change to how scenes
-   are made or drawn never silently reuses old renders.
+   (world_tag) fingerprints a probe scene's spec and rendered start view plus the splits and the search
+   config, so a change to how scenes are made or drawn never silently reuses old renders.
 2. Perception outputs, one ``.npz`` per (world, perception weights, split, setting, part):
    ``cache/search_views/<world tag>-<perception tag>/<split>_s<setting>_<part>.npz`` (numpy.savez):
 
@@ -33,6 +33,7 @@ CNN over the rendered images (about a minute for a whole paper split on one core
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from dataclasses import dataclass
@@ -49,6 +50,7 @@ from uavsearch.paths import REPO_ROOT
 FORMAT = "uavsearch-search-views/1"
 CACHE_DIR = REPO_ROOT / "cache"
 PARTS = ("train", "val", "test")
+PROBE_SCENE = (424242, 5)  # (seed, K) of the scene whose start view fingerprints the renderer
 
 
 class ViewCache(NamedTuple):
@@ -100,15 +102,25 @@ class CacheKey:
         return [(int(s), SETTINGS[self.setting]) for s in scene_seeds(self.setting, self.split, self.part)]
 
 
+@functools.lru_cache(maxsize=1)
 def world_tag() -> str:
-    """A hash of what decides the pixels: scene generator and renderer source, scene splits, search config."""
-    from uavsearch.world import render, scene, settings
+    """A hash of what decides the pixels: a probe scene's spec and its start view as rendered now, the
+    scene splits and the search config. Any change to how scenes are generated or drawn changes it (and
+    so never silently reuses old renders); edits that change no pixel do not. About a second, once per
+    process."""
+    from uavsearch.world import settings
+    from uavsearch.world.scene import generate_scene, scene_to_json
 
     from .config import SearchConfig
+    from .views import TeleportVehicle
 
-    h = hashlib.sha256(repr(SearchConfig()).encode())
-    for mod in (scene, render):
-        h.update(Path(mod.__file__).read_bytes())
+    config = SearchConfig()
+    probe = generate_scene(PROBE_SCENE[0], PROBE_SCENE[1])
+    with TeleportVehicle(probe, config, cache=False) as vehicle:
+        view = vehicle.capture([0.0, 0.0, config.altitude_m])
+    h = hashlib.sha256(repr(config).encode())
+    h.update(scene_to_json(probe).encode())
+    h.update(np.ascontiguousarray(view.image).tobytes())
     h.update(Path(settings.SETTINGS_FILE).read_bytes())
     return h.hexdigest()[:12]
 
