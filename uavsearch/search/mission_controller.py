@@ -232,6 +232,13 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
         status = f"failed: {e}"
         log.failure(step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
         progress(f"step {len(rec.records) + 1} failed: {e}")
+    except FlightError as e:
+        status = f"failed: {e}"
+        log.failure(step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
+    except KeyboardInterrupt:
+        status = "interrupted"
+        log.failure(step=len(rec.records), error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
+        progress("interrupted (Ctrl-C): ending the mission")
     return rec, status
 
 
@@ -264,7 +271,8 @@ class SitlProcess:
                "--gcs-port", str(gcs_port), "--api-local-port", "0", "--gcs-local-port", "0"]
         self._out = open(self.log_path, "w")
         self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent)
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
+                                     start_new_session=True)  # Ctrl-C reaches the controller only: it lands first
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
             text = self.log_path.read_text()
