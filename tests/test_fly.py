@@ -92,8 +92,8 @@ def test_flight_log_records_every_step(flown):
     np.testing.assert_allclose(fuse(mission["fusion"], p, valid, **kw), steps[-1]["fused"], atol=1e-5)
     summary = json.loads((run / "summary.json").read_text())
     assert summary["status"] == "completed" and summary["end"] == "landed" and summary["steps"] == T
-    assert summary["acc"] == pytest.approx(float(map_accuracy(np.array(steps[-1]["fused"]), labels)))
-    assert summary["f1"] == pytest.approx(float(map_f1(np.array(steps[-1]["fused"]), labels)))
+    assert summary["acc"] == pytest.approx(float(map_accuracy(np.array(steps[-1]["fused"]), labels)), abs=1e-6)
+    assert summary["f1"] == pytest.approx(float(map_f1(np.array(steps[-1]["fused"]), labels)), abs=1e-6)
     assert summary["wall_s"] > 0 and summary["sim_time_s"] > 0
 
 
@@ -107,7 +107,9 @@ def test_tlog_has_the_whole_conversation(flown):
             break
         (sent if m.get_srcSystem() == 245 else got).append(m)
     cmds = [(m.get_type(), m.command) for m in sent if m.get_type() in ("COMMAND_LONG", "COMMAND_INT")]
-    assert cmds.count(("COMMAND_INT", M.MAV_CMD_DO_REPOSITION)) == T
+    # one goto per view (a command the vehicle acknowledged late may have been re-sent, as MAVSDK does too)
+    gotos = {(m.x, m.y) for m in sent if m.get_type() == "COMMAND_INT" and m.command == M.MAV_CMD_DO_REPOSITION}
+    assert len(gotos) == T
     assert cmds.count(("COMMAND_LONG", M.MAV_CMD_IMAGE_START_CAPTURE)) == T
     assert ("COMMAND_LONG", M.MAV_CMD_COMPONENT_ARM_DISARM) in cmds and ("COMMAND_LONG", M.MAV_CMD_NAV_LAND) in cmds
     assert sum(m.get_type() == "CAMERA_IMAGE_CAPTURED" for m in got) == T
@@ -124,7 +126,7 @@ def test_replay_the_flight_and_its_tlog(flown, tmp_path):
     assert rr.returncode == 0, rr.stderr
     res = json.loads((out / "replay.json").read_text())
     summary = json.loads((run / "summary.json").read_text())
-    assert res["views"] == T and res["acc"][-1] == pytest.approx(summary["acc"])
+    assert res["views"] == T and res["acc"][-1] == pytest.approx(summary["acc"], abs=1e-6)
     for name in ("trajectory.png", "maps.png", "metrics.png", "replay.gif"):
         assert (out / name).stat().st_size > 1000
     # any tlog: re-render the camera at each CAMERA_IMAGE_CAPTURED in the scene and run perception + fusion
