@@ -12,10 +12,9 @@ $(VENV)/.installed: pyproject.toml
 	$(PY) -m pip install -q -e '.[test]'
 	touch $@
 
-# The main job. Until the flying issue lands it draws the default scene (setting 2, seed 3) from 70 m.
+# The main job: fly the default search mission (paper setting 2) with the shipped model.
 run: setup
-	mkdir -p runs
-	$(VENV)/bin/uavsearch scene show --seed 3 --setting 2 --out runs/scene_show.png
+	$(VENV)/bin/uavsearch fly
 
 test: setup
 	$(PY) -m pytest -q
