@@ -36,6 +36,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -190,7 +191,7 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
         parts["scene_seed"].append(int(s))
         parts["occupied_cells"].append(int(k))
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.stem + ".tmp.npz")
+    tmp = out.with_name(f"{out.stem}.tmp{os.getpid()}.npz")  # two processes building at once never clash
     np.savez(tmp, format=np.array(FORMAT), perception_tag=np.array(tag),
              **{k: np.stack(v) if k not in ("scene_seed", "occupied_cells") else np.array(v, np.int64)
                 for k, v in parts.items()})
