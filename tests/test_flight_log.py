@@ -3,7 +3,6 @@ survives a torn last line (a flight killed mid-write) with a warning."""
 
 import json
 import socket
-import struct
 import time
 
 import numpy as np

@@ -81,8 +81,8 @@ def main() -> None:
     k = SETTINGS[args.setting]
     print(f"{len(seeds)} scenes of setting {args.setting} (K={k}), 224x224, {ALTITUDE_M:g} m, nadir, "
           f"supersample {args.supersample}; stats are min / p10 / median / p90 / max")  # fmt: skip
-    header = (f"| hfov | view | cells in view | cell area px (cells in view) | person px (mask) | "
-              f"person px (effective) | people hidden | occupied cells with no person px |")  # fmt: skip
+    header = ("| hfov | view | cells in view | cell area px (cells in view) | person px (mask) | "
+              "person px (effective) | people hidden | occupied cells with no person px |")  # fmt: skip
     print(header)
     print("|" + "---|" * 8)
     for hfov in args.hfov:

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from . import __version__
-from .errors import UavsearchError
+from .errors import UavsearchError, run_command
 
 
 # --------------------------------------------------------------------------------------------------
@@ -225,15 +225,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except UavsearchError as e:
-        print(f"uavsearch: error: {e}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("uavsearch: interrupted", file=sys.stderr)
-        return 130
-
+    return run_command(args.func, args)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,5 +1,7 @@
 """User-facing errors: the CLI prints these as one line, never a traceback."""
 
+import sys
+
 
 class UavsearchError(Exception):
     """Bad input or an impossible request; the message is the one line the user sees."""
@@ -15,3 +17,15 @@ class MissionError(UavsearchError):
 
 class LogError(UavsearchError):
     """A flight log that cannot be read."""
+
+
+def run_command(func, args, prog: str = "uavsearch") -> int:
+    """Run a subcommand handler; a UavsearchError becomes one line on stderr and exit 2, Ctrl-C exit 130."""
+    try:
+        return int(func(args) or 0)
+    except UavsearchError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from .estimator import quat_multiply
 from .params import ParamDef
 
 CONTROL_PARAMS: list[ParamDef] = [
@@ -275,17 +276,6 @@ def attitude_from_thrust(zx: float, zy: float, zz: float, yaw: float) -> tuple:
 
 
 # ==================================================================================================
-def _qmul(a, b) -> tuple:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
 class AttitudeControl:
     """Quaternion attitude error -> body rate setpoint, tilt before heading (as PX4's mc_att_control).
 
@@ -318,13 +308,13 @@ class AttitudeControl:
         cr = (ez[1] * ezd[2] - ez[2] * ezd[1], ez[2] * ezd[0] - ez[0] * ezd[2], ez[0] * ezd[1] - ez[1] * ezd[0])
         n = math.sqrt((1.0 + c) ** 2 + cr[0] ** 2 + cr[1] ** 2 + cr[2] ** 2)
         tilt = ((1.0 + c) / n, cr[0] / n, cr[1] / n, cr[2] / n)  # shortest rotation ez -> ezd, NED frame
-        q_red = _qmul(tilt, q)  # current heading, desired thrust axis
+        q_red = quat_multiply(tilt, q)  # current heading, desired thrust axis
         # what is left is a rotation about the body z axis: keep a yaw_w share of its angle
-        mw, _, _, mz = _qmul((q_red[0], -q_red[1], -q_red[2], -q_red[3]), qd)
+        mw, _, _, mz = quat_multiply((q_red[0], -q_red[1], -q_red[2], -q_red[3]), qd)
         if mw < 0.0:
             mw, mz = -mw, -mz
         half = self.yaw_w * math.atan2(mz, mw)
-        return _qmul(q_red, (math.cos(half), 0.0, 0.0, math.sin(half)))
+        return quat_multiply(q_red, (math.cos(half), 0.0, 0.0, math.sin(half)))
 
     def set_state(self, q) -> None:
         self.q = q

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
-from ..errors import UavsearchError
+from ..errors import UavsearchError, run_command
 from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import RUNS_DIR
 from .camera import Camera, scene_renderer
@@ -318,11 +318,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="uavsearch sitl")
     add_sitl_arguments(parser)
     args = parser.parse_args(argv)
-    try:
-        return run_sitl_command(args)
-    except UavsearchError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return run_command(run_sitl_command, args, prog="uavsearch sitl")
 
 
 if __name__ == "__main__":

@@ -246,13 +246,9 @@ class MavlinkVehicle:
         for attempt in range(retries):
             self._acks.clear()
             self.conn.mav.command_long_send(self.target_system, compid, command, attempt, *p)
-            end = time.monotonic() + timeout_s
-            while time.monotonic() < end:
-                for a in self._acks:
-                    if a.command == command:
-                        self._last_ack = a
-                        return int(a.result)
-                self.pump(0.02)
+            result = self._await_ack(command, timeout_s)
+            if result is not None:
+                return result
         raise FlightError(f"command {command} not acknowledged by the vehicle")
 
     def command_int(self, command: int, frame: int, p1, p2, p3, p4, x: int, y: int, z: float,
@@ -261,14 +257,21 @@ class MavlinkVehicle:
             self._acks.clear()
             self.conn.mav.command_int_send(self.target_system, AUTOPILOT_COMPID, frame, command, 0, 0,
                                            p1, p2, p3, p4, x, y, z)
-            end = time.monotonic() + timeout_s
-            while time.monotonic() < end:
-                for a in self._acks:
-                    if a.command == command:
-                        self._last_ack = a
-                        return int(a.result)
-                self.pump(0.02)
+            result = self._await_ack(command, timeout_s)
+            if result is not None:
+                return result
         raise FlightError(f"command {command} not acknowledged by the vehicle")
+
+    def _await_ack(self, command: int, timeout_s: float) -> int | None:
+        """The MAV_RESULT of the first COMMAND_ACK for `command` within the timeout, else None (resend)."""
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            for a in self._acks:
+                if a.command == command:
+                    self._last_ack = a
+                    return int(a.result)
+            self.pump(0.02)
+        return None
 
     def _say(self, text: str) -> None:
         if self.progress:

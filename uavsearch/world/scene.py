@@ -285,7 +285,7 @@ def _street_lines(rng: np.random.Generator, p: SceneParams) -> list[tuple[float,
 
 
 def _layout_streets(b: _Builder, xs, ys) -> None:
-    p, rng, h = b.p, b.rng, b.p.city_half_m
+    rng, h = b.rng, b.p.city_half_m
     for vertical, lines in ((True, xs), (False, ys)):
         for c, road, side in lines:
             w = road + 2 * side
