@@ -9,7 +9,6 @@ import torch
 
 from synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
-from uavsearch.search.config import SearchConfig
 from uavsearch.search.eval_search import (
     ROWS,
     EvalArgs,

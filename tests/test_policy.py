@@ -7,7 +7,6 @@ import torch
 from synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
 from uavsearch.search.config import SearchConfig, lattice_index
-from uavsearch.search.fusion import fuse
 from uavsearch.search.perception import ConfidenceNet
 from uavsearch.search.policy import (
     ArgmaxPolicy,

@@ -34,7 +34,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import NamedTuple
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -45,7 +44,7 @@ from .config import SearchConfig
 from .eval_search import evaluate_agent
 from .fusion import FUSION_METHODS, fuse
 from .perception import ConfidenceNet
-from .policy import PolicyConfig, PolicyNet, round_trip_half, save_search_model
+from .policy import PolicyConfig, PolicyNet, save_search_model
 from .search_loop import Agent, CachedViews, run_search
 from .train_perception import seed_everything
 
