@@ -318,17 +318,11 @@ def cmd_eval_search(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """`python -m uavsearch.search.eval_search [flags]`: the same as `uavsearch eval search [flags]`."""
-    import argparse
     import sys
 
-    parser = argparse.ArgumentParser(prog="python -m uavsearch.search.eval_search")
-    add_eval_search_parser(parser.add_subparsers(dest="cmd", required=True))
-    args = parser.parse_args(["search", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return args.func(args)
-    except UavsearchError as e:
-        print(f"uavsearch: error: {e}", file=sys.stderr)
-        return 2
+    from ..cli import main as cli_main
+
+    return cli_main(["eval", "search", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -333,17 +333,11 @@ def cmd_train_policy(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """`python -m uavsearch.search.train_policy [flags]`: the same as `uavsearch train policy [flags]`."""
-    import argparse
     import sys
 
-    parser = argparse.ArgumentParser(prog="python -m uavsearch.search.train_policy")
-    add_train_policy_parser(parser.add_subparsers(dest="cmd", required=True))
-    args = parser.parse_args(["policy", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return args.func(args)
-    except UavsearchError as e:
-        print(f"uavsearch: error: {e}", file=sys.stderr)
-        return 2
+    from ..cli import main as cli_main
+
+    return cli_main(["train", "policy", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":
