@@ -379,10 +379,11 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
     for t in range(T):
         _draw_map(axes[t], d, t)
     n = d.grid.n
-    axes[T].imshow(d.labels.reshape(n, n), cmap="magma", vmin=0, vmax=1)
+    im = axes[T].imshow(d.labels.reshape(n, n), cmap="magma", vmin=0, vmax=1)
     axes[T].set_title("ground truth\n", fontsize=9)
     axes[T].set_xticks([])
     axes[T].set_yticks([])
+    fig.colorbar(im, ax=list(axes), fraction=0.012, pad=0.01, label="p(occupied)")  # all panels share 0..1
     fig.suptitle(f"{d.fusion} fusion: p(occupied) per cell (cyan: occupied cells)", fontsize=10)
     paths.append(save_figure(fig, out / "maps.png"))
 
