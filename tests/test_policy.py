@@ -81,11 +81,16 @@ def test_run_search_revisits_and_start_view():
 
 
 def test_learned_fusion_backpropagates_into_the_confidence_net():
+    torch.manual_seed(0)  # the net's initial weights
     cache = synthetic_cache(2)
     conf = ConfidenceNet(cache.cell_features.shape[-1])
     ep = run_search(CachedViews(cache, [0, 1]), Agent("learned", RandomPolicy(), conf), generator=torch.Generator().manual_seed(0))
     ep.maps[:, -1].sum().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in conf.parameters())
+    *hidden, (out_bias_name, out_bias) = list(conf.named_parameters())
+    assert out_bias_name.endswith("bias") and out_bias.numel() == 1
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for _, p in hidden)
+    # the softmax over views ignores a shift shared by every score: the output bias gets no gradient
+    assert out_bias.grad is not None and out_bias.grad.abs().item() < 1e-5
 
 
 def test_learned_fusion_needs_a_confidence_net_and_oracle_the_truth():
