@@ -13,7 +13,7 @@ from typing import Protocol
 import numpy as np
 
 from ..geometry import CameraIntrinsics, CameraPose, Grid, cell_label_image, cell_pixel_areas, nadir_camera_pose
-from .config import SearchConfig, lattice_coords
+from .config import SearchConfig
 
 
 @dataclass(frozen=True)
@@ -105,4 +105,4 @@ class TeleportVehicle:
         self.close()
 
 
-__all__ = ["View", "Vehicle", "TeleportVehicle", "make_view", "lattice_coords"]
+__all__ = ["View", "Vehicle", "TeleportVehicle", "make_view"]
