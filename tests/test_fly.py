@@ -141,6 +141,35 @@ def test_replay_the_flight_and_its_tlog(flown, tmp_path):
     np.testing.assert_allclose(np.array(res2["positions_enu"])[:, :2], np.array(res["positions_enu"])[:, :2], atol=1.5)
 
 
+
+def _without_wall_clock(run: Path) -> list[str]:
+    """The flight log's records minus what depends on the wall clock or the run directory's name."""
+    out = []
+    for line in (run / "search.jsonl").read_text().splitlines():
+        rec = {k: v for k, v in json.loads(line).items() if "wall" not in k and k != "started_utc"}
+        out.append(json.dumps(rec, sort_keys=True).replace(str(run), "RUN"))
+    return out
+
+
+def test_the_same_mission_flies_the_same_flight_on_a_busy_machine(flown, tmp_path):
+    """Lockstep: the seeds fix the flight, whatever else the machine is doing (here: a CPU hog)."""
+    r, run, _ = flown
+    assert r.returncode == 0, r.stdout + r.stderr
+    run2 = tmp_path / "again"
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        r2 = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(run.parent / "m.yaml"),
+                             "--out", str(run2), "--gcs-port", "0"], capture_output=True, text=True, timeout=240)
+    finally:
+        hog.kill()
+        hog.wait()
+    assert r2.returncode == 0, r2.stdout + r2.stderr
+    assert _without_wall_clock(run2) == _without_wall_clock(run)
+    images = sorted((run / "images").glob("*.png"))
+    assert len(images) == T
+    for img in images:
+        assert (run2 / "images" / img.name).read_bytes() == img.read_bytes()
+
 @pytest.mark.slow
 def test_killed_mid_air_leaves_a_readable_log(tmp_path):
     """SIGKILL the controller after its first view: the log reads up to that step, and the vehicle process

@@ -77,6 +77,9 @@ class FlightSection(_Strict):
     step_timeout_s: float = Field(60.0, gt=0)
     end_action: Literal["land", "rtl", "none"] = "land"
     vehicle_seed: int = Field(0, ge=0)  # sensor / estimator noise of the simulated vehicle
+    # The controller drives the simulated vehicle's clock (sitl --lockstep), so the seeds fix the flight.
+    # With --connect it is used when the vehicle supports it.
+    lockstep: bool = True
 
     @field_validator("speed")
     @classmethod
@@ -161,7 +164,8 @@ class Mission(_Strict):
 
         f = self.flight
         return FlightSettings(arrive_radius_m=f.arrive_radius_m, settle_speed_m_s=f.settle_speed_m_s,
-                              settle_time_s=f.settle_time_s, step_timeout_s=f.step_timeout_s, end_action=f.end_action)
+                              settle_time_s=f.settle_time_s, step_timeout_s=f.step_timeout_s, end_action=f.end_action,
+                              lockstep=f.lockstep)
 
     def origin(self):
         from .geometry import GeodeticOrigin

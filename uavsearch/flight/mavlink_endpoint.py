@@ -28,6 +28,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from .camera import CAMERA_COMPID, Camera, CaptureRecord
 from .commander import Commander, Result, VehicleCommand
+from .lockstep import HOLD_HEARTBEAT_WALL_S, MAV_CMD_SIM_ADVANCE, LockstepGate
 from .mission import MissionItem
 from .params import ParamError, ParamStore
 
@@ -272,6 +273,8 @@ class MavlinkEndpoint:
         self._snap: dict = {}
         self._fds = [link.sock.fileno() for link in self.links]
         self._next_due_any = 0  # the earliest stream deadline over every link
+        self.lockstep: LockstepGate | None = None  # set by a runner in lockstep (see lockstep.py)
+        self._hold_hb_wall = -math.inf
 
     # ------------------------------------------------------------------ plumbing
     def fileno_list(self) -> list[int]:
@@ -301,8 +304,10 @@ class MavlinkEndpoint:
         for l in self.links:
             l.send(msg, compid)
 
-    def _ack(self, link: Link, m, command: int, result: int, compid: int = AUTOPILOT_COMPID) -> None:
-        link.send(link.mav.command_ack_encode(command, int(result), 0, 0, m.get_srcSystem(), m.get_srcComponent()), compid)
+    def _ack(self, link: Link, m, command: int, result: int, compid: int = AUTOPILOT_COMPID,
+             result_param2: int = 0) -> None:
+        link.send(link.mav.command_ack_encode(command, int(result), 0, result_param2, m.get_srcSystem(),
+                                              m.get_srcComponent()), compid)
 
     # ------------------------------------------------------------------ the two calls the runner makes
     def poll(self, wall_s: float) -> int:
@@ -339,12 +344,7 @@ class MavlinkEndpoint:
     def send_streams(self) -> None:
         now = int(self.vehicle.time_us)
         self._snap.clear()  # vehicle outputs are built once per call, shared by every message and link
-        state = (self.cmd.armed, self.cmd.custom_mode)
-        if self.cmd.state_changed or state != self._sent_state:
-            self.cmd.state_changed = False
-            self._sent_state = state
-            self._broadcast(self._heartbeat())
-            self._broadcast(self._extended_sys_state())
+        self._send_state_if_changed()
         if self.camera is not None and self.camera.capturing_interval:
             for rec in self.camera.update():
                 self._broadcast_capture(rec)
@@ -369,6 +369,25 @@ class MavlinkEndpoint:
         due = [t for link in self.links for mid, t in link.next_due_us.items()
                if mid == "camera_hb" or link.intervals_us.get(mid, 0) > 0]
         self._next_due_any = min(due) if due else now + 1_000_000
+        self._flush_links()
+
+    def _send_state_if_changed(self) -> None:
+        """HEARTBEAT + EXTENDED_SYS_STATE at once when arming, mode or landed state changed."""
+        state = (self.cmd.armed, self.cmd.custom_mode)
+        if self.cmd.state_changed or state != self._sent_state:
+            self.cmd.state_changed = False
+            self._sent_state = state
+            self._broadcast(self._heartbeat())
+            self._broadcast(self._extended_sys_state())
+
+    def hold(self, wall_s: float) -> None:
+        """Lockstep: the clock reached its grant. Publish the state it stopped in, answer the grant, and
+        keep a heartbeat going on the wall clock while nothing runs."""
+        self._send_state_if_changed()  # the client must not learn of a change later than the ACK
+        self.lockstep.arrived(int(self.vehicle.time_us))
+        if wall_s - self._hold_hb_wall >= HOLD_HEARTBEAT_WALL_S:
+            self._hold_hb_wall = wall_s
+            self._broadcast(self._heartbeat())
         self._flush_links()
 
     def _flush_events(self) -> None:
@@ -674,16 +693,23 @@ class MavlinkEndpoint:
         if command == M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             self._ack(link, m, command, Result.ACCEPTED)
             return link.send(self._autopilot_version())
+        if command == MAV_CMD_SIM_ADVANCE:
+            return self._sim_advance(link, m, command, p[4])
         vc = VehicleCommand(command, *(float(x) for x in p), frame=frame, source_system=m.get_srcSystem(),
                             source_component=m.get_srcComponent())
         result = self.cmd.handle_command(vc)
         self._ack(link, m, command, result)
         self._flush_events()
-        if self.cmd.state_changed:
-            self.cmd.state_changed = False
-            self._sent_state = (self.cmd.armed, self.cmd.custom_mode)
-            self._broadcast(self._heartbeat())
-            self._broadcast(self._extended_sys_state())
+        self._send_state_if_changed()
+
+    def _sim_advance(self, link: Link, m, command: int, until_ms: float) -> None:
+        if self.lockstep is None:
+            return self._ack(link, m, command, Result.UNSUPPORTED)
+        if not (math.isfinite(until_ms) and 0 <= until_ms < 2**31):
+            return self._ack(link, m, command, Result.DENIED)
+        self._send_state_if_changed()
+        self.lockstep.grant(int(until_ms) * 1000, int(self.vehicle.time_us),
+                            lambda now_ms: self._ack(link, m, command, Result.ACCEPTED, result_param2=now_ms))
 
     def _set_interval(self, link: Link, p) -> Result:
         mid, iv = int(p[0]), p[1]

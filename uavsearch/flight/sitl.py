@@ -6,6 +6,8 @@ flight is the same for a given seed whatever the pacing. Pacing only decides how
 `--speed 1` keeps simulation time on the wall clock (for ground stations), `--speed N` runs N times
 faster, `--speed max` never waits. While waiting, the loop sleeps in select() on the sockets and
 answers packets at once, so a real-time vehicle still acknowledges commands within a millisecond.
+`--lockstep` hands the clock to one client (see lockstep.py): the simulation runs only as far as that
+client has granted, which makes a flight commanded from another process reproducible.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import RUNS_DIR
 from .camera import Camera, scene_renderer
 from .commander import Commander, autopilot_params
+from .lockstep import LockstepGate
 from .mavlink_endpoint import GCS_RATES_HZ, LinkConfig, MavlinkEndpoint, parse_signing_key
 from .params import ParamError, ParamStore
 
@@ -36,6 +39,7 @@ class SitlConfig:
     scene_file: Path | None = None  # a saved scene spec (JSON) instead of generating scene_seed
     home: GeodeticOrigin = field(default_factory=GeodeticOrigin)
     speed: float = 1.0  # math.inf = as fast as possible
+    lockstep: bool = False  # run only as far as a client grants (MAV_CMD_SIM_ADVANCE)
     api_port: int = 14540  # remote ports: 0 disables the link
     gcs_port: int = 14550
     api_local_port: int = 14580  # PX4 SITL's source ports
@@ -111,6 +115,9 @@ class Sitl:
         except OSError as e:
             raise UavsearchError(f"cannot open the MAVLink UDP ports ({e}); is another sitl running? "
                                  "Choose others with --api-local-port / --gcs-local-port") from None
+        if cfg.lockstep:
+            self.endpoint.lockstep = LockstepGate()
+        self._stop = None
         self._ap_period_us = int(1e6 / cfg.autopilot_hz)
         self._io_period_us = int(1e6 / cfg.io_hz)
         self._next_ap_us = int(self.vehicle.time_us)
@@ -128,6 +135,9 @@ class Sitl:
     def step(self) -> None:
         """One physics step, then the autopilot and I/O when due (simulation time)."""
         v = self.vehicle
+        gate = self.endpoint.lockstep
+        if gate is not None and v.time_us >= gate.until_us and not self._hold(gate):
+            return
         now = v.time_us
         if now >= self._next_ap_us:
             self._next_ap_us = _next_tick(self._next_ap_us, self._ap_period_us, now)
@@ -141,6 +151,19 @@ class Sitl:
                 self.endpoint.send_streams()
             self._pace()
         v.step()
+
+    def _hold(self, gate: LockstepGate) -> bool:
+        """Stand still, answering packets, until a client grants more time; False when asked to stop."""
+        while self.vehicle.time_us >= gate.until_us:
+            if self._stop is not None and self._stop():
+                return False
+            self._wall = time.monotonic()
+            self.endpoint.hold(self._wall)
+            if self.endpoint.wait_readable(0.2):
+                self._wall = time.monotonic()
+                self.endpoint.poll(self._wall)
+        self._pace_wall0 = None  # pacing starts afresh: no burst to catch up the time stood still
+        return True
 
     def _pace(self) -> None:
         speed = self.cfg.speed
@@ -161,6 +184,7 @@ class Sitl:
 
     def run(self, duration_s: float | None = None, stop=None) -> None:
         end_us = None if duration_s is None else self.vehicle.time_us + int(duration_s * 1e6)
+        self._stop = stop
         while (end_us is None or self.vehicle.time_us < end_us) and not (stop and stop()):
             self.step()
 
@@ -173,6 +197,8 @@ class Sitl:
     def banner(self) -> str:
         c = self.cfg
         speed = "max" if not math.isfinite(c.speed) else f"{c.speed:g}x real time"
+        if c.lockstep:
+            speed += ", lockstep (runs only as far as a client grants)"
         lines = [
             f"uavsearch sitl: sysid {int(self.params['MAV_SYS_ID'])}, seed {c.seed}, "
             f"scene {c.scene_seed if c.scene_seed is not None else 'none'}, speed {speed}",
@@ -242,6 +268,9 @@ def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cells", type=int, default=5, metavar="K", help="occupied cells in the scene (default 5)")
     p.add_argument("--seed", type=int, default=0, help="vehicle noise seed (default 0)")
     p.add_argument("--speed", type=_parse_speed, default=1.0, help="1 (real time, default), N (N x real time) or max")
+    p.add_argument("--lockstep", action="store_true",
+                   help="run only as far as a client grants with MAV_CMD_SIM_ADVANCE (reproducible flights "
+                        "from another process; plain MAVSDK / QGC clients cannot drive it)")
     p.add_argument("--home", type=_parse_home, default=GeodeticOrigin(), metavar="LAT,LON[,ALT]",
                    help="WGS84 position of the scene origin (default PX4 SITL's Zurich home)")
     p.add_argument("--signing-key", default=None, metavar="HEX", help="32-byte MAVLink 2 signing key, 64 hex digits")
@@ -267,6 +296,7 @@ def config_from_args(args) -> SitlConfig:
         scene_file=args.scene_file,
         home=args.home,
         speed=args.speed,
+        lockstep=args.lockstep,
         api_port=args.api_port,
         gcs_port=args.gcs_port,
         api_local_port=args.api_local_port,

@@ -14,6 +14,12 @@ what any MAVLink client can see and send (pymavlink, no back door into the simul
 The scene frame's origin is the mission's home (the centre of the search area), not wherever the vehicle
 was armed. Timeouts are in simulation time (so they mean the same at --speed 1 and max) with a wall-clock
 backstop for a vehicle that stopped talking. Every packet both ways goes to the tlog when one is given.
+
+With `lockstep` (and a vehicle started with `uavsearch sitl --lockstep`) the client is the clock master:
+every wait that needs the vehicle to move grants it `lockstep_tick_s` of simulation time at a time and
+judges its condition only at the end of a grant, and every command is sent while the simulation stands
+still. Perception and policy then take no simulation time, and the same seeds fly the same flight.
+A vehicle without lockstep answers UNSUPPORTED and the client falls back to free-running.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import numpy as np
 from pymavlink import mavutil
 
 from ..errors import UavsearchError
+from ..flight.lockstep import MAV_CMD_SIM_ADVANCE
 from ..geometry import GeodeticOrigin, camera_pose_from_vehicle, euler_from_quaternion
 from .config import SearchConfig
 from .views import View, make_view
@@ -85,6 +92,8 @@ class FlightSettings:
     capture_timeout_s: float = 10.0  # wall clock for CAMERA_IMAGE_CAPTURED
     end_action: str = "land"  # land | rtl | none
     yaw_deg: float = 0.0  # heading at every view (paper: fixed north)
+    lockstep: bool = False  # drive the vehicle's clock (when it supports MAV_CMD_SIM_ADVANCE)
+    lockstep_tick_s: float = 0.1  # simulation time per grant: conditions are judged at this spacing
 
 
 @dataclass
@@ -173,6 +182,8 @@ class MavlinkVehicle:
         self.connected_sim_s: float | None = None  # vehicle clock when the link came up healthy
         self._settle: _Settle | None = None
         self._last_ack = None
+        self.lockstep = False  # on once the vehicle accepted a grant
+        self._clock_ms = 0  # lockstep: where the vehicle's clock stands (its answer to the last grant)
 
     # ------------------------------------------------------------------ message pump
     def _on_message(self, m) -> None:
@@ -218,9 +229,28 @@ class MavlinkVehicle:
             self._on_message(m)
             m = self.conn.recv_match(blocking=False)
 
-    def _wait(self, cond, wall_timeout_s: float, what: str, sim_timeout_s: float | None = None):
-        """Pump until cond() is truthy; FlightError (StepFailed for sim-time outs) naming `what` otherwise."""
+    def _advance(self, sim_s: float | None = None) -> None:
+        """Let the vehicle fly on: grant it sim_s (lockstep) or read its telemetry for up to that long."""
+        if self.lockstep:
+            self._grant(self._clock_ms + int(round(1000 * (sim_s or self.settings.lockstep_tick_s))))
+        else:
+            self.pump(0.05 if sim_s is None else sim_s)
+
+    def _grant(self, until_ms: int) -> int:
+        """MAV_CMD_SIM_ADVANCE to until_ms; returns the MAV_RESULT (UNSUPPORTED: a free-running vehicle)."""
+        r = self.command_int(MAV_CMD_SIM_ADVANCE, M.MAV_FRAME_MISSION, 0, 0, 0, 0, int(until_ms), 0, 0.0)
+        if r == M.MAV_RESULT_ACCEPTED:
+            self._clock_ms = int(self._last_ack.result_param2)
+        return r
+
+    def _wait(self, cond, wall_timeout_s: float, what: str, sim_timeout_s: float | None = None, moving: bool = True):
+        """Until cond() is truthy; FlightError (StepFailed for sim-time outs) naming `what` otherwise.
+
+        `moving`: the condition needs simulation time (lockstep grants it); otherwise it is an answer the
+        vehicle sends at once, and in lockstep no time may pass while waiting for it."""
         wall_end = time.monotonic() + wall_timeout_s
+        if self.lockstep and moving:
+            self._grant(self._clock_ms)  # a barrier: what the vehicle sent so far has arrived
         sim0 = self.sim_time_s
         while True:
             r = cond()
@@ -231,7 +261,10 @@ class MavlinkVehicle:
             if sim_timeout_s is not None and sim0 is not None and self.sim_time_s is not None \
                     and self.sim_time_s - sim0 > sim_timeout_s:
                 raise StepFailed(f"{what}: not done after {sim_timeout_s:g} s of flight")
-            self.pump()
+            if moving:
+                self._advance()
+            else:
+                self.pump()
 
     @property
     def sim_time_s(self) -> float | None:
@@ -307,8 +340,12 @@ class MavlinkVehicle:
         """Wait for the autopilot's heartbeat and health (gyro, accel, mag, GPS) and a position."""
         st = self.settings
         self._say(f"connecting to {self.url} ...")
-        self._wait(lambda: self._hb, st.connect_timeout_s, f"no heartbeat on {self.url}")
+        self._wait(lambda: self._hb, st.connect_timeout_s, f"no heartbeat on {self.url}", moving=False)
         self._heartbeat(force=True)
+        if st.lockstep:
+            self.lockstep = self._grant(0) == M.MAV_RESULT_ACCEPTED
+            if not self.lockstep:
+                self._say("the vehicle does not run in lockstep: this flight will not be reproducible from its seed")
         for mid, hz in STREAM_RATES_HZ.items():
             self.command_long(M.MAV_CMD_SET_MESSAGE_INTERVAL, mid, 1e6 / hz if hz > 0 else -1)
         self._wait(self._healthy, st.connect_timeout_s, "vehicle not healthy (SYS_STATUS sensors, position)")
@@ -325,7 +362,7 @@ class MavlinkVehicle:
                 break
             if time.monotonic() > end:
                 raise FlightError(f"arming refused ({'; '.join(self._texts[-2:]) or f'MAV_RESULT {r}'})")
-            self.pump(0.2)
+            self._advance(0.2)
         self._wait(lambda: self.armed, st.connect_timeout_s, "arming")
         r = self.command_long(M.MAV_CMD_NAV_TAKEOFF, math.nan, 0, 0, math.nan, math.nan, math.nan, alt_amsl)
         if r != M.MAV_RESULT_ACCEPTED:
@@ -370,7 +407,7 @@ class MavlinkVehicle:
         if r != M.MAV_RESULT_ACCEPTED:
             raise StepFailed(f"camera refused IMAGE_START_CAPTURE (MAV_RESULT {r})")
         msg = self._wait(lambda: self._captures[-1] if self._captures else None, st.capture_timeout_s,
-                         "CAMERA_IMAGE_CAPTURED")
+                         "CAMERA_IMAGE_CAPTURED", moving=False)
         if msg.capture_result != 1:
             raise StepFailed("the camera reported a failed capture")
         self.captures_done += 1

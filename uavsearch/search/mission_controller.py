@@ -269,6 +269,8 @@ class SitlProcess:
         cmd = [sys.executable, "-m", "uavsearch.flight.sitl", *scene, "--seed", str(s.vehicle_seed), "--speed", speed,
                "--out", str(run_dir), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}", "--api-port", str(api_port),
                "--gcs-port", str(gcs_port), "--api-local-port", "0", "--gcs-local-port", "0"]
+        if s.lockstep:
+            cmd.append("--lockstep")
         self._out = open(self.log_path, "w")
         self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                      env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,

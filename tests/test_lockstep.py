@@ -1,0 +1,99 @@
+"""Lockstep (MAV_CMD_SIM_ADVANCE) against a real `uavsearch sitl --lockstep` process over loopback UDP:
+the clock moves only as far as the client grants, grants are exact and idempotent, and a free-running
+vehicle refuses the command."""
+
+import time
+
+import pytest
+from pymavlink import mavutil
+
+from sitl_process import Client, SitlProcess
+from uavsearch.flight.lockstep import MAV_CMD_SIM_ADVANCE
+
+M = mavutil.mavlink
+
+
+def _grant(c: Client, until_ms: int, timeout: float = 5.0):
+    c.mav.command_int_send(c.conn.target_system, 1, M.MAV_FRAME_MISSION, MAV_CMD_SIM_ADVANCE, 0, 0, 0, 0, 0, 0,
+                           until_ms, 0, 0.0)
+    return c.recv("COMMAND_ACK", timeout, cond=lambda m: m.command == MAV_CMD_SIM_ADVANCE)
+
+
+def _drain(c: Client, seconds: float) -> list:
+    """Every message that arrives within `seconds` of wall time."""
+    out, end = [], time.monotonic() + seconds
+    while time.monotonic() < end:
+        m = c.conn.recv_match(blocking=True, timeout=0.05)
+        if m is not None:
+            out.append(m)
+    return out
+
+
+@pytest.fixture
+def lockstep(tmp_path):
+    p = SitlProcess(tmp_path, "--lockstep", "--gcs-port", "0")
+    assert "lockstep" in "".join(p.banner)
+    c = Client(p.api_port)  # the vehicle heartbeats while it waits for its first grant
+    yield c
+    c.close()
+    code, out = p.stop()
+    assert code == 0, out  # Ctrl-C stops a vehicle that is standing still
+
+
+def test_the_clock_runs_exactly_as_far_as_granted(lockstep):
+    c = lockstep
+    ack = _grant(c, 0)  # a barrier: answered at once, at time 0
+    assert ack.result == M.MAV_RESULT_ACCEPTED and ack.result_param2 == 0
+    # Nothing moves without a grant: half a wall second, no telemetry time beyond 0.
+    stamps = [m.time_boot_ms for m in _drain(c, 0.5) if hasattr(m, "time_boot_ms")]
+    assert all(t == 0 for t in stamps)
+    ack = _grant(c, 1500)
+    assert ack.result == M.MAV_RESULT_ACCEPTED and ack.result_param2 == 1500
+    # Every stamped message the grant caused arrived before its ACK, and none is later than the grant.
+    late = [m for m in _drain(c, 0.3) if getattr(m, "time_boot_ms", 0) > 1500]
+    assert not late
+    # The same grant again (a retransmission) and an earlier one cost no simulation time.
+    assert _grant(c, 1500).result_param2 == 1500
+    assert _grant(c, 700).result_param2 == 1500
+    assert _grant(c, 1510).result_param2 == 1510
+
+
+def test_telemetry_stamps_follow_the_grants(lockstep):
+    c = lockstep
+    _grant(c, 0)
+    _drain(c, 0.2)
+    seen = []
+    for until in (200, 400, 600):
+        c.mav.command_int_send(c.conn.target_system, 1, M.MAV_FRAME_MISSION, MAV_CMD_SIM_ADVANCE, 0, 0, 0, 0, 0, 0,
+                               until, 0, 0.0)
+        while True:  # everything up to the ACK belongs to this grant
+            m = c.conn.recv_match(blocking=True, timeout=5)
+            assert m is not None
+            if m.get_type() == "COMMAND_ACK" and m.command == MAV_CMD_SIM_ADVANCE:
+                assert m.result_param2 == until
+                break
+            if m.get_type() == "GLOBAL_POSITION_INT":
+                seen.append((until, m.time_boot_ms))
+    assert seen and all(until - 200 <= t < until for until, t in seen)
+
+
+def test_commands_are_handled_while_the_clock_stands_still(lockstep):
+    c = lockstep
+    _grant(c, 0)
+    ack = c.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT, 50_000)
+    assert ack is not None and ack.result == M.MAV_RESULT_ACCEPTED
+    assert _grant(c, 0).result_param2 == 0  # answering took no simulation time
+
+
+def test_bad_grants_are_denied(lockstep):
+    assert _grant(lockstep, -5).result == M.MAV_RESULT_DENIED
+
+
+def test_a_free_running_vehicle_refuses_grants(tmp_path):
+    p = SitlProcess(tmp_path, "--gcs-port", "0")
+    c = Client(p.api_port)
+    try:
+        assert _grant(c, 10_000).result == M.MAV_RESULT_UNSUPPORTED
+    finally:
+        c.close()
+        assert p.stop()[0] == 0
