@@ -16,6 +16,7 @@ import pytest
 import yaml
 from pymavlink import mavutil
 
+from sitl_process import SitlProcess
 from uavsearch.paths import MODELS_DIR
 from uavsearch.search.config import ACTIONS
 from uavsearch.search.fusion import fuse
@@ -169,6 +170,24 @@ def test_the_same_mission_flies_the_same_flight_on_a_busy_machine(flown, tmp_pat
     assert len(images) == T
     for img in images:
         assert (run2 / "images" / img.name).read_bytes() == img.read_bytes()
+
+
+def test_connect_to_a_running_vehicle_flies_the_same_flight(flown, tmp_path):
+    """--connect: a `uavsearch sitl --lockstep` started by someone else, same scene and seeds -> same flight,
+    with the true poses read from the camera's captures.jsonl beside its images."""
+    _, run, _ = flown
+    sitl = SitlProcess(tmp_path / "vehicle", "--lockstep", "--scene", "3", "--cells", "5", camera=True)
+    try:
+        r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--connect", f"udpin:127.0.0.1:{sitl.api_port}",
+                            "--mission", str(run.parent / "m.yaml"), "--out", str(tmp_path / "run")],
+                           capture_output=True, text=True, timeout=240)
+    finally:
+        sitl.stop()
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "starting uavsearch sitl" not in r.stdout and "not be reproducible" not in r.stdout
+    steps = [ln for ln in _without_wall_clock(tmp_path / "run") if '"type": "step"' in ln]
+    assert len(steps) == T and all('"true_pose": null' not in ln for ln in steps)
+    assert steps == [ln for ln in _without_wall_clock(run) if '"type": "step"' in ln]
 
 @pytest.mark.slow
 def test_killed_mid_air_leaves_a_readable_log(tmp_path):

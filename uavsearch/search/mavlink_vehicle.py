@@ -105,6 +105,7 @@ class CaptureInfo:
     reported_position_enu: list
     reported_rpy_rad: list
     image_path: str
+    camera_dir: str  # where the camera wrote the image (a simulated camera keeps captures.jsonl there)
     time_boot_s: float  # simulation time of the capture (vehicle clock)
     flight_time_s: float  # simulation time from the goto to settled
     wall_s: float
@@ -413,12 +414,17 @@ class MavlinkVehicle:
         self.captures_done += 1
         return msg
 
+    @staticmethod
+    def image_path(msg) -> Path:
+        """The file CAMERA_IMAGE_CAPTURED's file:// URL names."""
+        url = msg.file_url if isinstance(msg.file_url, str) else bytes(msg.file_url).decode(errors="replace")
+        return _url_to_path(url.rstrip("\x00"))
+
     def view_from_capture(self, msg) -> tuple[View, Path, np.ndarray, tuple]:
         """The image named by CAMERA_IMAGE_CAPTURED and the View at the pose it reports."""
         import cv2
 
-        url = msg.file_url if isinstance(msg.file_url, str) else bytes(msg.file_url).decode(errors="replace")
-        path = _url_to_path(url.rstrip("\x00"))
+        path = self.image_path(msg)
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise StepFailed(f"cannot read the captured image {path}")
@@ -447,7 +453,7 @@ class MavlinkVehicle:
         self.last_capture = CaptureInfo(
             index=int(msg.image_index), waypoint_enu=[float(x) for x in position_enu],
             reported_position_enu=[float(x) for x in pos], reported_rpy_rad=[float(x) for x in rpy],
-            image_path=str(path), time_boot_s=msg.time_boot_ms * 1e-3, flight_time_s=float(flight),
+            image_path=str(path), camera_dir=str(self.image_path(msg).parent.parent), time_boot_s=msg.time_boot_ms * 1e-3, flight_time_s=float(flight),
             wall_s=time.monotonic() - wall0)
         return view
 

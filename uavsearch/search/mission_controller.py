@@ -11,8 +11,8 @@ source; this module only adds what a flight needs around it:
   nothing shared but the run directory) and flies the mission over MAVLink.
 
 The only thing taken from outside MAVLink is the TRUE camera pose for the log: the simulated camera
-writes it to captures.jsonl in the shared run directory, and the controller copies it into each step
-record (for evaluation and replay; the search itself never reads it).
+writes it to captures.jsonl beside its images (the file:// URL of CAMERA_IMAGE_CAPTURED says where), and
+the controller copies it into each step record (for evaluation and replay; the search never reads it).
 """
 
 from __future__ import annotations
@@ -131,9 +131,10 @@ class _RecordingViews(LiveViews):
         return self.last_obs
 
 
-def _true_pose(run_dir: Path, index: int) -> dict | None:
-    """The simulated camera's own record of image `index` (true pose), if it writes into this run dir."""
-    path = run_dir / "captures.jsonl"
+def _true_pose(camera_dir: Path, index: int) -> dict | None:
+    """The simulated camera's own record of image `index` (true pose), when the camera keeps one beside its
+    images: a vehicle this controller started, or a `uavsearch sitl` reached with --connect on this machine."""
+    path = Path(camera_dir) / "captures.jsonl"
     if not path.is_file():
         return None
     with open(path) as f:
@@ -196,7 +197,7 @@ class SearchRecorder:
             t=t, sim_time_s=cap.time_boot_s, wall_s=cap.wall_s, flight_time_s=cap.flight_time_s,
             lattice_idx=idx, waypoint_enu=cap.waypoint_enu,
             reported_position_enu=cap.reported_position_enu, reported_rpy_rad=cap.reported_rpy_rad,
-            true_pose=_true_pose(self.run_dir, cap.index), image_index=cap.index,
+            true_pose=_true_pose(cap.camera_dir, cap.index), image_index=cap.index,
             image=os.path.relpath(cap.image_path, self.run_dir) if Path(cap.image_path).is_absolute() else cap.image_path,
             p_occ=p, scores=scores, valid=o.valid[0].numpy(), cell_area_px=o.cell_area_px[0].numpy(),
             fused=fused, action=action, action_name=self.config.actions[action] if action is not None else None,
