@@ -180,11 +180,15 @@ def _add_replay_parser(sub) -> None:
 # train / eval: groups whose subcommands live with their code
 
 
+TRAIN_HELP = "train in teleport mode: perception (stage 1), then fusion + policy (stage 2)"
+EVAL_HELP = "evaluate: single-view perception (Table I, Fig. 4), search methods (Table II, Fig. 6)"
+
+
 def _add_train_parser(sub) -> None:
     from .search.train_perception import add_train_perception_parser
     from .search.train_policy import add_train_policy_parser
 
-    train = sub.add_parser("train", help="train in teleport mode: perception (stage 1), then fusion + policy (stage 2)")
+    train = sub.add_parser("train", help=TRAIN_HELP)
     tsub = train.add_subparsers(dest="train_cmd", required=True, metavar="{perception,policy}")
     add_train_perception_parser(tsub)
     add_train_policy_parser(tsub)
@@ -194,7 +198,7 @@ def _add_eval_parser(sub) -> None:
     from .search.eval_search import add_eval_search_parser
     from .search.eval_single_view import add_eval_single_view_parser
 
-    ev = sub.add_parser("eval", help="evaluate: single-view perception (Table I, Fig. 4), search methods (Table II, Fig. 6)")
+    ev = sub.add_parser("eval", help=EVAL_HELP)
     esub = ev.add_subparsers(dest="eval_cmd", required=True, metavar="{single-view,search}")
     add_eval_single_view_parser(esub)
     add_eval_search_parser(esub)
@@ -204,7 +208,9 @@ def _add_eval_parser(sub) -> None:
 # --------------------------------------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The whole CLI; with `command` given, the torch-heavy train / eval groups are built only when named
+    (so `uavsearch --help` or `uavsearch scene ...` does not import torch)."""
     parser = argparse.ArgumentParser(
         prog="uavsearch",
         description="Flight-dynamics-realistic MAVLink UAV testbed for active object search.",
@@ -215,15 +221,19 @@ def build_parser() -> argparse.ArgumentParser:
     from .flight.sitl import add_sitl_parser
 
     add_sitl_parser(sub)
-    _add_train_parser(sub)
-    _add_eval_parser(sub)
+    for name, add, text in (("train", _add_train_parser, TRAIN_HELP), ("eval", _add_eval_parser, EVAL_HELP)):
+        if command is None or command == name:
+            add(sub)
+        else:
+            sub.add_parser(name, help=text)
     _add_fly_parser(sub)
     _add_replay_parser(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(command=next((a for a in argv if not a.startswith("-")), ""))
     args = parser.parse_args(argv)
     return run_command(args.func, args)
 
