@@ -32,10 +32,13 @@ def main() -> int:
     ap.add_argument("--perception", default=None, help="override the mission's perception checkpoint")
     ap.add_argument("--fusion", default=None, help="override the mission's fusion")
     ap.add_argument("--policy", default=None, help="override the mission's policy")
+    ap.add_argument("--free-running", action="store_true",
+                    help="vehicle without lockstep (not reproducible; shows what lockstep costs)")
     args = ap.parse_args()
     base = load_mission(args.mission).with_overrides(**{
         "flight.speed": args.speed if args.speed == "max" else float(args.speed), "search.budget_T": args.T,
-        "perception": args.perception, "fusion": args.fusion, "policy": args.policy})
+        "perception": args.perception, "fusion": args.fusion, "policy": args.policy,
+        "flight.lockstep": False if args.free_running else None})
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for seed in tqdm(args.scenes, desc="flying", file=sys.stderr):
