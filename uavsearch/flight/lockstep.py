@@ -35,16 +35,13 @@ class LockstepGate:
 
     def __init__(self) -> None:
         self.until_us = 0
-        self.granted = False  # no grant yet: the client may not have found us (heartbeats while holding)
         self._reply: Callable[[int], None] | None = None
 
-    def grant(self, until_us: int, now_us: int, reply: Callable[[int], None]) -> None:
-        """A grant to run until `until_us`; `reply(time_boot_ms)` is called once the clock is there."""
-        self.granted = True
+    def grant(self, until_us: int, reply: Callable[[int], None]) -> None:
+        """A grant to run until `until_us`; `reply(time_boot_ms)` is called once the clock is there (by the
+        runner's hold, which also answers a grant that is not ahead of the clock, i.e. a barrier)."""
         self.until_us = max(self.until_us, until_us)
         self._reply = reply
-        if now_us >= self.until_us:
-            self.arrived(now_us)
 
     def arrived(self, now_us: int) -> None:
         if self._reply is not None:

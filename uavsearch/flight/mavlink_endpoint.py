@@ -707,8 +707,7 @@ class MavlinkEndpoint:
             return self._ack(link, m, command, Result.UNSUPPORTED)
         if not (math.isfinite(until_ms) and 0 <= until_ms < 2**31):
             return self._ack(link, m, command, Result.DENIED)
-        self._send_state_if_changed()
-        self.lockstep.grant(int(until_ms) * 1000, int(self.vehicle.time_us),
+        self.lockstep.grant(int(until_ms) * 1000,
                             lambda now_ms: self._ack(link, m, command, Result.ACCEPTED, result_param2=now_ms))
 
     def _set_interval(self, link: Link, p) -> Result:

@@ -453,7 +453,8 @@ class MavlinkVehicle:
         self.last_capture = CaptureInfo(
             index=int(msg.image_index), waypoint_enu=[float(x) for x in position_enu],
             reported_position_enu=[float(x) for x in pos], reported_rpy_rad=[float(x) for x in rpy],
-            image_path=str(path), camera_dir=str(self.image_path(msg).parent.parent), time_boot_s=msg.time_boot_ms * 1e-3, flight_time_s=float(flight),
+            image_path=str(path), camera_dir=str(self.image_path(msg).parent.parent),
+            time_boot_s=msg.time_boot_ms * 1e-3, flight_time_s=float(flight),
             wall_s=time.monotonic() - wall0)
         return view
 
