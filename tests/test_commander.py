@@ -236,6 +236,9 @@ def test_takeoff_in_air_never_descends_and_rtl_on_ground_is_denied():
     assert r.cmd(22, *[NAN] * 6, ORIGIN.alt_m + 8.0) == Result.ACCEPTED
     assert r.run(30, until=lambda: r.c.mode == "HOLD")
     r.run(3)
-    assert r.cmd(22) == Result.ACCEPTED  # NaN altitude: MIS_TAKEOFF_ALT (3 m) is below us
+    for alt in (NAN, -math.inf, math.inf, -3.4e38, 3.4e38):  # no altitude in the air, or none that exists
+        assert r.cmd(22, *[NAN] * 6, alt) == Result.DENIED
+        assert r.c.mode == "HOLD"
+    assert r.cmd(22, *[NAN] * 6, ORIGIN.alt_m + 2.0) == Result.ACCEPTED  # below us: accepted, never descends
     r.run(5)
     assert r.alt == pytest.approx(8.0, abs=0.4)

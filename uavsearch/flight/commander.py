@@ -360,8 +360,15 @@ class Commander:
         if not self.armed:
             self.text(SEV_CRITICAL, "Takeoff denied: disarmed")
             return Result.DENIED
-        alt = cmd.param7 if math.isfinite(cmd.param7) else math.nan
+        alt = cmd.param7
         home_alt = self.origin.alt_m - self.home_ned[2]
+        in_air = not self.vehicle.land_detected.landed
+        if math.isinf(alt) or (math.isfinite(alt) and not -MAX_REL_ALT_M <= alt - home_alt <= MAX_REL_ALT_M):
+            self.text(SEV_CRITICAL, "Takeoff denied: altitude out of range")
+            return Result.DENIED
+        if math.isnan(alt) and in_air:  # no altitude given and already flying: nothing to climb to
+            self.text(SEV_CRITICAL, "Takeoff denied: already flying (give an altitude)")
+            return Result.DENIED
         tgt_rel = max(alt - home_alt if math.isfinite(alt) else 0.0, self.params["MIS_TAKEOFF_ALT"])
         ver = self.params["GF_MAX_VER_DIST"]
         if ver > 0 and tgt_rel > ver:

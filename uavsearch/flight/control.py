@@ -18,15 +18,19 @@ from dataclasses import dataclass
 from .estimator import quat_multiply
 from .params import ParamDef
 
+# Minimum / maximum are PX4's own (mc_pos_control, mc_att_control, mc_rate_control parameter metadata), so a
+# value PX4 refuses is refused here too. Where PX4 gives no bound (the I gains and integrator limits have no
+# maximum, the rate D gains of pitch and yaw none) ours is a sanity limit. One deviation: MC_YAWRATE_P's
+# maximum is 3 (PX4: 0.6) because this airframe's default, 1.0, is above PX4's range.
 CONTROL_PARAMS: list[ParamDef] = [
     # position / velocity (mc_pos_control)
-    ParamDef("MPC_XY_P", 0.95, 0.0, 3.0, "1/s", description="horizontal position gain"),
-    ParamDef("MPC_XY_VEL_P_ACC", 1.8, 0.5, 8.0, "1/s", description="horizontal velocity P gain"),
-    ParamDef("MPC_XY_VEL_I_ACC", 0.4, 0.0, 10.0, "1/s^2", description="horizontal velocity I gain"),
-    ParamDef("MPC_XY_VEL_D_ACC", 0.2, 0.0, 2.0, "", description="horizontal velocity D gain"),
-    ParamDef("MPC_Z_P", 1.0, 0.0, 3.0, "1/s", description="vertical position gain"),
-    ParamDef("MPC_Z_VEL_P_ACC", 4.0, 1.0, 15.0, "1/s", description="vertical velocity P gain"),
-    ParamDef("MPC_Z_VEL_I_ACC", 2.0, 0.0, 10.0, "1/s^2", description="vertical velocity I gain"),
+    ParamDef("MPC_XY_P", 0.95, 0.0, 2.0, "1/s", description="horizontal position gain"),
+    ParamDef("MPC_XY_VEL_P_ACC", 1.8, 1.2, 5.0, "1/s", description="horizontal velocity P gain"),
+    ParamDef("MPC_XY_VEL_I_ACC", 0.4, 0.0, 60.0, "1/s^2", description="horizontal velocity I gain"),
+    ParamDef("MPC_XY_VEL_D_ACC", 0.2, 0.1, 2.0, "", description="horizontal velocity D gain"),
+    ParamDef("MPC_Z_P", 1.0, 0.0, 1.5, "1/s", description="vertical position gain"),
+    ParamDef("MPC_Z_VEL_P_ACC", 4.0, 2.0, 15.0, "1/s", description="vertical velocity P gain"),
+    ParamDef("MPC_Z_VEL_I_ACC", 2.0, 0.2, 3.0, "1/s^2", description="vertical velocity I gain"),
     ParamDef("MPC_Z_VEL_D_ACC", 0.0, 0.0, 2.0, "", description="vertical velocity D gain"),
     ParamDef("MPC_XY_CRUISE", 5.0, 0.5, 20.0, "m/s", description="horizontal speed in position (auto) control"),
     ParamDef("MPC_XY_VEL_MAX", 12.0, 0.5, 20.0, "m/s", description="hard horizontal speed limit"),
@@ -48,10 +52,10 @@ CONTROL_PARAMS: list[ParamDef] = [
     ParamDef("MC_PITCHRATE_MAX", 220.0, 0.0, 1800.0, "deg/s", description="pitch rate limit"),
     ParamDef("MC_YAWRATE_MAX", 120.0, 0.0, 1800.0, "deg/s", description="yaw rate limit"),
     # body rates (mc_rate_control)
-    ParamDef("MC_ROLLRATE_P", 0.15, 0.0, 1.0, "", description="roll rate P gain"),
+    ParamDef("MC_ROLLRATE_P", 0.15, 0.01, 0.5, "", description="roll rate P gain"),
     ParamDef("MC_ROLLRATE_I", 0.2, 0.0, 2.0, "", description="roll rate I gain"),
-    ParamDef("MC_ROLLRATE_D", 0.003, 0.0, 0.05, "", description="roll rate D gain"),
-    ParamDef("MC_PITCHRATE_P", 0.15, 0.0, 1.0, "", description="pitch rate P gain"),
+    ParamDef("MC_ROLLRATE_D", 0.003, 0.0, 0.01, "", description="roll rate D gain"),
+    ParamDef("MC_PITCHRATE_P", 0.15, 0.01, 0.6, "", description="pitch rate P gain"),
     ParamDef("MC_PITCHRATE_I", 0.2, 0.0, 2.0, "", description="pitch rate I gain"),
     ParamDef("MC_PITCHRATE_D", 0.003, 0.0, 0.05, "", description="pitch rate D gain"),
     ParamDef("MC_YAWRATE_P", 1.0, 0.0, 3.0, "", description="yaw rate P gain (this airframe's yaw authority is low)"),
