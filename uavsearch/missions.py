@@ -23,6 +23,17 @@ from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
 DEFAULT_MISSION = MISSIONS_DIR / "default.yaml"
 
 
+# What the shipped models were trained on: the training commands render every view with SearchConfig's
+# defaults (70 m, 10 m steps, the default camera) and take no option to change them.
+TRAINED_FOR = {"altitude_m": 70.0, "step_m": 10.0}
+
+
+def untrained_settings(search) -> list[str]:
+    """The search settings that differ from TRAINED_FOR, as 'altitude_m 40 (trained 70)'."""
+    return [f"{k} {getattr(search, k):g} (trained {v:g})" for k, v in TRAINED_FOR.items()
+            if not math.isclose(float(getattr(search, k)), v, rel_tol=0, abs_tol=1e-6)]
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -47,6 +58,9 @@ class SearchSection(_Strict):
     step_m: float = Field(10.0, gt=0)
     budget_T: int = Field(5, ge=1, le=25)
     actions: tuple[str, ...] = ("MoveAhead", "MoveRight", "MoveLeft", "MoveBack")
+    # Fly although the altitude or step differs from what the shipped models were trained on (their
+    # perception has never seen such views: the result says little about the method).
+    allow_untrained: bool = False
 
     @field_validator("actions")
     @classmethod
@@ -113,6 +127,11 @@ class Mission(_Strict):
             raise ValueError("scene: give setting OR occupied_cells, not both")
         if self.fusion == "learned" and self.policy != "learned" and self.checkpoint is None and s.setting is None:
             raise ValueError("learned fusion needs a checkpoint (no setting to pick a shipped one)")
+        off = untrained_settings(self.search)
+        if off and not self.search.allow_untrained:
+            raise ValueError(f"search: {', '.join(off)}; the models were trained at {TRAINED_FOR['altitude_m']:g} m "
+                             f"altitude with {TRAINED_FOR['step_m']:g} m steps (set search.allow_untrained: true "
+                             "to fly it anyway)")
         return self
 
     # -- derived ---------------------------------------------------------------------------------

@@ -10,6 +10,8 @@ appended to `captures.jsonl` with both poses, for evaluation and replay.
 from __future__ import annotations
 
 import json
+import math
+from collections import deque
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -41,8 +43,36 @@ class CaptureRecord:
         return Path(self.path).resolve().as_uri()
 
 
+class CaptureRejected(ValueError):
+    """IMAGE_START_CAPTURE values the camera cannot honour (the endpoint answers DENIED)."""
+
+
+CAPTURE_MIN_INTERVAL_S = 0.1  # 10 Hz of simulation time: a render costs tens of ms of wall time
+CAPTURE_MAX_COUNT = 10_000  # per IMAGE_START_CAPTURE; 0 = until IMAGE_STOP_CAPTURE
+MAX_PENDING = 4  # shots triggered but not yet rendered; a trigger beyond that is dropped (a busy camera)
+
+
+@dataclass(frozen=True)
+class _Shot:
+    """What the vehicle was when the shutter fired: rendered later, reported as of that instant."""
+
+    index: int
+    time_us: int
+    true_position_enu_m: tuple
+    true_rpy_rad: tuple
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    alt_rel_home_m: float
+    q_wxyz: tuple
+
+
 class Camera:
-    """Single shots and interval capture; `render` maps a CameraPose to an RGB uint8 image."""
+    """Single shots and interval capture; `render` maps a CameraPose to an RGB uint8 image.
+
+    A trigger only records the pose; `update()` renders at most ONE pending shot per call, so the
+    runner's loop keeps flying, heartbeating and answering between renders whatever was asked.
+    """
 
     def __init__(self, vehicle, intrinsics: CameraIntrinsics, run_dir: Path, render: Callable[[CameraPose], np.ndarray] | None,
                  home_alt_amsl_m: Callable[[], float] | None = None):
@@ -52,9 +82,11 @@ class Camera:
         self.run_dir = Path(run_dir)
         self.render = render
         self.image_count = 0
+        self.dropped = 0  # triggers lost because MAX_PENDING shots were waiting
         self.interval_s = 0.0
         self.remaining = 0  # interval captures left; -1 = until stopped
         self._next_us: int | None = None
+        self._pending: deque[_Shot] = deque()
 
     @property
     def available(self) -> bool:
@@ -72,57 +104,101 @@ class Camera:
     def capturing_interval(self) -> bool:
         return self.remaining != 0
 
-    def start(self, interval_s: float, count: int) -> list[CaptureRecord]:
-        """IMAGE_START_CAPTURE: one shot now (count 1, interval 0) or a series every interval_s."""
-        if count == 1 or interval_s <= 0.0:
-            return [self.capture() for _ in range(max(count, 1))]
-        self.interval_s = interval_s
-        self.remaining = count - 1 if count > 0 else -1
-        self._next_us = self.vehicle.time_us + int(interval_s * 1e6)
-        return [self.capture()]
+    @property
+    def busy(self) -> bool:
+        """Interval capture running or shots waiting to be rendered: the runner must keep calling update()."""
+        return self.remaining != 0 or bool(self._pending)
+
+    @staticmethod
+    def check_start(interval_s: float, count: float) -> tuple[float, int]:
+        """IMAGE_START_CAPTURE's (interval, total images) as numbers the camera can honour, else CaptureRejected."""
+        if not (math.isfinite(count) and count == int(count) and 0 <= count <= CAPTURE_MAX_COUNT):
+            raise CaptureRejected(f"image count must be an integer 0..{CAPTURE_MAX_COUNT} (0: until stopped)")
+        n = int(count)
+        if not math.isfinite(interval_s) or interval_s < 0:
+            raise CaptureRejected("capture interval must be a finite number of seconds >= 0")
+        if n != 1 and interval_s < CAPTURE_MIN_INTERVAL_S:
+            raise CaptureRejected(f"capture interval must be >= {CAPTURE_MIN_INTERVAL_S} s for more than one image")
+        return float(interval_s), n
+
+    def start(self, interval_s: float, count: float) -> list[CaptureRecord]:
+        """IMAGE_START_CAPTURE: one shot now (count 1) or a series every interval_s; the first shot is rendered
+        now (one render), the rest one per update()."""
+        interval_s, n = self.check_start(interval_s, count)
+        first = self.capture()
+        if n != 1:
+            self.interval_s = interval_s
+            self.remaining = n - 1 if n > 0 else -1
+            self._next_us = self.vehicle.time_us + int(interval_s * 1e6)
+        return [first]
 
     def stop(self) -> None:
         self.remaining = 0
         self._next_us = None
 
     def update(self) -> list[CaptureRecord]:
-        """Interval captures due at the current simulation time."""
-        out = []
-        while self.remaining != 0 and self._next_us is not None and self.vehicle.time_us >= self._next_us:
-            out.append(self.capture())
-            self._next_us += int(self.interval_s * 1e6)
+        """Fire the interval trigger if due (missed ticks are skipped, never caught up), render one pending shot."""
+        now = self.vehicle.time_us
+        if self.remaining != 0 and self._next_us is not None and now >= self._next_us:
+            self.trigger()
+            period = int(self.interval_s * 1e6)
+            self._next_us += period * max(1, (now - self._next_us) // period + 1)
             if self.remaining > 0:
                 self.remaining -= 1
-        return out
+        return [self._render(self._pending.popleft())] if self._pending else []
 
-    def capture(self) -> CaptureRecord:
+    def trigger(self) -> bool:
+        """The shutter: record the pose now; False (and counted) when too many shots already wait."""
+        if len(self._pending) >= MAX_PENDING:
+            self.dropped += 1
+            return False
         v = self.vehicle
         ts = v.true_state
         gp = v.global_position
-        q = tuple(float(x) for x in v.attitude.q_wxyz)
-        index = self.image_count
+        self._pending.append(_Shot(
+            index=self.image_count,
+            time_us=int(v.time_us),
+            true_position_enu_m=tuple(float(x) for x in ts.position_enu_m),
+            true_rpy_rad=(float(ts.roll_rad), float(ts.pitch_rad), float(ts.yaw_rad)),
+            lat_deg=float(gp.lat_deg),
+            lon_deg=float(gp.lon_deg),
+            alt_amsl_m=float(gp.alt_amsl_m),
+            alt_rel_home_m=float(gp.alt_amsl_m - self.home_alt_amsl_m()) if self.home_alt_amsl_m else float(gp.alt_rel_home_m),
+            q_wxyz=tuple(float(x) for x in v.attitude.q_wxyz),
+        ))
         self.image_count += 1
-        path = self.run_dir / "images" / f"img_{index:04d}.png"
+        return True
+
+    def capture(self) -> CaptureRecord:
+        """Trigger and render at once (mission camera items); earlier pending shots are rendered first."""
+        self.trigger()
+        out = None
+        while self._pending:
+            out = self._render(self._pending.popleft())
+        return out
+
+    def drain(self) -> list[CaptureRecord]:
+        """Every pending shot, rendered (at shutdown)."""
+        out = []
+        while self._pending:
+            out.append(self._render(self._pending.popleft()))
+        return out
+
+    def _render(self, shot: _Shot) -> CaptureRecord:
+        path = self.run_dir / "images" / f"img_{shot.index:04d}.png"
         ok = False
         if self.render is not None:
-            pose = camera_pose_from_vehicle(ts.position_enu_m, ts.roll_rad, ts.pitch_rad, ts.yaw_rad, gimbal_stabilised=True)
+            r, p, y = shot.true_rpy_rad
+            pose = camera_pose_from_vehicle(np.asarray(shot.true_position_enu_m), r, p, y, gimbal_stabilised=True)
             rgb = self.render(pose)
             path.parent.mkdir(parents=True, exist_ok=True)
             import cv2
 
             ok = bool(cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., :3][..., ::-1])))
         rec = CaptureRecord(
-            index=index,
-            time_us=int(v.time_us),
-            path=str(path),
-            ok=ok,
-            lat_deg=float(gp.lat_deg),
-            lon_deg=float(gp.lon_deg),
-            alt_amsl_m=float(gp.alt_amsl_m),
-            alt_rel_home_m=float(gp.alt_amsl_m - self.home_alt_amsl_m()) if self.home_alt_amsl_m else float(gp.alt_rel_home_m),
-            q_wxyz=q,
-            true_position_enu_m=tuple(float(x) for x in ts.position_enu_m),
-            true_rpy_rad=(float(ts.roll_rad), float(ts.pitch_rad), float(ts.yaw_rad)),
+            index=shot.index, time_us=shot.time_us, path=str(path), ok=ok, lat_deg=shot.lat_deg, lon_deg=shot.lon_deg,
+            alt_amsl_m=shot.alt_amsl_m, alt_rel_home_m=shot.alt_rel_home_m, q_wxyz=shot.q_wxyz,
+            true_position_enu_m=shot.true_position_enu_m, true_rpy_rad=shot.true_rpy_rad,
         )
         self.run_dir.mkdir(parents=True, exist_ok=True)
         with open(self.run_dir / "captures.jsonl", "a") as f:
