@@ -235,7 +235,26 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(command=next((a for a in argv if not a.startswith("-")), ""))
     args = parser.parse_args(argv)
-    return run_command(args.func, args)
+    return run_command(_check_out_then(args.func), args)
+
+
+# Subcommands whose --out names a file (the others name a folder).
+_OUT_IS_FILE = {"scene", "train"}
+
+
+def _check_out_then(func):
+    """Refuse an unwritable --out in one line before the command starts any work."""
+
+    def run(args):
+        from .paths import prepare_output
+
+        out = getattr(args, "out", None)
+        if out is not None:
+            prepare_output(out, "file" if args.cmd in _OUT_IS_FILE else "dir")
+        return func(args)
+
+    return run
+
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -12,3 +12,28 @@ SCENES_DIR = REPO_ROOT / "scenes"
 MISSIONS_DIR = REPO_ROOT / "missions"
 MODELS_DIR = REPO_ROOT / "models"
 RUNS_DIR = Path(os.environ.get("UAVSEARCH_RUNS", Path.cwd() / "runs"))
+
+
+def prepare_output(path, kind: str = "dir") -> Path:
+    """Make sure an output folder (kind 'dir') or file (kind 'file') can be written, before any work starts.
+
+    Any problem (a file where a folder is wanted, no permission, a read-only or missing parent) is one
+    UavsearchError line naming the path and the reason, never a traceback half-way through a run.
+    """
+    import tempfile
+
+    from .errors import UavsearchError
+
+    path = Path(path).expanduser()
+    folder = path if kind == "dir" else path.parent
+    if kind == "file" and path.is_dir():
+        raise UavsearchError(f"cannot write {path}: it is a folder, a file is needed")
+    if kind == "dir" and path.exists() and not path.is_dir():
+        raise UavsearchError(f"cannot write to {path}: it is a file, a folder is needed")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as e:
+        raise UavsearchError(f"cannot write to {folder}: {e.strerror or e}") from None
+    return path

@@ -309,6 +309,10 @@ def config_from_args(args) -> SitlConfig:
 
 
 def run_sitl_command(args) -> int:
+    if args.out is not None:
+        from ..paths import prepare_output
+
+        prepare_output(args.out)
     cfg = config_from_args(args)
     try:
         sitl = Sitl(cfg)

@@ -348,8 +348,12 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         try:
             end = vehicle.finish()
             progress(f"{end}")
-        except (FlightError, KeyboardInterrupt) as e:
-            end = f"end action failed: {e}"
+        except FlightError as e:
+            end = f"end action failed: {e or type(e).__name__}"
+            progress(end)
+        except KeyboardInterrupt:
+            left = "the vehicle is left as it is" if connect else "the vehicle process is stopped in the air"
+            end = f"end action abandoned: Ctrl-C again during the {mission.flight.end_action}; {left}"
             progress(end)
     finally:
         vehicle.close()
