@@ -1,7 +1,8 @@
 """A flight log is one run directory, written as the flight goes so a flight killed mid-air stays readable:
 
     telemetry.tlog   every MAVLink packet both ways (8-byte big-endian UNIX microseconds + raw packet),
-                     readable by pymavlink's mavlogdump.py, MAVProxy and QGroundControl
+                     readable by pymavlink's mavlogdump.py, MAVProxy and QGroundControl; stamped on the
+                     vehicle's simulated clock from the wall time the flight started (see tlog.py)
     search.jsonl     line 1: {"type": "header", mission, scene, ground truth, grid, ...};
                      then one {"type": "step", ...} per view (sim time, commanded waypoint, reported and
                      true pose, image file, per-cell p(occupied), confidence scores, cells in view, cell
@@ -55,7 +56,7 @@ class FlightLogWriter:
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run_dir / "images").mkdir(exist_ok=True)
-        self.tlog = TlogWriter(self.run_dir / "telemetry.tlog") if tlog else None
+        self.tlog = TlogWriter(self.run_dir / "telemetry.tlog", clock="sim") if tlog else None
         self._f = open(self.run_dir / "search.jsonl", "a")
 
     def _write(self, record: dict) -> None:

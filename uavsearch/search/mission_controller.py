@@ -330,7 +330,8 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
                    config={"altitude_m": config.altitude_m, "step_m": config.step_m, "budget_T": config.budget_T,
                            "actions": list(config.actions)},
                    agent=loaded.description, fusion=mission.fusion, policy=mission.policy,
-                   home=mission.home.model_dump(), started_utc=datetime.now(timezone.utc).isoformat())
+                   home=mission.home.model_dump(), started_utc=datetime.now(timezone.utc).isoformat(),
+                   tlog_clock="simulated (vehicle time_boot_ms from the start's wall time)")
         if connect is None:
             port = vehicle.conn.port.getsockname()[1]
             progress(f"starting uavsearch sitl (scene {spec.seed}, {int(labels.sum())} occupied cells, speed "
