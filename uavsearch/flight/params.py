@@ -25,6 +25,7 @@ class ParamDef:
     unit: str = ""
     type: Literal["float", "int"] = "float"
     description: str = ""
+    readonly: bool = False  # what the vehicle reports about itself: set at start only, PARAM_SET is refused
 
     def __post_init__(self):
         if len(self.name) > 16:
@@ -69,9 +70,12 @@ class ParamStore:
     def index(self, name: str) -> int:
         return self.names().index(name)
 
-    def set(self, name: str, value: float) -> float:
-        """Set a value; out-of-range or unknown raises ParamError. Returns the stored value."""
+    def set(self, name: str, value: float, force: bool = False) -> float:
+        """Set a value; out-of-range, unknown or read-only (unless `force`, at start) raises ParamError.
+        Returns the stored value."""
         d = self.definition(name)
+        if d.readonly and not force:
+            raise ParamError(f"{name} is read-only")
         v = float(value)
         if v != v or not d.min <= v <= d.max:
             raise ParamError(f"{name}={value} outside [{d.min}, {d.max}] {d.unit}".rstrip())

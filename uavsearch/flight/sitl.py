@@ -28,7 +28,7 @@ from .camera import Camera, scene_renderer
 from .commander import Commander, autopilot_params
 from .lockstep import LockstepGate
 from .mavlink_endpoint import GCS_RATES_HZ, LinkConfig, MavlinkEndpoint, parse_signing_key
-from .params import ParamError, ParamStore
+from .params import ParamDef, ParamError, ParamStore
 
 
 @dataclass
@@ -54,6 +54,28 @@ class SitlConfig:
     start_enu: tuple = (0.0, 0.0, 0.0)
     start_yaw_rad: float = 0.0
     intrinsics: CameraIntrinsics = field(default_factory=CameraIntrinsics)
+
+
+# What the vehicle simulates, readable by any MAVLink client with PARAM_REQUEST_READ (a standard protocol every
+# ground station and MAVSDK speak), so a client can check it flies the scene it scores against.
+NO_SCENE = -1
+SITL_PARAMS = [
+    ParamDef("SIM_SCENE_SEED", NO_SCENE, NO_SCENE, 2**31 - 1, type="int", readonly=True,
+             description="seed of the simulated scene (-1: none)"),
+    ParamDef("SIM_SCENE_CELLS", NO_SCENE, NO_SCENE, 10_000, type="int", readonly=True,
+             description="occupied cells of the simulated scene (-1: none)"),
+    ParamDef("SIM_SCENE_HASH", 0, 0, 2**31 - 1, type="int", readonly=True,
+             description="CRC-32 (31 bits) of the scene spec JSON: tells edited or regenerated scenes apart"),
+]
+
+
+def scene_hash(spec) -> int:
+    """SIM_SCENE_HASH of a scene spec (what a client compares with its own spec)."""
+    import zlib
+
+    from ..world.scene import scene_to_json
+
+    return zlib.crc32(scene_to_json(spec).encode()) & 0x7FFFFFFF
 
 
 def _default_vehicle(params: ParamStore, cfg: SitlConfig):
@@ -82,7 +104,7 @@ class Sitl:
     def __init__(self, cfg: SitlConfig, vehicle_factory=None, vehicle_params=None, render=None):
         self.cfg = cfg
         mc_params = list(vehicle_params if vehicle_params is not None else _vehicle_params())
-        self.params = ParamStore(mc_params, autopilot_params(mc_params))
+        self.params = ParamStore(mc_params, autopilot_params(mc_params), SITL_PARAMS)
         for name, value in cfg.params.items():
             self.params.set(name, value)
         self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)
@@ -92,14 +114,16 @@ class Sitl:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._close_render = None
         if render is None and cfg.scene_seed is not None:
-            spec = None
-            if cfg.scene_file is not None:
-                from ..world.scene import load_scene
+            from ..world.scene import generate_scene, load_scene
 
-                spec = load_scene(cfg.scene_file)
-                cfg.scene_seed = spec.seed
+            spec = load_scene(cfg.scene_file) if cfg.scene_file is not None else \
+                generate_scene(cfg.scene_seed, cfg.occupied_cells)
+            cfg.scene_seed = spec.seed
             render, self._close_render = scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, seed=cfg.seed,
                                                         spec=spec)
+            self.params.set("SIM_SCENE_SEED", spec.seed, force=True)
+            self.params.set("SIM_SCENE_CELLS", int(spec.occupancy_array().sum()), force=True)
+            self.params.set("SIM_SCENE_HASH", scene_hash(spec), force=True)
         self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render,
                              home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m)
         links = []

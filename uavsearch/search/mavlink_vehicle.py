@@ -175,6 +175,7 @@ class MavlinkVehicle:
         self._acks: list = []
         self._captures: list = []
         self._texts: list[str] = []
+        self._replies: list = []  # PARAM_VALUE / CAMERA_INFORMATION answers
         self._last_hb_sent = 0.0
         self.last_capture: CaptureInfo | None = None
         self.captures_done = 0
@@ -215,6 +216,8 @@ class MavlinkVehicle:
         elif t == "STATUSTEXT":
             self._texts.append(m.text)
             self._texts = self._texts[-20:]
+        elif t in ("PARAM_VALUE", "CAMERA_INFORMATION"):
+            self._replies.append(m)
 
     def _heartbeat(self, force: bool = False) -> None:
         now = time.monotonic()
@@ -306,6 +309,37 @@ class MavlinkVehicle:
                     return int(a.result)
             self.pump(0.02)
         return None
+
+    def _reply(self, cond, timeout_s: float = 2.0, retries: int = 3, send=None):
+        for _ in range(retries):
+            self._replies.clear()
+            send()
+            end = time.monotonic() + timeout_s
+            while time.monotonic() < end:
+                for m in self._replies:
+                    if cond(m):
+                        return m
+                self.pump(0.02)
+        return None
+
+    def read_param(self, name: str) -> float | None:
+        """A parameter's value (int32 parameters decoded bytewise, as PX4 sends them), None if the vehicle has none."""
+        m = self._reply(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == name,
+                        send=lambda: self.conn.mav.param_request_read_send(self.target_system, AUTOPILOT_COMPID,
+                                                                           name.encode(), -1))
+        if m is None:
+            return None
+        if m.param_type == M.MAV_PARAM_TYPE_INT32:
+            import struct
+
+            return float(struct.unpack("<i", struct.pack("<f", m.param_value))[0])
+        return float(m.param_value)
+
+    def camera_information(self):
+        """The camera's CAMERA_INFORMATION (REQUEST_MESSAGE to compid 100), or None."""
+        return self._reply(lambda m: m.get_type() == "CAMERA_INFORMATION", send=lambda: self.conn.mav.command_long_send(
+            self.target_system, CAMERA_COMPID, M.MAV_CMD_REQUEST_MESSAGE, 0, M.MAVLINK_MSG_ID_CAMERA_INFORMATION,
+            0, 0, 0, 0, 0, 0))
 
     def _say(self, text: str) -> None:
         if self.progress:

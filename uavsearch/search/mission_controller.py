@@ -18,6 +18,7 @@ the controller copies it into each step record (for evaluation and replay; the s
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -214,9 +215,36 @@ class SearchRecorder:
                       f"  acc {acc:.2f} F1 {f1:.2f}{nxt}")
 
 
+def check_vehicle_scene(vehicle: MavlinkVehicle, spec, config) -> str:
+    """What a vehicle we did not start simulates (SIM_SCENE_* parameters, CAMERA_INFORMATION) against the scene
+    and camera we score against: a MissionError line on a mismatch, else a note of what was checked."""
+    from ..flight.sitl import scene_hash
+
+    seed, cells, digest = (vehicle.read_param(n) for n in ("SIM_SCENE_SEED", "SIM_SCENE_CELLS", "SIM_SCENE_HASH"))
+    if seed is None:
+        return "the vehicle does not report its scene (no SIM_SCENE_SEED): scores assume the mission's scene"
+    want = (spec.seed, int(spec.occupancy_array().sum()), scene_hash(spec))
+    if seed < 0:
+        raise MissionError("the vehicle simulates no scene (started with --no-camera-scene): nothing to search")
+    if (int(seed), int(cells), int(digest)) != want:
+        what = f"scene {int(seed)} with {int(cells)} occupied cells" if (int(seed), int(cells)) != want[:2] else \
+            f"scene {int(seed)} from another spec (hash {int(digest)}, mission {want[2]})"
+        raise MissionError(f"the vehicle simulates {what}; the mission scores scene {want[0]} with {want[1]} "
+                           "occupied cells: start it with the mission's scene, or fly with --scene")
+    info = vehicle.camera_information()
+    if info is not None:
+        intr = config.intrinsics
+        fx = info.focal_length * info.resolution_h / info.sensor_size_h if info.sensor_size_h > 0 else math.nan
+        if (info.resolution_h, info.resolution_v) != (intr.width_px, intr.height_px) or not abs(fx - intr.fx) <= 0.01 * intr.fx:
+            raise MissionError(f"the vehicle's camera is {info.resolution_h}x{info.resolution_v} px, fx {fx:.1f} px; "
+                               f"the models were trained for {intr.width_px}x{intr.height_px} px, fx {intr.fx:.1f} px")
+    return f"vehicle simulates scene {want[0]} ({want[1]} occupied cells), camera as trained"
+
+
 def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log, run_dir: Path,
-               policy_seed: int = 0, progress=print) -> tuple[SearchRecorder, str]:
-    """Take off, run the search loop on the vehicle, record every step. Returns (recorder, status)."""
+               policy_seed: int = 0, progress=print, before_takeoff=None) -> tuple[SearchRecorder, str]:
+    """Take off, run the search loop on the vehicle, record every step. Returns (recorder, status).
+    `before_takeoff()` runs once the link is up (a MissionError from it ends the mission on the ground)."""
     T = config.budget_T
     views = _RecordingViews(vehicle, loaded.perception, labels)
     rec = SearchRecorder(log, views, vehicle, loaded, labels, config, run_dir, progress, T)
@@ -225,6 +253,8 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
     status = "completed"
     try:
         vehicle.connect()
+        if before_takeoff is not None:
+            before_takeoff()
         vehicle.take_off()
         with torch.no_grad():
             ep = run_search(views, agent, T, generator=gen)
@@ -339,7 +369,8 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             sitl = SitlProcess(run_dir, mission, api_port=port, gcs_port=gcs_port)
         fwall0 = time.monotonic()
         try:
-            rec, status = fly_search(vehicle, loaded, config, labels, log, run_dir, mission.policy_seed, progress)
+            check = None if connect is None else lambda: progress(check_vehicle_scene(vehicle, spec, config))
+            rec, status = fly_search(vehicle, loaded, config, labels, log, run_dir, mission.policy_seed, progress, check)
         except KeyboardInterrupt:
             status = "interrupted"
             log.failure(step=None, error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
