@@ -247,6 +247,27 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
     return data
 
 
+FOREIGN_HOME_M = 100.0  # a log whose HOME_POSITION is this far from the mission's home was flown elsewhere
+
+
+def _local_file(url: str) -> Path | None:
+    """The file a CAMERA_IMAGE_CAPTURED URL names, when it is a file on this machine that exists."""
+    if not url or not url.startswith("file://"):
+        return None
+    import urllib.parse
+    import urllib.request
+
+    path = Path(urllib.request.url2pathname(urllib.parse.urlparse(url).path))
+    return path if path.is_file() else None
+
+
+def _read_rgb(path: Path):
+    import cv2
+
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    return None if bgr is None else np.ascontiguousarray(bgr[..., ::-1])
+
+
 def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float | None = None,
                 progress: bool = True) -> ReplayData:
     """Re-render the camera along any MAVLink log's trajectory in `spec` and run perception + fusion."""
@@ -262,17 +283,25 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     warns = [tr.warning] if tr.warning else []
     config = mission.search_config()
     method = fusion or mission.fusion
-    origin = GeodeticOrigin(*tr.home) if tr.home else mission.origin()
-    shots = []  # (t, lla, rpy), in log time order
+    # The scene origin is the mission's home; the vehicle's HOME_POSITION is where it armed (off the origin by
+    # its estimate's error at arming), so it only stands in for a log flown somewhere else entirely.
+    origin = mission.origin()
+    if tr.home and np.hypot(*origin.geodetic_to_enu(np.asarray(tr.home, float))[:2]) > FOREIGN_HOME_M:
+        origin = GeodeticOrigin(*tr.home)
+    shots = []  # (t, lla, rpy, image file or None), in log time order
     for c in tr.captures:
-        shots.append((c["t_s"], (c["lat"], c["lon"], c["alt"]), euler_from_quaternion(c["q"])))
+        shots.append((c["t_s"], (c["lat"], c["lon"], c["alt"]), euler_from_quaternion(c["q"]), _local_file(c["url"])))
     if every_s:
         t_next = -math.inf
         for t, lla in zip(tr.t_s, tr.lla):
             if t >= t_next and lla[2] - origin.alt_m > 5.0:  # in the air
-                shots.append((t, tuple(lla), tr.rpy(t)))
+                shots.append((t, tuple(lla), tr.rpy(t), None))
                 t_next = t + every_s
         shots.sort(key=lambda s: s[0])
+    rerendered = sum(s[3] is None for s in shots)
+    if rerendered:
+        warns.append(f"{rerendered} of {len(shots)} view(s) re-rendered at the REPORTED pose (the flight's image at "
+                     "its true pose is not on this machine): maps can differ from the flight's")
     if not shots:
         raise LogError(f"{path}: no CAMERA_IMAGE_CAPTURED in the log (and no --every S to sample the track)")
     loaded_mission = mission.model_copy(update={"fusion": method, "policy": "random"})
@@ -280,10 +309,12 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     renderer = SceneRenderer(spec, config.intrinsics, config.render)
     p_list, valid_list, area_list, score_list, images, poses, positions = [], [], [], [], [], [], []
     try:
-        for _, lla, rpy in tqdm(shots, desc="re-rendering views", disable=not progress, file=sys.stderr):
+        for _, lla, rpy, image_file in tqdm(shots, desc="views", disable=not progress, file=sys.stderr):
             pos = origin.geodetic_to_enu(np.asarray(lla, float))
             pose = camera_pose_from_vehicle(pos, *rpy, gimbal_stabilised=True)
-            img = np.asarray(renderer.render(pose, None).rgb)
+            img = _read_rgb(image_file) if image_file is not None else None
+            if img is None:
+                img = np.asarray(renderer.render(pose, None).rgb)
             view = make_view(img, pose, config.grid, config.intrinsics, None, config.min_cell_area_px)
             with torch.no_grad():
                 o = loaded.perception.forward_all(view.image[None], view.cell_label[None])
@@ -302,7 +333,7 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     p, valid, area = np.stack(p_list), np.stack(valid_list), np.stack(area_list)
     maps = _fuse_all(method, p, valid, area, scores, labels)
     track = origin.geodetic_to_enu(tr.lla) if len(tr.lla) else np.zeros((0, 3))
-    return ReplayData(track_t=tr.t_s, view_t=np.array([t for t, _, _ in shots]),title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
+    return ReplayData(track_t=tr.t_s, view_t=np.array([s[0] for s in shots]), title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
                       grid=config.grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,
                       positions_enu=np.asarray(positions), track_enu=track, images=images, poses=poses, spec=spec,
                       warnings=warns)
