@@ -298,7 +298,7 @@ def test_second_ctrl_c_says_what_became_of_the_end_action(tmp_path):
             proc.kill()
     text = "".join(out)
     assert "end action failed: \n" not in text and "Traceback" not in text, text
-    assert "end action abandoned: Ctrl-C again" in text or "landed" in text, text
+    assert "end action abandoned: Ctrl-C again during the land" in text, text
 
 
 # ------------------------------------------------------------------------------------------------ logs
