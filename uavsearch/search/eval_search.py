@@ -1,6 +1,7 @@
 """The paper's Table II and Fig. 6 for our testbed: every method on the TEST scenes of each setting.
 
-Rows (Sec. VII-D; "+ policy" = a policy trained with that fusion, shipped in models/):
+Rows (Sec. VII-D; "+ policy" = a policy trained with that fusion, shipped in models/), each built by
+agents.build_agent from its (fusion, policy) names:
 
     single view                          the start view's classification alone
     oracle fusion + random policy        evaluation bound with random moves
@@ -17,7 +18,7 @@ standard deviation over seeds of the per-seed means. Deterministic methods (sing
 greedy) give the same number for every seed.
 
 Everything goes through search_loop.run_search over cached perception outputs (view_cache.py); the same
-loop flies a vehicle (search_loop.LiveViews), so `methods()` is the one list of agents for both.
+loop flies a vehicle (search_loop.LiveViews), and agents.build_agent builds the agents of both.
 """
 
 from __future__ import annotations
@@ -34,35 +35,36 @@ from tqdm import tqdm
 
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR
+from uavsearch.world.settings import SETTINGS
+from uavsearch.viz import pyplot
 
+from .agents import build_agent, checkpoint_path, needs_confidence
 from .config import SearchConfig
 from .metrics import map_accuracy, map_f1
+from .perception import load_perception
 from .search_loop import Agent, CachedViews, Episode, run_search
+from .view_cache import get_view_cache
 
-# (key, Table II label, fusion, policy kind); policy kind: "single" | "random" | "trained" | "coverage" | "greedy"
+# (key, Table II label, fusion, policy): names from the agent registry (agents.py). The single-view row is
+# the start view alone (budget 1), so its policy never moves.
 ROWS: tuple[tuple[str, str, str, str], ...] = (
-    ("single_view", "single view", "average", "single"),
+    ("single_view", "single view", "average", "random"),
     ("oracle_random", "oracle fusion + random policy", "oracle", "random"),
     ("learned_random", "learned confidence fusion + random policy", "learned", "random"),
-    ("average_policy", "average + policy", "average", "trained"),
-    ("bayes_policy", "bayes rule + policy", "bayes", "trained"),
-    ("size_policy", "by grid size + policy", "size", "trained"),
-    ("learned_policy", "(ours) learned confidence fusion + policy", "learned", "trained"),
-    ("oracle_policy", "oracle fusion + policy", "oracle", "trained"),
+    ("average_policy", "average + policy", "average", "learned"),
+    ("bayes_policy", "bayes rule + policy", "bayes", "learned"),
+    ("size_policy", "by grid size + policy", "size", "learned"),
+    ("learned_policy", "(ours) learned confidence fusion + policy", "learned", "learned"),
+    ("oracle_policy", "oracle fusion + policy", "oracle", "learned"),
     ("learned_coverage", "learned confidence fusion + coverage route", "learned", "coverage"),
     ("learned_greedy", "learned confidence fusion + greedy uncertainty", "learned", "greedy"),
 )
 NON_ORACLE = [r[0] for r in ROWS if r[2] != "oracle"]
-
-
-def model_path(setting: int, fusion: str, models_dir=None) -> Path:
-    """Where the shipped policy trained with `fusion` for `setting` lives."""
-    return Path(models_dir or MODELS_DIR) / f"search_s{int(setting)}_{fusion}.pt"
+model_path = checkpoint_path  # where the shipped policy trained with a fusion for a setting lives
 
 
 class EpisodeScores(NamedTuple):
     """Per-episode, per-step map metrics of one method: (E, T) each."""
-
     acc: np.ndarray
     f1: np.ndarray
     revisit_rate: float
@@ -86,7 +88,7 @@ def evaluate_agent(cache, agent: Agent, episodes_per_scene: int = 10, seed: int 
             m.eval()
     rows = np.repeat(np.arange(cache.num_scenes), episodes_per_scene)
     gen = torch.Generator().manual_seed(int(seed))
-    conf = agent.confidence if agent.fusion == "learned" else None
+    conf = agent.confidence if needs_confidence(agent.fusion) else None
     ep = run_search(CachedViews(cache, rows, config, conf), agent, 1 if single_view else budget_T, generator=gen)
     return score_episode(ep)
 
@@ -95,24 +97,11 @@ def evaluate_agent(cache, agent: Agent, episodes_per_scene: int = 10, seed: int 
 
 
 def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = False) -> dict[str, Agent]:
-    """Every Table II row (plus coverage and greedy) as an Agent, from the shipped checkpoints."""
-    from .policy import ArgmaxPolicy, CoverageRoute, GreedyUncertainty, RandomPolicy, load_search_model
-
-    trained, confidence = {}, None
-    for fusion in ("learned", "average", "bayes", "size", "oracle"):
-        f, net, conf, _ = load_search_model(model_path(setting, fusion, models_dir))
-        if f != fusion:
-            raise UavsearchError(f"{model_path(setting, fusion, models_dir)} holds a {f!r} policy, not {fusion!r}")
-        trained[fusion] = ArgmaxPolicy(net) if argmax else net
-        if fusion == "learned":
-            confidence = conf
-    rnd = RandomPolicy(len(config.actions))
-    out = {}
-    for key, _, fusion, kind in ROWS:
-        policy = {"single": rnd, "random": rnd, "trained": trained.get(fusion), "coverage": CoverageRoute(config),
-                  "greedy": GreedyUncertainty(config)}[kind]
-        out[key] = Agent(fusion, policy, confidence if fusion == "learned" else None)
-    return out
+    """Every Table II row (plus coverage and greedy) as an Agent, from the checkpoints in `models_dir`."""
+    return {key: build_agent(fusion, policy, config, checkpoint=checkpoint_path(setting, fusion, models_dir),
+                             confidence_checkpoint=checkpoint_path(setting, "learned", models_dir),
+                             greedy=argmax).agent
+            for key, _, fusion, policy in ROWS}
 
 
 @dataclass
@@ -174,7 +163,6 @@ def gap_closure(rows: list[dict], setting: int) -> float:
 
 
 def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict) -> tuple[Path, Path]:
-    from uavsearch.world.settings import SETTINGS
 
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "table2.csv"
@@ -216,13 +204,7 @@ def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict) ->
 
 
 def plot_fig6(results: dict[int, dict[str, dict]], path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from uavsearch.world.settings import SETTINGS
-
+    plt = pyplot()
     settings = list(results)
     fig, axes = plt.subplots(2, len(settings), figsize=(4.6 * len(settings), 7.2), squeeze=False)
     labels = {k: lab for k, lab, _, _ in ROWS}
@@ -253,10 +235,6 @@ def plot_fig6(results: dict[int, dict[str, dict]], path: Path) -> Path:
 
 def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
     """Table II + Fig. 6 into args.out; `caches` ({setting: ViewCache}) skips perception and rendering."""
-    from uavsearch.world.settings import SETTINGS
-
-    from .perception import load_perception
-    from .view_cache import get_view_cache
 
     if args.setting == "all":
         settings = sorted(SETTINGS)

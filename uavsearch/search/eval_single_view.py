@@ -23,13 +23,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR
+from uavsearch.world.settings import density_scenes
+from uavsearch.viz import pyplot
+
+from .config import SearchConfig, lattice_positions
 
 from .dataset import DATA_DIR, ViewSetSpec, generate_views, load_views
 from .metrics import average_metrics, cell_correct
 from .perception import load_perception
+from .train_perception import predict_views
 
 PAPER_TABLE1 = {  # pair -> (Aacc, AF1), paper Table I
     (1, 2): (0.896, 0.201), (3, 4): (0.892, 0.356), (5, 6): (0.883, 0.445),
@@ -54,8 +60,6 @@ class EvalArgs:
 
 def density_test_scenes(scenes_per_pair: int) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
     """The first `scenes_per_pair` density-set scenes of each pair; returns (scenes, pair of each)."""
-    from uavsearch.world.settings import density_scenes
-
     allp = density_scenes()
     by_pair: dict[tuple[int, int], list] = {}
     for s, k in allp:
@@ -72,10 +76,7 @@ def density_test_scenes(scenes_per_pair: int) -> tuple[list[tuple[int, int]], li
 
 
 def evaluate_single_view(args: EvalArgs) -> dict:
-    import torch
 
-    from .config import SearchConfig, lattice_positions
-    from .train_perception import predict_views
 
     torch.set_num_threads(max(1, args.threads))
     net, extra = load_perception(args.checkpoint)
@@ -145,11 +146,7 @@ def _binned(x: np.ndarray, ok: np.ndarray, edges: np.ndarray):
 
 
 def _plot_fig4(area, correct, dist, person_px, correct_pos, path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (a, c, b) = plt.subplots(1, 3, figsize=(15, 4))
     acc, n = _binned(area, correct, AREA_BINS)
     centres = (AREA_BINS[:-1] + AREA_BINS[1:]) / 2

@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import random
 import shutil
 import time
 from dataclasses import asdict, dataclass, field
@@ -36,7 +37,9 @@ from tqdm import tqdm
 
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
+from uavsearch.viz import pyplot
 
+from .config import SearchConfig, lattice_positions
 from .dataset import DATA_DIR, ViewSet, ViewSetSpec, generate_views, load_views, perception_scenes
 from .fusion import DEFAULT_PRIOR
 from .metrics import average_metrics, cell_correct
@@ -70,8 +73,6 @@ class Args:
 
 def seed_everything(seed: int) -> np.random.Generator:
     """One call seeds numpy, torch and Python's random; returns the generator the run draws from."""
-    import random
-
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
@@ -133,11 +134,7 @@ def evaluate(net: PerceptionNet, views: ViewSet, centre_index: int) -> dict[str,
 
 
 def _plot_curves(rows: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
     tr = [r for r in rows if r.get("losses/train_loss") not in (None, "")]
     if tr:
@@ -163,8 +160,6 @@ def _plot_curves(rows: list[dict], path: Path) -> None:
 
 def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     """Render (or reuse) the training and validation view sets; returns them and the start-view index."""
-    from .config import SearchConfig, lattice_positions
-
     train_spec = ViewSetSpec(f"train_v{args.train_views_per_scene}_s{args.seed}",
                              perception_scenes("train", args.train_scenes, args.seed),
                              views_per_scene=args.train_views_per_scene, seed=args.seed)

@@ -39,14 +39,16 @@ from tqdm import tqdm
 
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
+from uavsearch.viz import pyplot
 
 from .config import SearchConfig
 from .eval_search import evaluate_agent
 from .fusion import FUSION_METHODS, fuse
-from .perception import ConfidenceNet
+from .perception import ConfidenceNet, load_perception
 from .policy import PolicyConfig, PolicyNet, save_search_model
 from .search_loop import Agent, CachedViews, run_search
 from .train_perception import seed_everything
+from .view_cache import get_view_cache
 
 
 @dataclass
@@ -106,8 +108,6 @@ def check_args(args: Args) -> None:
 
 
 def load_caches(args: Args):
-    from .perception import load_perception
-    from .view_cache import get_view_cache
 
     net, _ = load_perception(args.perception)
     kw = dict(cache_dir=args.cache_dir, workers=args.workers, progress=args.progress)
@@ -127,7 +127,6 @@ def returns(ep, final_map, labels, args: Args) -> tuple[torch.Tensor, torch.Tens
 
 class _EvalScores(torch.nn.Module):
     """The confidence net in eval mode without grad: what the rollout's M-bar^t (and reward) use."""
-
     def __init__(self, conf: ConfidenceNet):
         super().__init__()
         self.conf = conf
@@ -153,11 +152,7 @@ def confidence_loss(conf: ConfidenceNet, cache, rows, lattice_idx, pos_weight: f
 
 
 def _plot(rows: list[dict], path: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     it = [r["iteration"] for r in rows]
     ev = [r for r in rows if r.get("eval/af1") is not None]
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
