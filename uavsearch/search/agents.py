@@ -24,8 +24,9 @@ from uavsearch.paths import MODELS_DIR
 
 from .config import SearchConfig
 from .fusion import FUSION_METHODS
-from .perception import load_perception
-from .policy import ArgmaxPolicy, CoverageRoute, GreedyUncertainty, RandomPolicy, load_search_model
+from .perception import ConfidenceNet, load_perception
+from .policy import (ArgmaxPolicy, CoverageRoute, GreedyUncertainty, PolicyConfig, PolicyNet, RandomPolicy,
+                     load_search_model)
 from .search_loop import Agent, Policy
 from .view_cache import perception_tag
 
@@ -131,5 +132,14 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
     return LoadedAgent(agent, perception, confidence if scores_net else None, f"{fusion} fusion + {policy} policy")
 
 
+def new_agent(fusion: str, config: SearchConfig, global_dim: int, cell_dim: int, extras: bool = True) -> Agent:
+    """A fresh agent for stage 2 to train: a policy net and, when the fusion needs one, a confidence net."""
+    check_names(fusion)
+    policy = PolicyNet(PolicyConfig(global_dim=global_dim, num_cells=config.grid.num_cells,
+                                    num_positions=config.lattice_size ** 2, num_actions=len(config.actions),
+                                    budget_T=config.budget_T, extras=extras))
+    return Agent(fusion, policy, ConfidenceNet(cell_dim) if needs_confidence(fusion) else None)
+
+
 __all__ = ["FUSION_METHODS", "POLICIES", "LoadedAgent", "PolicyKind", "build_agent", "check_names",
-           "checkpoint_path", "needs_confidence"]
+           "checkpoint_path", "needs_confidence", "new_agent"]

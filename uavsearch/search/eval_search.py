@@ -23,6 +23,7 @@ loop flies a vehicle (search_loop.LiveViews), and agents.build_agent builds the 
 
 from __future__ import annotations
 
+import argparse
 import csv
 import time
 from dataclasses import dataclass
@@ -33,7 +34,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from uavsearch.errors import UavsearchError
+from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import MODELS_DIR
 from uavsearch.world.settings import SETTINGS
 from uavsearch.viz import pyplot
@@ -106,16 +108,16 @@ def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = 
 
 @dataclass
 class EvalArgs:
-    setting: str = "all"  # 1 | 2 | 3 | all
-    split: str = "paper"  # scene split (paper: 10 test scenes per setting; large: 100)
-    out: str = "eval_search"  # output folder: table2.md, table2.csv, fig6.png
-    perception: str = str(MODELS_DIR / "perception.pt")  # frozen perception checkpoint
-    models_dir: str = str(MODELS_DIR)  # where search_s<K>_<fusion>.pt live
-    episodes: int = 10  # episodes per test scene per seed
-    seeds: int = 5  # evaluation seeds (0..seeds-1): the spread over seeds
-    argmax: bool = False  # trained policies take their most likely action instead of sampling (paper: sample)
-    workers: int = 2  # rendering processes when a view cache must be built
-    progress: bool = True
+    setting: str = opt("all", "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells) | all")
+    split: str = opt("paper", "scene split (paper: 10 test scenes per setting; large: 100)")
+    out: str = opt("eval_search", "output folder: table2.md, table2.csv, fig6.png", required=True)
+    perception: str = opt(str(MODELS_DIR / "perception.pt"), "frozen perception checkpoint")
+    models_dir: str = opt(str(MODELS_DIR), "where search_s<K>_<fusion>.pt live")
+    episodes: int = opt(10, "episodes per test scene per seed")
+    seeds: int = opt(5, "evaluation seeds (0..seeds-1): the spread over seeds")
+    argmax: bool = opt(False, "trained policies take their most likely action instead of sampling (paper: sample)")
+    workers: int = opt(2, "rendering processes when a view cache must be built")
+    progress: bool = opt(True, "progress bars")
 
 
 def evaluate_setting(setting: int, cache, args: EvalArgs) -> dict[str, dict]:
@@ -271,37 +273,17 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
 
 
 def add_eval_search_parser(subparsers) -> None:
-    """`uavsearch eval search ...` (subparsers: the `eval` command's)."""
+    """`uavsearch eval search ...` (subparsers: the `eval` command's); one flag per EvalArgs field."""
     p = subparsers.add_parser("search", help="Table II and Fig. 6: every fusion/policy method on the test scenes")
-    d = EvalArgs()
-    p.add_argument("--setting", default=d.setting, help="1 | 2 | 3 | all (default all)")
-    p.add_argument("--split", default=d.split, help="scene split: paper (10 test scenes) | large (100)")
-    p.add_argument("--out", required=True, help="output folder for table2.md/.csv and fig6.png")
-    p.add_argument("--perception", default=d.perception, help="perception checkpoint (default models/perception.pt)")
-    p.add_argument("--models-dir", default=d.models_dir, help="folder of search_s<K>_<fusion>.pt (default models/)")
-    p.add_argument("--episodes", type=int, default=d.episodes, help="episodes per test scene per seed (default 10)")
-    p.add_argument("--seeds", type=int, default=d.seeds, help="evaluation seeds for the spread (default 5)")
-    p.add_argument("--argmax", action="store_true", help="trained policies act greedily instead of sampling")
-    p.add_argument("--workers", type=int, default=d.workers, help="rendering processes if a cache is built")
-    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    add_dataclass_args(p, EvalArgs)
     p.set_defaults(func=cmd_eval_search)
 
 
 def cmd_eval_search(args) -> int:
-    eval_search(EvalArgs(setting=str(args.setting), split=args.split, out=args.out, perception=args.perception,
-                         models_dir=args.models_dir, episodes=args.episodes, seeds=args.seeds, argmax=args.argmax,
-                         workers=args.workers, progress=args.progress))
+    eval_search(dataclass_from_args(EvalArgs, args))
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    """`python -m uavsearch.search.eval_search [flags]`: the same as `uavsearch eval search [flags]`."""
-    import sys
-
-    from ..cli import main as cli_main
-
-    return cli_main(["eval", "search", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+if __name__ == "__main__":  # python -m uavsearch.search.eval_search [flags] = uavsearch eval search [flags]
+    raise SystemExit(run_command(cmd_eval_search, add_dataclass_args(argparse.ArgumentParser(
+        prog="python -m uavsearch.search.eval_search"), EvalArgs).parse_args()))
