@@ -93,3 +93,39 @@ def test_find_cycle_reports_the_cycle():
 def test_package_import_graph_is_acyclic():
     cycle = find_cycle(import_graph())
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def _room(module: str) -> str:
+    """A module's room: uavsearch.search.x -> uavsearch.search; uavsearch.cli -> uavsearch.cli."""
+    return ".".join(module.split(".")[:2])
+
+
+def re_entries(graph: dict[str, set[str]]) -> list[tuple[str, str, str]]:
+    """(a, b, c): a imports b in another room, and b's imports lead back to c in a's room
+    (a back-and-forth between rooms such as search -> logs -> search)."""
+    out = []
+    for a in sorted(graph):
+        for b in sorted(graph[a]):
+            if _room(b) == _room(a):
+                continue
+            seen, stack = {b}, [b]
+            while stack:
+                for x in graph[stack.pop()]:
+                    if x not in seen:
+                        seen.add(x)
+                        stack.append(x)
+            back = sorted(x for x in seen if _room(x) == _room(a))
+            if back:
+                out.append((a, b, back[0]))
+    return out
+
+
+def test_re_entries_are_found():
+    g = {"p.s.a": {"p.l.b"}, "p.l.b": {"p.s.c"}, "p.s.c": set()}
+    assert re_entries(g) == [("p.s.a", "p.l.b", "p.s.c")]
+
+
+def test_no_import_leaves_a_room_and_comes_back():
+    bad = re_entries(import_graph())
+    assert not bad, "imports that leave a room and lead back into it: " + "; ".join(
+        f"{a} -> {b} -> ... -> {c}" for a, b, c in bad)

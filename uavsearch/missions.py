@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator,
+                      model_validator)
 
 from .errors import MissionError
 from .geometry import GeodeticOrigin
@@ -106,18 +107,13 @@ class Mission(_Strict):
     flight: FlightSection = FlightSection()
     source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
 
-    @field_validator("fusion")
+    @field_validator("fusion", "policy")
     @classmethod
-    def _fusion_known(cls, v):
-        if v not in FUSION_METHODS:
-            raise ValueError(f"unknown fusion method {v!r}; valid: {', '.join(map(repr, FUSION_METHODS))}")
-        return v
-
-    @field_validator("policy")
-    @classmethod
-    def _policy_known(cls, v):
-        if v not in POLICIES:
-            raise ValueError(f"unknown policy {v!r}; valid: {', '.join(map(repr, POLICIES))}")
+    def _registered(cls, v, info: ValidationInfo):
+        known = {"fusion": FUSION_METHODS, "policy": POLICIES}[info.field_name]  # the agent registry
+        if v not in known:
+            kind = "fusion method" if info.field_name == "fusion" else "policy"
+            raise ValueError(f"unknown {kind} {v!r}; valid: {', '.join(map(repr, known))}")
         return v
 
     @model_validator(mode="after")
