@@ -21,7 +21,7 @@ from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationI
 from .errors import MissionError
 from .geometry import GeodeticOrigin
 from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
-from .search.agents import FUSION_METHODS, POLICIES, LoadedAgent, build_agent, checkpoint_path
+from .search.agents import FUSION_METHODS, POLICIES, LoadedAgent, build_agent, checkpoint_path, needs_confidence
 from .search.config import ACTIONS, SearchConfig
 from .search.mavlink_vehicle import FlightSettings
 from .world.scene import generate_scene, load_scene
@@ -123,8 +123,8 @@ class Mission(_Strict):
             raise ValueError("scene: give a seed or a spec file")
         if s.occupied_cells is not None and s.setting is not None and "setting" in s.model_fields_set:
             raise ValueError("scene: give setting OR occupied_cells, not both")
-        if self.fusion == "learned" and self.policy != "learned" and self.checkpoint is None and s.setting is None:
-            raise ValueError("learned fusion needs a checkpoint (no setting to pick a shipped one)")
+        if needs_confidence(self.fusion) and self.policy != "learned" and self.checkpoint is None and s.setting is None:
+            raise ValueError(f"{self.fusion} fusion needs a checkpoint (no setting to pick a shipped one)")
         return self
 
     # -- derived ---------------------------------------------------------------------------------
@@ -187,7 +187,7 @@ class Mission(_Strict):
     def agent(self, config: SearchConfig | None = None) -> LoadedAgent:
         """Perception + fusion + policy of the mission, from its checkpoints (agents.build_agent); the
         confidence net of learned fusion comes along for logging scores whatever the fusion."""
-        learned_ck = self.checkpoint_path if self.fusion == "learned" and self.checkpoint else \
+        learned_ck = self.checkpoint_path if needs_confidence(self.fusion) and self.checkpoint else \
             checkpoint_path(self.setting_for_models, "learned")
         return build_agent(self.fusion, self.policy, config or self.search_config(), checkpoint=self.checkpoint_path,
                            confidence_checkpoint=learned_ck, greedy=self.greedy_policy,

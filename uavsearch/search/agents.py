@@ -3,7 +3,7 @@
 Evaluation (the rows of Table II), flying (a mission's method), replay (re-running perception + fusion on a
 log) and training all build their agents here, so a fusion method or a policy is named in one place:
 
-- fusion methods: `FUSION_METHODS` in fusion.py (kernel, the inputs it needs, its table label). A method
+- fusion methods: `FUSION_METHODS` in fusion.py (kernel and the inputs it needs). A method
   whose `needs` include "scores" needs a confidence net (learned fusion's, from a search checkpoint).
 - policies: `POLICIES` below. "learned" loads its net from a search checkpoint (search_s<K>_<fusion>.pt,
   trained with that fusion); the others are built from the search config.

@@ -10,7 +10,8 @@ Every method maps a sequence of T per-view estimates of p(y_i = 1) to one fused 
            valid = False).
 - returns: (..., N) fused p(y_i = 1). A cell that no valid view measured gets `prior`.
 
-Methods:
+Methods (the `FUSION_METHODS` table at the end names each with its kernel and the inputs it needs; a new
+method is one kernel and one entry there):
 - "bayes":   log-odds occupancy update (Elfes / Thrun): L = logit(prior) + sum_t [logit(p_t) - logit(prior)].
 - "average": mean of p_t over the valid views (the paper's Average baseline).
 - "size":    p_t of the valid view where the cell's pixel area is largest (needs area_px; ties -> earliest).
@@ -142,14 +143,13 @@ class FusionMethod(NamedTuple):
 
     fn: Callable  # (p, valid, prior, **inputs) -> fused, all torch
     needs: tuple[str, ...]  # of "area_px" (F_size per view), "scores" (a confidence net's), "labels" (ground truth)
-    label: str  # how tables name it
 
 
 # THE table of fusion methods (search/agents.py builds agents from it; replay and the loop read `needs`).
 FUSION_METHODS: dict[str, FusionMethod] = {
-    "bayes": FusionMethod(_bayes, (), "bayes rule"),
-    "average": FusionMethod(_average, (), "average"),
-    "size": FusionMethod(_by_size, ("area_px",), "by grid size"),
-    "learned": FusionMethod(_learned, ("scores",), "learned confidence fusion"),
-    "oracle": FusionMethod(_oracle, ("labels",), "oracle fusion"),
+    "bayes": FusionMethod(_bayes, ()),
+    "average": FusionMethod(_average, ()),
+    "size": FusionMethod(_by_size, ("area_px",)),
+    "learned": FusionMethod(_learned, ("scores",)),
+    "oracle": FusionMethod(_oracle, ("labels",)),
 }
