@@ -14,7 +14,7 @@ from .world.topdown import draw_topdown
 
 def pyplot():
     """matplotlib.pyplot on the Agg backend (files, no display)."""
-    # lazy: choosing the backend is process-wide and pyplot costs ~0.4 s; only code that draws pays it
+    # lazy: choosing the backend is process-wide, and pyplot costs ~1 s (shared machine); only drawing pays it
     import matplotlib
 
     matplotlib.use("Agg")
