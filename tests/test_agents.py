@@ -38,7 +38,8 @@ def test_every_registered_pair_builds_and_runs(tmp_path, fusion, policy):
     assert loaded.scores_net is not None  # the learned checkpoint's net, for logging scores
     assert loaded.description == f"{fusion} fusion + {policy} policy"
     with torch.no_grad():
-        ep = run_search(CachedViews(synthetic_cache(2), [0, 1]), loaded.agent, generator=torch.Generator().manual_seed(0))
+        ep = run_search(CachedViews(synthetic_cache(2), [0, 1]), loaded.agent,
+                        generator=torch.Generator().manual_seed(0))
     assert ep.maps.shape == (2, config.budget_T, 100) and torch.isfinite(ep.maps).all()
 
 

@@ -1,50 +1,4 @@
-"""The teleport search environment (gymnasium API): the paper's task, without dynamics.
-
-Registered as ``uavsearch/ActiveSearch-v0``.
-
-**Task.** A nadir camera starts 70 m above the centre of a 50 m x 50 m search area (10 x 10 cells of
-5 m) and may take ``budget_T`` views in all (the start view counts as the first). Between views it
-moves one lattice step (10 m) north, east, west or south, heading fixed north.
-
-**Action space.** ``Discrete(len(config.actions))``; the paper's order: 0 MoveAhead (north),
-1 MoveRight (east), 2 MoveLeft (west), 3 MoveBack (south).
-
-**Observation space** (``Dict``):
-
-- ``image``: ``(H, W, 3)`` uint8 RGB, north up.
-- ``position_enu``: ``(3,)`` float32 camera position in scene ENU metres (origin: ground, centre).
-- ``cell_label``: ``(H, W)`` int16, the grid cell each pixel sees on the ground, -1 off the grid.
-  The paper's mask m_i^t is ``cell_label == i``.
-- ``cell_area_px``: ``(N*N,)`` float32 pixel area of each cell's (clipped) image polygon, F_size.
-- ``cells_in_view``: ``(N*N,)`` int8, c^t: 1 where the cell covers at least ``min_cell_area_px`` px.
-- ``step``: int, index of this view in the episode (0 for the start view).
-
-**Moves** follow the search loop's move rule (``search_loop.lattice_moves``, the table training,
-evaluation and flight use): a move that would leave the lattice (the camera positions above the search
-area, {-20..20 m}^2 for the paper) keeps the camera where it is; the view is re-taken and counts as a
-revisit.
-
-**Reward.** ``r_revisit`` when a step returns to a position already visited in the episode, else 0; the
-default is ``search_loop.R_RE`` (-0.5), the revisit reward R_re (Eq. 15) stage 2 trains with (the paper
-leaves its value open). The classification reward R_cls (Eq. 14) needs a map estimate, which
-belongs to the learner (fusion + perception), not to the env: ``info["occupancy"]`` gives the ground
-truth for it at the end.
-
-**Episode end.** ``terminated`` after the T-th view (T - 1 steps); never truncated.
-
-**Reset options.** ``{"scene": SceneSpec | dict | JSON str}`` a given scene; ``{"scene_seed": s,
-"occupied_cells": K}`` a generated one; ``{"occupied_cells": K}`` a new scene with K occupied cells and
-a seed drawn from the env's RNG; ``{"setting": 1 | 2 | 3}`` a scene drawn from that setting's
-``split``/``part`` seed list (default: the constructor's setting). The same ``reset(seed=...)`` always
-gives the same scene and views.
-
-**Arguments.** ``config`` (SearchConfig: altitude, step, budget T, action set, camera), ``setting`` /
-``split`` / ``part`` (where reset draws scenes from), ``r_revisit``, ``render_mode`` (``"rgb_array"``: the
-last view's image), ``cache_scenes`` (scenes whose renders are kept).
-
-**Info.** ``occupancy`` (N*N,) int8 ground truth; ``revisit`` bool; ``scene_seed``; ``occupied_cells``;
-``lattice_index`` of the camera position; ``visited`` list of lattice indices so far.
-"""
+"""The teleport search environment (gymnasium API); its manual is `ActiveSearchEnv`'s docstring."""
 
 from __future__ import annotations
 
@@ -74,6 +28,53 @@ def _as_scene(obj):
 
 
 class ActiveSearchEnv(gym.Env):
+    """The paper's search task without dynamics (teleport camera), registered as ``uavsearch/ActiveSearch-v0``.
+
+    **Task.** A nadir camera starts 70 m above the centre of a 50 m x 50 m search area (10 x 10 cells of
+    5 m) and may take ``budget_T`` views in all (the start view counts as the first). Between views it
+    moves one lattice step (10 m) north, east, west or south, heading fixed north.
+
+    **Action space.** ``Discrete(len(config.actions))``; the paper's order: 0 MoveAhead (north),
+    1 MoveRight (east), 2 MoveLeft (west), 3 MoveBack (south).
+
+    **Observation space** (``Dict``):
+
+    - ``image``: ``(H, W, 3)`` uint8 RGB, north up.
+    - ``position_enu``: ``(3,)`` float32 camera position in scene ENU metres (origin: ground, centre).
+    - ``cell_label``: ``(H, W)`` int16, the grid cell each pixel sees on the ground, -1 off the grid.
+      The paper's mask m_i^t is ``cell_label == i``.
+    - ``cell_area_px``: ``(N*N,)`` float32 pixel area of each cell's (clipped) image polygon, F_size.
+    - ``cells_in_view``: ``(N*N,)`` int8, c^t: 1 where the cell covers at least ``min_cell_area_px`` px.
+    - ``step``: int, index of this view in the episode (0 for the start view).
+
+    **Moves** follow the search loop's move rule (``search_loop.lattice_moves``, the table training,
+    evaluation and flight use): a move that would leave the lattice (the camera positions above the search
+    area, {-20..20 m}^2 for the paper) keeps the camera where it is; the view is re-taken and counts as a
+    revisit.
+
+    **Reward.** ``r_revisit`` when a step returns to a position already visited in the episode, else 0; the
+    default is ``search_loop.R_RE`` (-0.5), the revisit reward R_re (Eq. 15) stage 2 trains with (the paper
+    leaves its value open). The classification reward R_cls (Eq. 14) needs a map estimate, which
+    belongs to the learner (fusion + perception), not to the env: ``info["occupancy"]`` gives the ground
+    truth for it at the end.
+
+    **Episode end.** ``terminated`` after the T-th view (T - 1 steps); never truncated.
+
+    **Reset options.** ``{"scene": SceneSpec | dict | JSON str}`` a given scene; ``{"scene_seed": s,
+    "occupied_cells": K}`` a generated one; ``{"occupied_cells": K}`` a new scene with K occupied cells and
+    a seed drawn from the env's RNG; ``{"setting": 1 | 2 | 3}`` a scene drawn from that setting's
+    ``split``/``part`` seed list (default: the constructor's setting). The same ``reset(seed=...)`` always
+    gives the same scene and views.
+
+    **Arguments.** ``config`` (SearchConfig: altitude, step, budget T, action set, camera), ``setting`` /
+    ``split`` / ``part`` (where reset draws scenes from), ``r_revisit``, ``render_mode`` (``"rgb_array"``: the
+    last view's image), ``cache_scenes`` (scenes whose renders are kept).
+
+    **Info.** ``occupancy`` (N*N,) int8 ground truth; ``revisit`` bool; ``scene_seed``; ``occupied_cells``;
+    ``lattice_index`` of the camera position; ``visited`` list of lattice indices so far; ``person_mask``
+    of the view (or None).
+    """
+
     metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
 
     def __init__(

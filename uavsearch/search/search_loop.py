@@ -285,4 +285,5 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
 
 
 __all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
-           "R_FP", "R_RE", "R_TP", "classification_reward", "fuse_views", "lattice_cell_areas", "lattice_cell_distances", "lattice_moves", "run_search", "start_index"]
+           "R_FP", "R_RE", "R_TP", "classification_reward", "fuse_views", "lattice_cell_areas",
+           "lattice_cell_distances", "lattice_moves", "run_search", "start_index"]

@@ -57,7 +57,8 @@ from .view_cache import get_view_cache
 @dataclass
 class Args:
     setting: int = opt(2, "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)")
-    fusion: str = opt("learned", "fusion the policy is trained with and rewarded through", choices=tuple(FUSION_METHODS))
+    fusion: str = opt("learned", "fusion the policy is trained with and rewarded through",
+                      choices=tuple(FUSION_METHODS))
     # scene split: train on its train part, select on its val part. "large" (500 + 50 scenes per setting)
     # for the shipped models: on the paper's 20 training scenes the confidence net and policy overfit
     # within 50-150 iterations (train AF1 0.7, validation falling).
