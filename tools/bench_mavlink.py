@@ -23,10 +23,11 @@ import numpy as np
 from pymavlink import mavutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from sitl_process import NAN, Client, SitlProcess  # noqa: E402
+from mavlink_client import NAN, Client  # noqa: E402
 
 from uavsearch.flight.commander import VehicleCommand  # noqa: E402
 from uavsearch.flight.sitl import Sitl, SitlConfig  # noqa: E402
+from uavsearch.flight.sitl_process import SitlProcess  # noqa: E402
 from uavsearch.geometry import GeodeticOrigin  # noqa: E402
 
 M = mavutil.mavlink
@@ -70,7 +71,7 @@ def _rtf_in_process(seconds: float) -> list[tuple[str, float, str]]:
 
 def _ack_latency(speed: str, n: int = 200) -> tuple[float, float]:
     with tempfile.TemporaryDirectory() as tmp:
-        p = SitlProcess(Path(tmp), speed=speed)
+        p = SitlProcess(Path(tmp), speed=speed, camera=False)
         try:
             c = Client(p.gcs_port)
             lat = []
@@ -90,7 +91,7 @@ def _episode() -> tuple[float, float, bool]:
     """Takeoff 70 m + four 10 m moves + land over MAVLink at --speed max: (sim s, wall s, landed)."""
     origin = GeodeticOrigin()
     with tempfile.TemporaryDirectory() as tmp:
-        p = SitlProcess(Path(tmp), speed="max")
+        p = SitlProcess(Path(tmp), speed="max", camera=False)
         try:
             c = Client(p.gcs_port)
             c.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 50_000)

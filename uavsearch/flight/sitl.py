@@ -27,7 +27,10 @@ from ..paths import RUNS_DIR
 from .camera import Camera, scene_renderer
 from .commander import Commander, autopilot_params
 from .lockstep import LockstepGate
-from .mavlink_endpoint import GCS_RATES_HZ, LinkConfig, MavlinkEndpoint, parse_signing_key
+from .mavlink.endpoint import MavlinkEndpoint
+from .mavlink.links import LinkConfig
+from .mavlink.signing import parse_signing_key
+from .mavlink.streams import GCS_RATES_HZ
 from .params import ParamError, ParamStore
 
 
