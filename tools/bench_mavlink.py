@@ -30,6 +30,8 @@ from uavsearch.flight.sitl import Sitl, SitlConfig  # noqa: E402
 from uavsearch.flight.sitl_process import SitlProcess  # noqa: E402
 from uavsearch.geometry import GeodeticOrigin  # noqa: E402
 
+from bench_table import print_table  # noqa: E402  (tools/ is on sys.path when run as a script)
+
 M = mavutil.mavlink
 
 
@@ -145,12 +147,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0, help="simulated seconds of the hover measurement")
     args = ap.parse_args(argv)
-    from bench_flight import print_table
-
     print_table(bench_mavlink(args.seconds))
     return 0
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     sys.exit(main())
