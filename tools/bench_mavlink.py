@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from mavlink_client import NAN, Client  # noqa: E402
 
 from uavsearch.flight.commander import VehicleCommand  # noqa: E402
+from uavsearch.flight.mavlink.wire_units import deg_to_e7  # noqa: E402
 from uavsearch.flight.sitl import Sitl, SitlConfig  # noqa: E402
 from uavsearch.flight.sitl_process import SitlProcess  # noqa: E402
 from uavsearch.geometry import GeodeticOrigin  # noqa: E402
@@ -107,7 +108,7 @@ def _episode() -> tuple[float, float, bool]:
                 pos = pos + 10.0 * np.array(d)
                 lla = origin.enu_to_geodetic([pos[1], pos[0], 0.0])
                 c.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_INT, M.MAV_CMD_DO_REPOSITION, 0, 0, -1, 1, 0, NAN,
-                                       int(round(lla[0] * 1e7)), int(round(lla[1] * 1e7)), origin.alt_m + 70.0)
+                                       deg_to_e7(lla[0]), deg_to_e7(lla[1]), origin.alt_m + 70.0)
                 c.recv("LOCAL_POSITION_NED", timeout=60, cond=lambda m: np.hypot(m.x - pos[0], m.y - pos[1]) < 0.5
                        and np.hypot(m.vx, m.vy) < 0.3)
             c.command(M.MAV_CMD_NAV_LAND)
