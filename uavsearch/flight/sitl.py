@@ -27,7 +27,10 @@ from ..paths import RUNS_DIR
 from .camera import Camera, scene_renderer
 from .commander import Commander, autopilot_params
 from .lockstep import LockstepGate
-from .mavlink_endpoint import GCS_RATES_HZ, LinkConfig, MavlinkEndpoint, parse_signing_key
+from .mavlink.endpoint import MavlinkEndpoint
+from .mavlink.links import LinkConfig
+from .mavlink.signing import parse_signing_key
+from .mavlink.streams import GCS_RATES_HZ
 from .params import ParamDef, ParamError, ParamStore
 
 
@@ -79,13 +82,13 @@ def scene_hash(spec) -> int:
 
 
 def _default_vehicle(params: ParamStore, cfg: SitlConfig):
-    from .multicopter import Multicopter
+    from .multicopter import Multicopter  # lazy: ~0.8 s (JSBSim, EKF), and every `uavsearch` command imports sitl
 
     return Multicopter(params, cfg.home, cfg.seed, start_enu=cfg.start_enu, start_yaw_rad=cfg.start_yaw_rad)
 
 
 def _vehicle_params():
-    from .multicopter import MC_PARAMS
+    from .multicopter import MC_PARAMS  # lazy: see _default_vehicle
 
     return MC_PARAMS
 
@@ -114,7 +117,7 @@ class Sitl:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._close_render = None
         if render is None and cfg.scene_seed is not None:
-            from ..world.scene import generate_scene, load_scene
+            from ..world.scene import generate_scene, load_scene  # lazy: ~0.4 s, only with a camera scene
 
             spec = load_scene(cfg.scene_file) if cfg.scene_file is not None else \
                 generate_scene(cfg.scene_seed, cfg.occupied_cells)

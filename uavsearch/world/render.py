@@ -19,6 +19,7 @@ person_fraction > 0 (any subpixel), i.e. every pixel whose colour a person contr
 from __future__ import annotations
 
 import atexit
+import ctypes
 import math
 import os
 import pickle
@@ -32,14 +33,12 @@ import cv2
 import numpy as np
 
 from ..geometry import CameraIntrinsics, CameraPose
-from .scene import SceneObject, SceneSpec
+from .scene import SceneObject, SceneSpec, scene_from_json, scene_to_json
 from .topdown import ground_raster, paint_ground
 
 
 def _import_pybullet():
     """Import pybullet without its 'pybullet build time' banner on stdout (printed from C at import)."""
-    import ctypes
-
     sys.stdout.flush()
     saved, devnull = os.dup(1), os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 1)
@@ -515,8 +514,6 @@ class _Worker:
 
 def _worker_main(out_fd: int) -> None:
     """Serve ('load', spec_json, intrinsics, options) / ('render', position, R) / ('unload',) until EOF."""
-    from .scene import scene_from_json
-
     out = os.fdopen(out_fd, "wb")
     inp = sys.stdin.buffer
     world = None
@@ -571,8 +568,6 @@ class SceneRenderer:
         self._world: _World | None = None
         self._worker: _Worker | None = None
         if options.isolate:
-            from .scene import scene_to_json
-
             worker = _IDLE.pop() if _IDLE else _Worker()
             try:
                 worker.call("load", scene_to_json(spec), intrinsics, options)
