@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from sitl_process import Client, SitlProcess
+from mavlink_client import Client
+from uavsearch.flight.sitl_process import SitlProcess
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import fuzz_mavlink  # noqa: E402
@@ -105,7 +106,7 @@ def test_interval_capture_renders_while_the_vehicle_keeps_answering(camera_sitl)
 
 @pytest.fixture(scope="module")
 def sitl(tmp_path_factory):
-    p = SitlProcess(tmp_path_factory.mktemp("proto"), speed="1")
+    p = SitlProcess(tmp_path_factory.mktemp("proto"), speed="1", camera=False)
     yield p
     code, out = p.stop()
     assert code == 0, out
@@ -250,14 +251,14 @@ def test_mission_outside_what_the_models_were_trained_for_is_refused(tmp_path):
 
 
 def test_fly_connect_refuses_a_vehicle_simulating_another_scene(tmp_path):
-    sitl = SitlProcess(tmp_path / "vehicle", "--lockstep", "--scene", "5", "--cells", "5", camera=True)
+    sitl = SitlProcess(tmp_path / "vehicle", "--scene", "5", "--cells", "5", lockstep=True)
     try:
         r = _uavsearch("fly", "--connect", f"udpin:127.0.0.1:{sitl.api_port}", "--out", tmp_path / "run")
         _one_line_error(r, "simulates scene 5", "scene 3")
     finally:
         sitl.stop()
     c = None
-    sitl = SitlProcess(tmp_path / "vehicle2", "--scene", "3", "--cells", "5", camera=True)
+    sitl = SitlProcess(tmp_path / "vehicle2", "--scene", "3", "--cells", "5")
     try:  # what the vehicle reports, over plain PARAM_REQUEST_READ
         c = Client(sitl.gcs_port)
         values = {}

@@ -50,8 +50,8 @@ import numpy as np
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from sitl_process import SitlProcess, free_udp_port  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from uavsearch.flight.sitl_process import SitlProcess  # noqa: E402
 
 M = mavlink
 CATEGORIES = ("random_bytes", "truncated", "bitflip", "random_message", "hostile_command", "mission_abuse",
@@ -532,7 +532,10 @@ def fuzz_flight(seed: int, packets: int, speed: str = "1", rate_hz: float = 250.
         gcs_watch.close(now)
         api.sink = None
         rss1 = rss_kib(sitl.proc.pid)
-        unanswered = sum(max(0, n - got_acks.get(c, 0)) for c, n in expected_acks.items())
+        missing = {c: n - got_acks.get(c, 0) for c, n in expected_acks.items() if n != got_acks.get(c, 0)}
+        unanswered = sum(max(0, n) for n in missing.values())
+        if missing:
+            notes.append(f"COMMAND_ACKs missing (+) or extra (-) by command: {missing}")
         alive = sitl.proc.poll() is None
         api.command(M.MAV_CMD_IMAGE_STOP_CAPTURE, comp=CAMERA, timeout=2)
         for mid, hz in ((0, 1.0),):  # restore what a fuzzed SET_MESSAGE_INTERVAL may have changed

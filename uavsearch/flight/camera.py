@@ -10,8 +10,10 @@ appended to `captures.jsonl` with both poses, for evaluation and replay.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -20,6 +22,7 @@ import numpy as np
 
 from ..geometry import CameraIntrinsics, CameraPose, camera_pose_from_vehicle
 
+log = logging.getLogger(__name__)
 CAMERA_COMPID = 100
 SENSOR_WIDTH_MM = 6.17  # a 1/2.3" sensor, for CAMERA_INFORMATION's focal length in mm
 
@@ -47,9 +50,9 @@ class CaptureRejected(ValueError):
     """IMAGE_START_CAPTURE values the camera cannot honour (the endpoint answers DENIED)."""
 
 
-CAPTURE_MIN_INTERVAL_S = 0.1  # 10 Hz of simulation time: a render costs tens of ms of wall time
+CAPTURE_MIN_INTERVAL_S = 0.1  # 10 Hz of simulation time for a series
 CAPTURE_MAX_COUNT = 10_000  # per IMAGE_START_CAPTURE; 0 = until IMAGE_STOP_CAPTURE
-MAX_PENDING = 4  # shots triggered but not yet rendered; a trigger beyond that is dropped (a busy camera)
+MAX_PENDING = 4  # shots triggered and not yet reported; a trigger beyond that is dropped (a busy camera)
 
 
 @dataclass(frozen=True)
@@ -70,8 +73,11 @@ class _Shot:
 class Camera:
     """Single shots and interval capture; `render` maps a CameraPose to an RGB uint8 image.
 
-    A trigger only records the pose; `update()` renders at most ONE pending shot per call, so the
-    runner's loop keeps flying, heartbeating and answering between renders whatever was asked.
+    A trigger records the pose at once and hands the render to the camera's own thread (the renderer
+    works in its worker process, so the thread mostly waits on a pipe and the GIL is free): the runner's
+    loop keeps flying, heartbeating and answering while images render, whatever was asked. `update()`
+    returns the shots finished since the last call, in trigger order. At most MAX_PENDING shots wait;
+    a trigger beyond that is dropped and counted, as a busy camera skips frames.
     """
 
     def __init__(self, vehicle, intrinsics: CameraIntrinsics, run_dir: Path, render: Callable[[CameraPose], np.ndarray] | None,
@@ -86,7 +92,8 @@ class Camera:
         self.interval_s = 0.0
         self.remaining = 0  # interval captures left; -1 = until stopped
         self._next_us: int | None = None
-        self._pending: deque[_Shot] = deque()
+        self._inflight: deque[Future] = deque()
+        self._executor: ThreadPoolExecutor | None = None
 
     @property
     def available(self) -> bool:
@@ -106,8 +113,8 @@ class Camera:
 
     @property
     def busy(self) -> bool:
-        """Interval capture running or shots waiting to be rendered: the runner must keep calling update()."""
-        return self.remaining != 0 or bool(self._pending)
+        """Interval capture running or shots still rendering: the runner must keep calling update()."""
+        return self.remaining != 0 or bool(self._inflight)
 
     @staticmethod
     def check_start(interval_s: float, count: float) -> tuple[float, int]:
@@ -121,23 +128,21 @@ class Camera:
             raise CaptureRejected(f"capture interval must be >= {CAPTURE_MIN_INTERVAL_S} s for more than one image")
         return float(interval_s), n
 
-    def start(self, interval_s: float, count: float) -> list[CaptureRecord]:
-        """IMAGE_START_CAPTURE: one shot now (count 1) or a series every interval_s; the first shot is rendered
-        now (one render), the rest one per update()."""
+    def start(self, interval_s: float, count: float) -> None:
+        """IMAGE_START_CAPTURE: one shot now (count 1) or a series every interval_s; images come from update()."""
         interval_s, n = self.check_start(interval_s, count)
-        first = self.capture()
+        self.trigger()
         if n != 1:
             self.interval_s = interval_s
             self.remaining = n - 1 if n > 0 else -1
             self._next_us = self.vehicle.time_us + int(interval_s * 1e6)
-        return [first]
 
     def stop(self) -> None:
         self.remaining = 0
         self._next_us = None
 
     def update(self) -> list[CaptureRecord]:
-        """Fire the interval trigger if due (missed ticks are skipped, never caught up), render one pending shot."""
+        """Fire the interval trigger if due (missed ticks are skipped, never caught up); the shots rendered since."""
         now = self.vehicle.time_us
         if self.remaining != 0 and self._next_us is not None and now >= self._next_us:
             self.trigger()
@@ -145,17 +150,20 @@ class Camera:
             self._next_us += period * max(1, (now - self._next_us) // period + 1)
             if self.remaining > 0:
                 self.remaining -= 1
-        return [self._render(self._pending.popleft())] if self._pending else []
+        out = []
+        while self._inflight and self._inflight[0].done():
+            out.append(self._inflight.popleft().result())
+        return out
 
     def trigger(self) -> bool:
-        """The shutter: record the pose now; False (and counted) when too many shots already wait."""
-        if len(self._pending) >= MAX_PENDING:
+        """The shutter: record the pose now and start its render; False (and counted) when the camera is busy."""
+        if len(self._inflight) >= MAX_PENDING:
             self.dropped += 1
             return False
         v = self.vehicle
         ts = v.true_state
         gp = v.global_position
-        self._pending.append(_Shot(
+        shot = _Shot(
             index=self.image_count,
             time_us=int(v.time_us),
             true_position_enu_m=tuple(float(x) for x in ts.position_enu_m),
@@ -165,36 +173,52 @@ class Camera:
             alt_amsl_m=float(gp.alt_amsl_m),
             alt_rel_home_m=float(gp.alt_amsl_m - self.home_alt_amsl_m()) if self.home_alt_amsl_m else float(gp.alt_rel_home_m),
             q_wxyz=tuple(float(x) for x in v.attitude.q_wxyz),
-        ))
+        )
         self.image_count += 1
+        if self.render is None:  # nothing to render: the failed capture is reported at once
+            done: Future = Future()
+            done.set_result(self._record(shot))
+            self._inflight.append(done)
+        else:
+            if self._executor is None:
+                self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="camera")
+            self._inflight.append(self._executor.submit(self._record, shot))
         return True
 
-    def capture(self) -> CaptureRecord:
-        """Trigger and render at once (mission camera items); earlier pending shots are rendered first."""
-        self.trigger()
-        out = None
-        while self._pending:
-            out = self._render(self._pending.popleft())
-        return out
+    def capture(self) -> CaptureRecord | None:
+        """Trigger and wait for the image (callers that may block); earlier shots finish first."""
+        return self.drain()[-1] if self.trigger() else None
 
     def drain(self) -> list[CaptureRecord]:
-        """Every pending shot, rendered (at shutdown)."""
+        """Wait for every shot in flight; their records, in trigger order."""
         out = []
-        while self._pending:
-            out.append(self._render(self._pending.popleft()))
+        while self._inflight:
+            out.append(self._inflight.popleft().result())
         return out
 
-    def _render(self, shot: _Shot) -> CaptureRecord:
+    def close(self) -> list[CaptureRecord]:
+        """Finish the shots in flight (no image is lost) and stop the camera thread."""
+        out = self.drain()
+        if self._executor is not None:
+            self._executor.shutdown(wait=True)
+            self._executor = None
+        return out
+
+    def _record(self, shot: _Shot) -> CaptureRecord:
+        """Render (in the camera thread), write the PNG and the captures.jsonl line."""
         path = self.run_dir / "images" / f"img_{shot.index:04d}.png"
         ok = False
         if self.render is not None:
-            r, p, y = shot.true_rpy_rad
-            pose = camera_pose_from_vehicle(np.asarray(shot.true_position_enu_m), r, p, y, gimbal_stabilised=True)
-            rgb = self.render(pose)
-            path.parent.mkdir(parents=True, exist_ok=True)
-            import cv2  # lazy: ~50 ms on every `uavsearch` command; the renderer has loaded it by now
+            try:
+                r, p, y = shot.true_rpy_rad
+                pose = camera_pose_from_vehicle(np.asarray(shot.true_position_enu_m), r, p, y, gimbal_stabilised=True)
+                rgb = self.render(pose)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                import cv2  # lazy: ~50 ms on every `uavsearch` command; the renderer has loaded it by now
 
-            ok = bool(cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., :3][..., ::-1])))
+                ok = bool(cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., :3][..., ::-1])))
+            except Exception:  # noqa: BLE001 - a failed render is a failed capture (capture_result 0), not a crash
+                log.warning("capture %d failed", shot.index, exc_info=True)
         rec = CaptureRecord(
             index=shot.index, time_us=shot.time_us, path=str(path), ok=ok, lat_deg=shot.lat_deg, lon_deg=shot.lon_deg,
             alt_amsl_m=shot.alt_amsl_m, alt_rel_home_m=shot.alt_rel_home_m, q_wxyz=shot.q_wxyz,

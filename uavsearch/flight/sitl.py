@@ -186,7 +186,7 @@ class Sitl:
                 return False
             self._wall = time.monotonic()
             self.endpoint.hold(self._wall)
-            if self.endpoint.wait_readable(0.2):
+            if self.endpoint.wait_readable(0.005 if self.camera.busy else 0.2):  # an image may be on its way
                 self._wall = time.monotonic()
                 self.endpoint.poll(self._wall)
         self._pace_wall0 = None  # pacing starts afresh: no burst to catch up the time stood still
@@ -216,6 +216,7 @@ class Sitl:
             self.step()
 
     def close(self) -> None:
+        self.camera.close()  # the images in flight are written before the renderer goes
         self.endpoint.close()
         if self._close_render:
             self._close_render()

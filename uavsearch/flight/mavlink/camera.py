@@ -11,9 +11,10 @@ import math
 
 from pymavlink.dialects.v20 import common as M
 
-from ..camera import CAMERA_COMPID, Camera, CaptureRecord
+from ..camera import CAMERA_COMPID, Camera, CaptureRecord, CaptureRejected
 from ..commander import Result
 from .links import Link
+from .streams import message_id
 
 CAMERA_COMMANDS = {
     M.MAV_CMD_IMAGE_START_CAPTURE,
@@ -55,7 +56,10 @@ class CameraProtocol:
         """None when the command was already acknowledged."""
         c = self.camera
         if command == M.MAV_CMD_REQUEST_MESSAGE:
-            msg = self._message(int(p[0]) if math.isfinite(p[0]) else -1)
+            mid = message_id(p[0])
+            if mid is None:
+                return Result.DENIED
+            msg = self._message(mid)
             if msg is None:
                 return Result.UNSUPPORTED
             self.ep.ack(link, m, command, Result.ACCEPTED, CAMERA_COMPID)
@@ -64,21 +68,21 @@ class CameraProtocol:
         if command == M.MAV_CMD_IMAGE_START_CAPTURE:
             if not c.available:
                 return Result.FAILED
-            interval = p[1] if math.isfinite(p[1]) else 0.0
-            count = int(p[2]) if math.isfinite(p[2]) else 1
-            if interval < 0 or count < 0:
+            try:  # bounded count and interval, checked before anything is promised
+                interval, count = c.check_start(p[1], p[2])
+            except CaptureRejected as e:
+                self.ep.cmd.text(4, f"capture denied: {e}"[:50])
                 return Result.DENIED
-            # ACK first, then the capture(s): clients wait for the ACK before listening for images.
+            # ACK now; the images follow as CAMERA_IMAGE_CAPTURED once rendered (Camera renders in its own
+            # thread, the endpoint broadcasts what update() returns): clients wait for the ACK, then listen.
             self.ep.ack(link, m, command, Result.ACCEPTED, CAMERA_COMPID)
-            link.flush()  # the ACK leaves before the render
-            for rec in c.start(interval, count):
-                self.broadcast_capture(rec)
+            c.start(interval, count)
             return None
         if command == M.MAV_CMD_IMAGE_STOP_CAPTURE:
             c.stop()
             return Result.ACCEPTED
         if command == M.MAV_CMD_SET_CAMERA_MODE:
-            return Result.ACCEPTED if int(p[1]) == M.CAMERA_MODE_IMAGE else Result.DENIED
+            return Result.ACCEPTED if p[1] == M.CAMERA_MODE_IMAGE else Result.DENIED
         req = _REQUESTS.get(command)
         if req is not None:
             self.ep.ack(link, m, command, Result.ACCEPTED, CAMERA_COMPID)

@@ -8,6 +8,7 @@ commander sees one form of every command.
 
 from __future__ import annotations
 
+import logging
 import math
 
 from pymavlink.dialects.v20 import common as M
@@ -18,6 +19,7 @@ from ..lockstep import MAV_CMD_SIM_ADVANCE
 from .camera import CAMERA_COMMANDS
 from .links import AUTOPILOT_COMPID, Link
 
+log = logging.getLogger(__name__)
 _GLOBAL_FRAMES = (M.MAV_FRAME_GLOBAL, M.MAV_FRAME_GLOBAL_INT, M.MAV_FRAME_GLOBAL_RELATIVE_ALT,
                   M.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
 _FLOAT_FRAME = {M.MAV_FRAME_GLOBAL_INT: M.MAV_FRAME_GLOBAL,
@@ -50,20 +52,30 @@ class Commands:
         self._command(link, m, m.command, p, _FLOAT_FRAME.get(m.frame, m.frame), m.target_component)
 
     def _command(self, link: Link, m, command: int, p: list, frame: int, target_comp: int) -> None:
-        try:
-            self._dispatch(link, m, command, p, frame, target_comp)
-        except (ValueError, OverflowError):  # e.g. a message id or count of NaN / inf
-            self.ep.ack(link, m, command, Result.DENIED,
-                        CAMERA_COMPID if target_comp == CAMERA_COMPID else AUTOPILOT_COMPID)
-
-    def _dispatch(self, link: Link, m, command: int, p: list, frame: int, target_comp: int) -> None:
-        to_camera = target_comp == CAMERA_COMPID or (target_comp == 0 and command in CAMERA_COMMANDS)
-        if to_camera:
-            if self.camera is not None:
-                self.camera.command(link, m, command, p)
-            return
-        if target_comp not in (0, AUTOPILOT_COMPID):
+        """Exactly one COMMAND_ACK for a command to a component that exists here, whatever is wrong with it
+        (a handler that raised is answered FAILED; the lockstep grant answers later, once)."""
+        to_camera = self.camera is not None and (
+            target_comp == CAMERA_COMPID or (target_comp == 0 and command in CAMERA_COMMANDS))
+        if not to_camera and target_comp not in (0, AUTOPILOT_COMPID):
             return  # addressed to a component that does not exist here
+        compid = CAMERA_COMPID if to_camera else AUTOPILOT_COMPID
+        before = self.ep.acks_sent
+        self._deferred = False
+        try:
+            self._dispatch(link, m, command, p, frame, to_camera)
+        except (ValueError, OverflowError):  # e.g. a count of NaN / inf reaching int()
+            result = Result.DENIED
+        except Exception:  # noqa: BLE001 - a packet must never take the vehicle down, nor go unanswered
+            log.warning("command %d failed", command, exc_info=True)
+            result = Result.FAILED
+        else:
+            result = Result.DENIED
+        if self.ep.acks_sent == before and not self._deferred:
+            self.ep.ack(link, m, command, result, compid)
+
+    def _dispatch(self, link: Link, m, command: int, p: list, frame: int, to_camera: bool) -> None:
+        if to_camera:
+            return self.camera.command(link, m, command, p)
         handler = self.handlers.get(command)
         if handler is not None:
             return handler(link, m, command, p)
@@ -81,5 +93,6 @@ class Commands:
             return self.ep.ack(link, m, command, Result.UNSUPPORTED)
         if not (math.isfinite(until_ms) and 0 <= until_ms < 2**31):
             return self.ep.ack(link, m, command, Result.DENIED)
+        self._deferred = True  # answered when the clock gets there
         self.ep.lockstep.grant(int(until_ms) * 1000,
                                lambda now_ms: self.ep.ack(link, m, command, Result.ACCEPTED, result_param2=now_ms))

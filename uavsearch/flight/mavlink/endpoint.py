@@ -45,6 +45,7 @@ class MavlinkEndpoint:
         self.wall_s = 0.0
         self.lockstep: LockstepGate | None = None  # set by a runner in lockstep (see lockstep.py)
         self._sent_state = None
+        self.acks_sent = 0  # COMMAND_ACKs sent (commands.py checks each command got exactly one)
         self._hold_hb_wall = -math.inf
         self._fds = [link.sock.fileno() for link in self.links]
         self.telemetry = Telemetry(commander, lambda: self.rx_dropped)
@@ -84,6 +85,7 @@ class MavlinkEndpoint:
 
     def ack(self, link: Link, m, command: int, result: int, compid: int = AUTOPILOT_COMPID,
             result_param2: int = 0) -> None:
+        self.acks_sent += 1
         link.send(link.mav.command_ack_encode(command, int(result), 0, result_param2, m.get_srcSystem(),
                                               m.get_srcComponent()), compid)
 
@@ -108,9 +110,15 @@ class MavlinkEndpoint:
                 self.broadcast(self.telemetry.mission_current())
         self.cmd.mission_events.clear()
         for _item in self.cmd.captures:
-            if self.camera_protocol is not None:
-                self.camera_protocol.broadcast_capture(self.camera.capture())
+            if self.camera is not None:
+                self.camera.trigger()  # reported by send_captures() once rendered
         self.cmd.captures.clear()
+
+    def send_captures(self) -> None:
+        """CAMERA_IMAGE_CAPTURED for every shot the camera finished (interval triggers fire here too)."""
+        if self.camera is not None and self.camera.busy:
+            for rec in self.camera.update():
+                self.camera_protocol.broadcast_capture(rec)
 
     def _flush_links(self) -> None:
         for link in self.links:
@@ -148,9 +156,7 @@ class MavlinkEndpoint:
         now = int(self.vehicle.time_us)
         self.telemetry.new_tick()  # vehicle outputs are read once per call, shared by every message and link
         self.send_state_if_changed()
-        if self.camera is not None and self.camera.capturing_interval:
-            for rec in self.camera.update():
-                self.camera_protocol.broadcast_capture(rec)
+        self.send_captures()
         self.streams.send_due(now)
         self._flush_links()
 
@@ -158,6 +164,7 @@ class MavlinkEndpoint:
         """Lockstep: the clock reached its grant. Publish the state it stopped in, answer the grant, and
         keep a heartbeat going on the wall clock while nothing runs."""
         self.send_state_if_changed()  # the client must not learn of a change later than the ACK
+        self.send_captures()  # images of shots taken before the clock stopped
         self.lockstep.arrived(int(self.vehicle.time_us))
         if wall_s - self._hold_hb_wall >= HOLD_HEARTBEAT_WALL_S:
             self._hold_hb_wall = wall_s

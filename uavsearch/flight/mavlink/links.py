@@ -10,9 +10,8 @@ from __future__ import annotations
 import socket
 from dataclasses import dataclass
 
-from pymavlink.dialects.v20 import common as mavlink
 
-from .signing import enable_signing, frame_is_signed
+from .signing import SigningMAVLink, enable_signing
 
 AUTOPILOT_COMPID = 1
 DATAGRAM_BYTES = 1400  # below a typical MTU; frames are never split across datagrams
@@ -48,11 +47,10 @@ class Link:
         self.sock.setblocking(False)
         self.sock.bind(("127.0.0.1" if cfg.remote_host in ("127.0.0.1", "localhost") else "0.0.0.0", cfg.local_port))
         self.remote = (cfg.remote_host, cfg.remote_port)
-        self.mav = mavlink.MAVLink(_Writer(self), srcSystem=sysid, srcComponent=AUTOPILOT_COMPID)
+        self.mav = SigningMAVLink(_Writer(self), srcSystem=sysid, srcComponent=AUTOPILOT_COMPID)
         self.mav.robust_parsing = True
-        self._frame_signed = False
         if cfg.signing_key is not None:
-            enable_signing(self.mav, cfg.signing_key, cfg.require_signed, lambda: self._frame_signed)
+            enable_signing(self.mav, cfg.signing_key, cfg.require_signed)
         self.intervals_us: dict = {}  # per-message stream intervals (streams.py fills them)
         self.next_due_us: dict = {}
         self.default_rates_hz: dict = {}
@@ -96,7 +94,6 @@ class Link:
                 return out
             except OSError:
                 return out  # ICMP errors surface on the next recv on some platforms
-            self._frame_signed = frame_is_signed(data)
             try:
                 msgs = self.mav.parse_buffer(data) or []
             except Exception:  # pymavlink raises a few plain errors on garbage even when robust
@@ -114,8 +111,9 @@ class Link:
             if good:
                 self.remote = addr
                 self.rx_packets += good
-            elif not msgs and len(data) > 0 and self.mav.bytes_needed() > 0 and len(self.mav.buf) - self.mav.buf_index > 0:
-                # A truncated frame stays in the parser's buffer: drop it, datagrams never continue.
+            if len(self.mav.buf) - self.mav.buf_index > 0:
+                # A truncated frame (or junk announcing one) stays in the parser's buffer: drop it, datagrams never
+                # continue, or the next datagram's frames would be swallowed into it.
                 self.rx_dropped += 1
                 self.mav.buf = bytearray()
                 self.mav.buf_index = 0

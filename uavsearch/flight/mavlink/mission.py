@@ -8,11 +8,12 @@ are refused as PX4 refuses what it does not support.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import common as M
 
-from ..mission import MissionItem
+from ..mission import POSITIONED_COMMANDS, MissionItem
 from .links import AUTOPILOT_COMPID, Link
 
 MISSION_RETRY_WALL_S = 0.25
@@ -30,6 +31,30 @@ class _Upload:
     mission_type: int = 0
 
 
+def _invalid_field(m, x: float, y: float) -> int | None:
+    """The MAV_MISSION_INVALID_* result for a field no command can use, else None.
+
+    Infinity is never a value. NaN is "unused / default" (MAVSDK sends z = NaN for camera items), except in
+    the position of a command that flies somewhere; x and y must fit MISSION_ITEM_INT's int32. The commander
+    checks the rest (ranges, supported commands) when the upload is complete."""
+    for v, err in ((m.param1, M.MAV_MISSION_INVALID_PARAM1), (m.param2, M.MAV_MISSION_INVALID_PARAM2),
+                   (m.param3, M.MAV_MISSION_INVALID_PARAM3), (m.param4, M.MAV_MISSION_INVALID_PARAM4),
+                   (m.z, M.MAV_MISSION_INVALID_PARAM7)):
+        if math.isinf(v):
+            return err
+    positioned = m.command in POSITIONED_COMMANDS
+    for v, err in ((x, M.MAV_MISSION_INVALID_PARAM5_X), (y, M.MAV_MISSION_INVALID_PARAM6_Y)):
+        if math.isnan(v) and not positioned:
+            continue
+        if not (math.isfinite(v) and -2**31 <= v < 2**31):
+            return err
+    return None
+
+
+def _int(v: float) -> int:
+    return 0 if math.isnan(v) else int(round(v))
+
+
 class MissionProtocol:
     """Serves the commander's mission to every link; one upload at a time per link."""
 
@@ -41,7 +66,7 @@ class MissionProtocol:
             "MISSION_REQUEST": lambda link, m: self._send_item(link, m, False),
             "MISSION_COUNT": self._on_mission_count,
             "MISSION_ITEM_INT": lambda link, m: self._receive_item(link, m, m.x, m.y),
-            "MISSION_ITEM": lambda link, m: self._receive_item(link, m, int(round(m.x * 1e7)), int(round(m.y * 1e7))),
+            "MISSION_ITEM": lambda link, m: self._receive_item(link, m, m.x * 1e7, m.y * 1e7),
             "MISSION_CLEAR_ALL": self._on_mission_clear_all,
             "MISSION_SET_CURRENT": self._on_mission_set_current,
             "MISSION_ACK": lambda link, m: None,  # end of a download: nothing to release
@@ -95,20 +120,26 @@ class MissionProtocol:
         link.upload = _Upload(partner, m.count, [], self.ep.wall_s, 0, mt)
         link.send(M.MAVLink_mission_request_int_message(partner[0], partner[1], 0, mt))
 
-    def _receive_item(self, link: Link, m, x: int, y: int) -> None:
-        up = link.upload
-        if up is None or not self._addressed(m):
+    def _receive_item(self, link: Link, m, x: float, y: float) -> None:
+        """Every item addressed here gets an answer: the next request, or a MISSION_ACK saying what is wrong."""
+        if not self._addressed(m):
             return
+        up = link.upload
         partner = (m.get_srcSystem(), m.get_srcComponent())
+        if up is None:
+            return self._ack(link, partner, M.MAV_MISSION_ERROR, getattr(m, "mission_type", 0))  # no upload running
         if partner != up.partner:
             return self._ack(link, partner, M.MAV_MISSION_DENIED)
         expected = len(up.items)
-        if m.seq != expected:
-            if m.seq > expected:
-                link.send(M.MAVLink_mission_request_int_message(partner[0], partner[1], expected, up.mission_type))
+        if m.seq != expected:  # a repeat or a gap: ask for the item we need
+            link.send(M.MAVLink_mission_request_int_message(partner[0], partner[1], expected, up.mission_type))
             return
+        bad = _invalid_field(m, x, y)
+        if bad is not None:  # PX4 ends the transfer with the field's error
+            link.upload = None
+            return self._ack(link, partner, bad, up.mission_type)
         up.items.append(MissionItem(m.seq, m.frame, m.command, m.current, m.autocontinue, m.param1, m.param2, m.param3,
-                                    m.param4, int(x), int(y), float(m.z)))
+                                    m.param4, _int(x), _int(y), float(m.z)))
         up.retries = 0
         up.last_request_wall = self.ep.wall_s
         if len(up.items) < up.count:

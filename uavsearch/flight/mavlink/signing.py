@@ -1,17 +1,26 @@
-"""MAVLink 2 message signing per link (pymavlink signs and checks; this sets it up as PX4 does).
+"""MAVLink 2 message signing per link, checked in the order the MAVLink spec gives.
 
 A link with a key signs what it sends; by default it also drops unsigned input. The API link may accept
 unsigned input instead (MAVSDK cannot sign), but a frame that IS signed must still carry the right signature.
+
+pymavlink records a stream's timestamp BEFORE it checks the signature, so one forged frame with a
+far-future timestamp would lock the real sender out. SigningMAVLink checks the signature first: a link's
+per-stream timestamps (and its own clock) advance only on frames that verify. Each frame of a datagram is
+judged on its own (a wrong-key frame after junk or after an unsigned frame is still a signed frame).
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import time
-from typing import Callable
+
+from pymavlink.dialects.v20 import common as M
 
 from ...errors import UavsearchError
 
 SIGNING_EPOCH = 1420070400  # 2015-01-01 UTC
+NEW_STREAM_SLACK = 6_000_000  # 60 s in the signing clock's 10 us units (the spec's window for a new stream)
 
 
 def parse_signing_key(text: str) -> bytes:
@@ -25,12 +34,33 @@ def parse_signing_key(text: str) -> bytes:
     return key
 
 
-def frame_is_signed(data: bytes) -> bool:
-    """Whether a datagram starts with a MAVLink 2 frame whose incompat flags say 'signed'."""
-    return len(data) > 2 and data[0] == 0xFD and bool(data[2] & 0x01)
+class SigningMAVLink(M.MAVLink):
+    """pymavlink's MAVLink with the spec's order of signature checks (see the module docstring)."""
+
+    frame_signed = False  # whether the frame being decoded carries a signature (allow_unsigned_callback reads it)
+
+    def decode(self, msgbuf: bytearray):
+        self.frame_signed = len(msgbuf) > 2 and msgbuf[0] == M.PROTOCOL_MARKER_V2 and bool(msgbuf[2] & M.MAVLINK_IFLAG_SIGNED)
+        return super().decode(msgbuf)
+
+    def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
+        sig = self.signing
+        if not hmac.compare_digest(hashlib.sha256(sig.secret_key + bytes(msgbuf[:-6])).digest()[:6], bytes(msgbuf[-6:])):
+            return False  # a forgery: its timestamp must not count for anything
+        tlow, thigh = self.mav_sign_unpacker.unpack(msgbuf[-12:-6])
+        timestamp = tlow + (thigh << 32)
+        stream = (msgbuf[-13], srcSystem, srcComponent)
+        last = sig.stream_timestamps.get(stream)
+        if last is not None and timestamp <= last:
+            return False  # a replay, or out of order
+        if last is None and timestamp + NEW_STREAM_SLACK < sig.timestamp:
+            return False  # a new stream more than a minute behind our clock
+        sig.stream_timestamps[stream] = timestamp
+        sig.timestamp = max(sig.timestamp, timestamp)
+        return True
 
 
-def enable_signing(mav, key: bytes, require_signed: bool, last_frame_signed: Callable[[], bool]) -> None:
+def enable_signing(mav: SigningMAVLink, key: bytes, require_signed: bool) -> None:
     """Sign everything `mav` sends; unless `require_signed`, accept unsigned frames (never badly signed ones)."""
     mav.signing.secret_key = key
     mav.signing.link_id = 0
@@ -39,4 +69,4 @@ def enable_signing(mav, key: bytes, require_signed: bool, last_frame_signed: Cal
     # a new stream that starts more than a minute behind their own clock.
     mav.signing.timestamp = int((max(time.time(), SIGNING_EPOCH) - SIGNING_EPOCH) * 1e5)
     if not require_signed:
-        mav.signing.allow_unsigned_callback = lambda _mav, _msgid: not last_frame_signed()
+        mav.signing.allow_unsigned_callback = lambda m, _msgid: not m.frame_signed

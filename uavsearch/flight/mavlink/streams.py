@@ -47,6 +47,17 @@ GCS_RATES_HZ = {
     M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 0.0,
 }
 EXTRA_HEARTBEAT = "camera_hb"  # a second component's 1 Hz heartbeat, scheduled with the streams
+MAX_MESSAGE_ID = (1 << 24) - 1  # MAVLink 2 message ids are 24 bits
+HEARTBEAT_MAX_INTERVAL_US = 1_000_000  # a link without a 1 Hz heartbeat looks like a dead vehicle
+
+
+def message_id(value: float) -> int | None:
+    """A command parameter that names a message: an integral id in MAVLink 2's range, else None.
+
+    Parameters travel as floats; 0.5 or 1e-9 must not become HEARTBEAT's id 0 by truncation."""
+    if not (math.isfinite(value) and value == int(value) and 0 <= value <= MAX_MESSAGE_ID):
+        return None
+    return int(value)
 
 
 class Streams:
@@ -98,28 +109,39 @@ class Streams:
         self.ep.ack(link, m, command, self._set_interval(link, p))
 
     def _set_interval(self, link: Link, p) -> Result:
-        mid, iv = int(p[0]), p[1]
+        """PX4's rules (param2: -1 off, 0 default rate, > 0 interval in us), except that HEARTBEAT is never off nor
+        slower than 1 Hz; ids must be integral and streamable, intervals finite."""
+        mid, iv = message_id(p[0]), p[1]
+        if mid is None or not math.isfinite(iv) or (iv < 0 and iv != -1):
+            return Result.DENIED
         if mid not in DEFAULT_RATES_HZ:
             return Result.UNSUPPORTED
+        if mid == M.MAVLINK_MSG_ID_HEARTBEAT and (iv < 0 or iv > HEARTBEAT_MAX_INTERVAL_US):
+            return Result.DENIED
         if iv == 0:
             hz = link.default_rates_hz.get(mid, 0.0)
             link.intervals_us[mid] = int(1e6 / hz) if hz > 0 else 0
         elif iv < 0:
             link.intervals_us[mid] = 0
         else:
-            link.intervals_us[mid] = max(int(iv), 1000)  # at most 1 kHz of simulation time
+            link.intervals_us[mid] = min(max(int(iv), 1000), 2**31 - 1)  # at most 1 kHz of simulation time
         link.next_due_us[mid] = 0
         self._next_due_any = 0
         return Result.ACCEPTED
 
     def _on_get_message_interval(self, link: Link, m, command: int, p: list) -> None:
-        mid = int(p[0])
-        iv = link.intervals_us.get(mid, 0)
-        link.send(M.MAVLink_message_interval_message(mid, iv if iv > 0 else -1))
+        mid = message_id(p[0])
+        if mid is None or mid > 0xFFFF:  # MESSAGE_INTERVAL carries the id in 16 bits
+            return self.ep.ack(link, m, command, Result.DENIED)
+        iv = link.intervals_us.get(mid)
         self.ep.ack(link, m, command, Result.ACCEPTED)
+        # MESSAGE_INTERVAL: -1 = not sent, 0 = not available here
+        link.send(M.MAVLink_message_interval_message(mid, 0 if iv is None else iv if iv > 0 else -1))
 
     def _on_request_message(self, link: Link, m, command: int, p: list) -> None:
-        mid = int(p[0]) if math.isfinite(p[0]) else -1
+        mid = message_id(p[0])
+        if mid is None:
+            return self.ep.ack(link, m, command, Result.DENIED)
         msg = self.ep.telemetry.build(mid) if mid != M.MAVLINK_MSG_ID_HOME_POSITION or self.ep.cmd.home_set else None
         if msg is None:
             result = Result.TEMPORARILY_REJECTED if mid == M.MAVLINK_MSG_ID_HOME_POSITION else Result.UNSUPPORTED
