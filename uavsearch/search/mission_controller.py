@@ -30,6 +30,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..errors import MissionError
+from ..flight.sitl import scene_hash
 from ..flight.sitl_process import SitlProcess
 from ..logs.flight_log import FlightLogWriter
 from ..paths import RUNS_DIR
@@ -152,8 +154,6 @@ class SearchRecorder:
 def check_vehicle_scene(vehicle: MavlinkVehicle, spec, config) -> str:
     """What a vehicle we did not start simulates (SIM_SCENE_* parameters, CAMERA_INFORMATION) against the scene
     and camera we score against: a MissionError line on a mismatch, else a note of what was checked."""
-    from ..flight.sitl import scene_hash
-
     seed, cells, digest = (vehicle.read_param(n) for n in ("SIM_SCENE_SEED", "SIM_SCENE_CELLS", "SIM_SCENE_HASH"))
     if seed is None:
         return "the vehicle does not report its scene (no SIM_SCENE_SEED): scores assume the mission's scene"
