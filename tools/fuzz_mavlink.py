@@ -39,7 +39,6 @@ import json
 import math
 import os
 import socket
-import struct
 import sys
 import tempfile
 import time
@@ -159,7 +158,6 @@ class Packets:
 
     def _safe_frame(self) -> bytes:
         kind = self._pick(SAFE_FRAMES)
-        mav = self.mav
         msg = {
             "heartbeat": lambda: M.MAVLink_heartbeat_message(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3),
             "param_request_read": lambda: M.MAVLink_param_request_read_message(VEHICLE_SYSID, AUTOPILOT, b"MPC_XY_P", -1),
@@ -167,7 +165,6 @@ class Packets:
             "mission_request_list": lambda: M.MAVLink_mission_request_list_message(VEHICLE_SYSID, AUTOPILOT, 0),
             "timesync": lambda: M.MAVLink_timesync_message(0, int(self.rng.integers(1, 2**62))),
         }[kind]()
-        del mav
         return self._frame(msg)
 
     def truncated(self):
@@ -538,9 +535,7 @@ def fuzz_flight(seed: int, packets: int, speed: str = "1", rate_hz: float = 250.
             notes.append(f"COMMAND_ACKs missing (+) or extra (-) by command: {missing}")
         alive = sitl.proc.poll() is None
         api.command(M.MAV_CMD_IMAGE_STOP_CAPTURE, comp=CAMERA, timeout=2)
-        for mid, hz in ((0, 1.0),):  # restore what a fuzzed SET_MESSAGE_INTERVAL may have changed
-            api.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, mid, 0)
-            del hz
+        api.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 0)  # HEARTBEAT back to its default rate, whatever happened
         api.conn.mav.param_request_read_send(VEHICLE_SYSID, AUTOPILOT, b"MPC_XY_P", -1)
         answered_param = api.wait(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == "MPC_XY_P", 5) is not None
         ack = api.command(M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION)

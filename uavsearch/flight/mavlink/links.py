@@ -10,7 +10,6 @@ from __future__ import annotations
 import socket
 from dataclasses import dataclass
 
-
 from .signing import SigningMAVLink, enable_signing
 
 AUTOPILOT_COMPID = 1

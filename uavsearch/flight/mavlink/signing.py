@@ -40,12 +40,14 @@ class SigningMAVLink(M.MAVLink):
     frame_signed = False  # whether the frame being decoded carries a signature (allow_unsigned_callback reads it)
 
     def decode(self, msgbuf: bytearray):
-        self.frame_signed = len(msgbuf) > 2 and msgbuf[0] == M.PROTOCOL_MARKER_V2 and bool(msgbuf[2] & M.MAVLINK_IFLAG_SIGNED)
+        self.frame_signed = (len(msgbuf) > 2 and msgbuf[0] == M.PROTOCOL_MARKER_V2
+                             and bool(msgbuf[2] & M.MAVLINK_IFLAG_SIGNED))
         return super().decode(msgbuf)
 
     def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
         sig = self.signing
-        if not hmac.compare_digest(hashlib.sha256(sig.secret_key + bytes(msgbuf[:-6])).digest()[:6], bytes(msgbuf[-6:])):
+        digest = hashlib.sha256(sig.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+        if not hmac.compare_digest(digest, bytes(msgbuf[-6:])):
             return False  # a forgery: its timestamp must not count for anything
         tlow, thigh = self.mav_sign_unpacker.unpack(msgbuf[-12:-6])
         timestamp = tlow + (thigh << 32)
