@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from uavsearch.errors import UavsearchError
-from uavsearch.paths import MODELS_DIR
+from uavsearch.paths import MODELS_DIR, display_path
 
 from .dataset import DATA_DIR, ViewSetSpec, generate_views, load_views
 from .metrics import average_metrics, cell_correct
@@ -111,8 +111,9 @@ def evaluate_single_view(args: EvalArgs) -> dict:
     lines = [
         "# Table I: single-view performance vs pedestrian density (start view, 70 m)",
         "",
-        f"checkpoint `{args.checkpoint}`; {int(start.sum())} test scenes of the density set "
-        f"({args.scenes_per_pair} per row); threshold 0.5 (Eq. 16-19).",
+        f"checkpoint `{display_path(args.checkpoint)}`; {int(start.sum())} test scenes of the density set "
+        f"({args.scenes_per_pair} per row, seed {args.seed} for the extra Fig. 4 views); threshold 0.5 (Eq. 16-19).",
+        *_validation_line(extra),
         "",
         "| occupied cells | scenes | Aacc | AF1 | paper Aacc | paper AF1 |",
         "|---|---|---|---|---|---|",
@@ -128,10 +129,19 @@ def evaluate_single_view(args: EvalArgs) -> dict:
     dist = np.linalg.norm(views.position_enu[:, None, :2] - grid.centers_enu[None, :, :2], axis=-1)
     fig = _plot_fig4(views.cell_area_px[seen], correct[seen], dist[seen], views.person_px[seen & (y == 1)],
                      correct[seen & (y == 1)], out / "fig4.png")
-    print("\n".join(lines[4:]))
+    print("\n".join(lines))
     print(f"wrote {out / 'table1.md'}, {out / 'table1.csv'}, {fig}")
     print(f"({len(views)} views: {t_data:.0f} s to render/load, {t_pred:.1f} s to predict)")
     return {"rows": rows, "all": (all_acc, all_f1), "views": len(views), "data_s": t_data, "predict_s": t_pred}
+
+
+def _validation_line(extra: dict) -> list[str]:
+    """The checkpoint's own validation precision / recall (stage 1 training), which README quotes."""
+    val = (extra or {}).get("val") or {}
+    if "eval/precision" not in val:
+        return []
+    return ["", f"Stage 1 validation at step {extra.get('step')}: precision {val['eval/precision']:.3f}, "
+                f"recall {val['eval/recall']:.3f}, AF1 {val['eval/af1']:.3f}."]
 
 
 def _binned(x: np.ndarray, ok: np.ndarray, edges: np.ndarray):
@@ -209,6 +219,7 @@ def add_eval_single_view_parser(subparsers) -> None:
     p.add_argument("--checkpoint", default=d.checkpoint, help="perception checkpoint")
     p.add_argument("--scenes-per-pair", type=int, default=d.scenes_per_pair, help="test scenes per density pair")
     p.add_argument("--views-per-scene", type=int, default=d.views_per_scene, help="views per scene (Fig. 4)")
+    p.add_argument("--seed", type=int, default=d.seed, help="seed of the extra lattice positions (Fig. 4)")
     p.add_argument("--workers", type=int, default=d.workers, help="rendering processes")
     p.add_argument("--threads", type=int, default=d.threads, help="torch CPU threads")
     p.add_argument("--data-dir", default=d.data_dir, help="cache of rendered view sets")
@@ -218,6 +229,6 @@ def add_eval_single_view_parser(subparsers) -> None:
 
 def cmd_eval_single_view(a) -> int:
     evaluate_single_view(EvalArgs(out=a.out, checkpoint=a.checkpoint, scenes_per_pair=a.scenes_per_pair,
-                                  views_per_scene=a.views_per_scene, workers=a.workers, threads=a.threads,
+                                  views_per_scene=a.views_per_scene, seed=a.seed, workers=a.workers, threads=a.threads,
                                   data_dir=a.data_dir, progress=not a.no_progress))
     return 0
