@@ -17,14 +17,15 @@
 #   --jobs N: stage-2 trainings in parallel (default 1; 2 on a 2-core machine).
 #   --only STEP,...: run only these steps (names as listed by --dry-run); --dry-run: print the commands.
 #
-# Steps, their seeds and their cost. "measured": on the shared 2-core machine (other jobs running, see the
-# commit that last changed these lines); "estimate": from the README's figures, not measured by this script.
-#   quick (all from the shipped models):
-#     single_view     Table I + Fig. 4: start view of 80 density-set scenes per row (eval seed 0 for the
-#                     extra Fig. 4 views). measured: 160 s the first time (renders 1440 views into
-#                     data/views/), 20 s after.
+# Steps, their seeds and their cost. "measured": on the 2-core machine shared with other jobs (load average
+# 3-7.6 while measuring); "estimate": from the README's figures, not measured by this script.
+#   quick (all from the shipped models): measured 26 min the first time (762 CPU-s, almost all of it
+#   rendering; ~7 min on an idle 2-core machine by that count), 45 s after.
+#     single_view     Table I + Fig. 4: start view of 80 density-set scenes per row (seed 0 for the extra
+#                     Fig. 4 views). measured: 1353 s the first time (renders 1440 views into
+#                     data/views/density_v3_s0/), 38 s after.
 #     search          Table II + Fig. 6, paper split, 10 test scenes per setting, evaluation seeds 0-4 x 10
-#                     episodes. measured: 95 s the first time (renders 750 views into cache/), 15 s after.
+#                     episodes. measured: 229 s the first time (renders 750 views into cache/), 7 s after.
 #   full only:
 #     train_perception  stage 1, seed 1, 800 steps, occupied weight 4. estimate: ~30 min (README: 1594 s
 #                     on one thread) + ~3 min rendering 1320 views.
