@@ -37,8 +37,9 @@
 #     search_large    Table II + Fig. 6 on the large split's 100 test scenes per setting (seeds 0-4).
 #                     estimate: ~8 min rendering 7500 views the first time (shipped perception), 35 s after.
 #     flight          flight vs teleport, settings 1-3, the 10 paper test scenes each, missions/default.yaml
-#                     (vehicle seed 0, policy acting greedily), lockstep at speed max. estimate: ~5 min
-#                     (README: ~10 s wall per flown mission).
+#                     (vehicle seed 0, policy acting greedily), lockstep at speed max. measured: 652 s
+#                     (load 6-7; ~5 min idle at ~10 s per flown mission). Every Aacc, F1 and route is the
+#                     same on every run; the wall-time columns are the machine's.
 #     training_seeds  Table II on the large split for the runs of each training seed, then the spread of the
 #                     paper's method over seeds 0-2. estimate: ~2 min (after view_caches).
 #
@@ -109,7 +110,7 @@ add search_large full "Table II + Fig. 6, large split (100 test scenes), models/
   "$UAV eval search --setting all --split large --perception models/perception.pt --models-dir models $EVAL --out results/search_large"
 FLIGHT_CMD=""
 for s in $SETTINGS; do
-  FLIGHT_CMD+="rm -rf $RUN/flight_s$s && $UAV eval search --vehicle mavlink --setting $s --split paper --speed max --no-progress --out $RUN/flight_s$s && mkdir -p results/flight && cp $RUN/flight_s$s/flight_vs_teleport.md results/flight/flight_vs_teleport_s$s.md && cp $RUN/flight_s$s/flight_vs_teleport.json results/flight/flight_vs_teleport_s$s.json && "
+  FLIGHT_CMD+="rm -rf $RUN/flight_s$s && $UAV eval search --vehicle mavlink --setting $s --split paper --speed max --no-progress --out $RUN/flight_s$s && mkdir -p results/flight && cp $RUN/flight_s$s/flight_vs_teleport.md results/flight/flight_vs_teleport_s$s.md && "
 done
 add flight full "flight vs teleport, settings 1-3, models/ (flight logs in $RUN/flight_s<K>/) -> results/flight/" "${FLIGHT_CMD}true"
 SEED_CMD=""
@@ -140,7 +141,7 @@ if [ -n "$ONLY" ]; then
 fi
 
 n=${#selected[@]}
-mode_name=$([ "$QUICK" = 1 ] && echo quick || echo full)$([ "$SHIP" = 1 ] && echo " + ship" || true)
+mode_name=$([ -n "$ONLY" ] && echo "only $ONLY" || { [ "$QUICK" = 1 ] && echo quick || echo full; })$([ "$SHIP" = 1 ] && echo " + ship" || true)
 echo "reproduce.sh: $mode_name mode, $n step(s), python $PY"
 if [ "$DRY" = 1 ]; then
   i=0
