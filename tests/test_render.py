@@ -12,7 +12,7 @@ from uavsearch.geometry import (
     nadir_camera_pose,
     project_points,
 )
-from uavsearch.world.render import RenderOptions, SceneRenderer
+from uavsearch.world.render import RenderOptions, SceneRenderer, area_downsample
 from uavsearch.world.scene import (
     GENERATOR_VERSION,
     SceneObject,
@@ -131,3 +131,27 @@ def test_closed_renderer_releases_client(city):
     r.close()  # idempotent
     with pytest.raises(ValueError):
         SceneRenderer(city, CameraIntrinsics(), RenderOptions(supersample=0))
+
+
+def _reference_downsample(rgb: np.ndarray, pidx: np.ndarray, s: int):
+    """The area downsampling as first written (float mean over blocks): the reference for bit-identity."""
+    h, w = rgb.shape[0] // s, rgb.shape[1] // s
+    img = rgb.reshape(h, s, w, s, 3).astype(np.float32).mean(axis=(1, 3))
+    blocks = pidx.reshape(h, s, w, s).transpose(0, 2, 1, 3).reshape(h, w, s * s)
+    return img, (blocks >= 0).mean(axis=-1).astype(np.float32)
+
+
+@pytest.mark.parametrize("supersample", [2, 3])
+def test_downsample_bit_identical_on_rendered_frames(city, supersample):
+    intr = CameraIntrinsics(96, 80, 90.0)
+    partial = 0  # pixels partly covered by a person: the fraction comparison is not vacuous
+    with SceneRenderer(city, intr, RenderOptions(supersample=supersample, isolate=False)) as r:
+        for pose in (nadir_camera_pose((0, 0, 70)), nadir_camera_pose((-5, 5, 30), yaw_rad=0.4)):
+            rgb, pidx = r._world.capture(pose)
+            ref_img, ref_frac = _reference_downsample(rgb, pidx, supersample)
+            assert np.array_equal(area_downsample(rgb, supersample), ref_img)
+            out = r.render(pose)
+            assert np.array_equal(out.person_fraction, ref_frac)
+            assert np.array_equal(out.rgb, np.clip(np.rint(ref_img), 0, 255).astype(np.uint8))
+            partial += int(((ref_frac > 0) & (ref_frac < 1)).sum())
+    assert partial > 0

@@ -440,12 +440,10 @@ class _World:
         self._light = [math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)]
         self._proj = projection_matrix(self.intrinsics.scaled(int(self.options.supersample)))
 
-    def render(self, position_enu, r_enu_from_cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Clean float image (H, W, 3), person fraction (H, W) and person index (H, W)."""
-        pose = CameraPose(np.asarray(position_enu, float), np.asarray(r_enu_from_cam, float))
+    def capture(self, pose: CameraPose) -> tuple[np.ndarray, np.ndarray]:
+        """The supersampled frame: RGB (sH, sW, 3) uint8 and person index (sH, sW) int16."""
         s = int(self.options.supersample)
-        intr = self.intrinsics
-        w, h = intr.width_px * s, intr.height_px * s
+        w, h = self.intrinsics.width_px * s, self.intrinsics.height_px * s
         _, _, rgba, _, seg = pb.getCameraImage(
             w, h, view_matrix(pose), self._proj, renderer=pb.ER_TINY_RENDERER, shadow=0,
             lightDirection=self._light, lightAmbientCoeff=self.options.ambient,
@@ -453,12 +451,18 @@ class _World:
         )  # fmt: skip
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[:, :, :3]
         seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
-        pidx = self._seg_lut[np.clip(seg, -1, len(self._seg_lut) - 2)]
+        return rgb, self._seg_lut[np.clip(seg, -1, len(self._seg_lut) - 2)]
+
+    def render(self, position_enu, r_enu_from_cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Clean float image (H, W, 3), person fraction (H, W) and person index (H, W)."""
+        pose = CameraPose(np.asarray(position_enu, float), np.asarray(r_enu_from_cam, float))
+        s = int(self.options.supersample)
+        intr = self.intrinsics
+        rgb, pidx = self.capture(pose)
         H, W = intr.height_px, intr.width_px
         if s > 1:
-            img = rgb.reshape(H, s, W, s, 3).astype(np.float32).mean(axis=(1, 3))
             blocks = pidx.reshape(H, s, W, s).transpose(0, 2, 1, 3).reshape(H, W, s * s)
-            return img, (blocks >= 0).mean(axis=-1).astype(np.float32), _majority(blocks)
+            return area_downsample(rgb, s), _block_share(pidx >= 0, s), _majority(blocks)
         return rgb.astype(np.float32), (pidx >= 0).astype(np.float32), pidx.astype(np.int16)
 
     def close(self) -> None:
@@ -636,6 +640,28 @@ class SceneRenderer:
             self.close()
         except Exception:
             pass
+
+
+def area_downsample(img: np.ndarray, s: int) -> np.ndarray:
+    """Mean of each s x s block of a uint8 (h, w, c) image as float32: integer sums of s*s strided views,
+    one division. Bit-identical to img.reshape(H, s, W, s, c).astype(float32).mean((1, 3)), about 8x
+    faster (no float copy of the big image, no pairwise float reduction)."""
+    acc = np.zeros((img.shape[0] // s, img.shape[1] // s) + img.shape[2:], np.uint16 if s <= 16 else np.uint32)
+    for a in range(s):
+        for b in range(s):
+            acc += img[a::s, b::s]
+    out = acc.astype(np.float32)
+    out /= s * s
+    return out
+
+
+def _block_share(flags: np.ndarray, s: int) -> np.ndarray:
+    """Share of True in each s x s block of a bool (h, w) array, float32 (as bool mean: float64 then cast)."""
+    n = np.zeros((flags.shape[0] // s, flags.shape[1] // s), np.uint16)
+    for a in range(s):
+        for b in range(s):
+            n += flags[a::s, b::s]
+    return (n / (s * s)).astype(np.float32)
 
 
 def _majority(blocks: np.ndarray) -> np.ndarray:
