@@ -138,7 +138,13 @@ def _reference_downsample(rgb: np.ndarray, pidx: np.ndarray, s: int):
     h, w = rgb.shape[0] // s, rgb.shape[1] // s
     img = rgb.reshape(h, s, w, s, 3).astype(np.float32).mean(axis=(1, 3))
     blocks = pidx.reshape(h, s, w, s).transpose(0, 2, 1, 3).reshape(h, w, s * s)
-    return img, (blocks >= 0).mean(axis=-1).astype(np.float32)
+    frac = (blocks >= 0).mean(axis=-1).astype(np.float32)
+    index = np.full((h, w), -1, np.int16)  # majority person per pixel, ties to the lowest index
+    best_n = np.zeros((h, w), np.int64)
+    for v in np.unique(blocks[blocks >= 0]):
+        n = (blocks == v).sum(-1)
+        index[n > best_n], best_n = v, np.maximum(best_n, n)
+    return img, frac, index
 
 
 @pytest.mark.parametrize("supersample", [2, 3])
@@ -148,10 +154,11 @@ def test_downsample_bit_identical_on_rendered_frames(city, supersample):
     with SceneRenderer(city, intr, RenderOptions(supersample=supersample, isolate=False)) as r:
         for pose in (nadir_camera_pose((0, 0, 70)), nadir_camera_pose((-5, 5, 30), yaw_rad=0.4)):
             rgb, pidx = r._world.capture(pose)
-            ref_img, ref_frac = _reference_downsample(rgb, pidx, supersample)
+            ref_img, ref_frac, ref_index = _reference_downsample(rgb, pidx, supersample)
             assert np.array_equal(area_downsample(rgb, supersample), ref_img)
             out = r.render(pose)
             assert np.array_equal(out.person_fraction, ref_frac)
+            assert np.array_equal(out.person_index, ref_index)
             assert np.array_equal(out.rgb, np.clip(np.rint(ref_img), 0, 255).astype(np.uint8))
             partial += int(((ref_frac > 0) & (ref_frac < 1)).sum())
     assert partial > 0
