@@ -72,6 +72,8 @@ FAR_M = 1000.0
 PALETTE_SIDE = 64  # texels per side of the palette texture: up to 4096 distinct colours
 MAX_VERTICES = 90_000  # PyBullet refuses meshes of about 131k vertices and more
 GROUND_MODES = ("composite", "mesh")
+CULL_TILE_M = 20.0  # side of the square tiles the static objects are grouped into (composite ground)
+CULL_MARGIN_PX = 2.0  # a body counts as in view this far (supersampled pixels) outside the image
 
 
 @dataclass(frozen=True)
@@ -477,6 +479,7 @@ class _World:
             body = pb.createMultiBody(0, -1, vs, physicsClientId=self._client)
             pb.changeVisualShape(body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=self._client)
             bodies.append(body)
+            self._bounds.append((pos[sl].min(0), pos[sl].max(0)))
         return bodies
 
     def _build(self) -> None:
@@ -487,14 +490,18 @@ class _World:
             mb = MeshBuilder(palette)
             add_person_parts(mb, o)
             person_meshes.append(mb)
-        static = MeshBuilder(palette)
+        composite = self.options.ground == "composite"
+        # Composite: static objects go into square tiles, each its own bodies, so that a view hides the
+        # tiles it cannot see (TinyRenderer skips a body whose alpha is 0; it has no culling of its own).
+        tiles: dict[tuple[int, int], MeshBuilder] = {}
         for o in spec.objects:  # drawn before the ground: the z-test then skips ground under roofs
             if o.kind in ("building", "roof_unit", "tree", "car", "clutter"):
-                static.add_object(o)
+                key = (math.floor(o.x_m / CULL_TILE_M), math.floor(o.y_m / CULL_TILE_M)) if composite else (0, 0)
+                tiles.setdefault(key, MeshBuilder(palette)).add_object(o)
+        static = tiles.setdefault((0, 0), MeshBuilder(palette))
         gr = ground_raster(spec)
         base = next(o for o in spec.objects if o.kind == "base")
         g, t = base.sx_m / 2, gr.half_m
-        composite = self.options.ground == "composite"
         if not composite:  # plain ground beyond the painted texture: four quads around it (no overdraw)
             for x0, y0, x1, y1 in ((-g, t, g, g), (-g, -g, g, -t), (-g, -t, -t, t), (t, -t, g, t)):
                 static.add(BOX, ((x0 + x1) / 2, (y0 + y1) / 2, -0.02), (x1 - x0, y1 - y0, 0.02), np.eye(3),
@@ -503,10 +510,16 @@ class _World:
         for rgb, i in palette.items():
             pal_img[i // PALETTE_SIDE, i % PALETTE_SIDE] = rgb
         pal_tex = _write_texture(pal_img, c)
-        person_bodies = []
+        self._bounds: list[tuple[np.ndarray, np.ndarray]] = []
+        person_bodies, static_bodies = [], []
         for mb in person_meshes:
             person_bodies += self._mesh_body(mb, pal_tex)
-        static_bodies = self._mesh_body(static, pal_tex)
+        for mb in tiles.values():
+            static_bodies += self._mesh_body(mb, pal_tex)
+        self._bodies = np.array([*person_bodies, *static_bodies], np.int64)
+        lo, hi = (np.array([b[k] for b in self._bounds]).reshape(-1, 3) for k in (0, 1))
+        self._box_corners = np.stack([np.where(np.array(m, bool), hi, lo) for m in np.ndindex(2, 2, 2)], 1)
+        self._shown = np.ones(len(self._bodies), bool)
         az, el = math.radians(spec.sun_azimuth_deg), math.radians(spec.sun_elevation_deg)
         self._light = [math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)]
         if composite:
@@ -531,6 +544,8 @@ class _World:
         """The supersampled frame: RGB (sH, sW, 3) uint8 and person index (sH, sW) int16."""
         s = int(self.options.supersample)
         w, h = self.intrinsics.width_px * s, self.intrinsics.height_px * s
+        if self._ground is not None:
+            self._cull(pose, self.intrinsics.scaled(s))
         _, _, rgba, depth, seg = pb.getCameraImage(
             w, h, view_matrix(pose), self._proj, renderer=pb.ER_TINY_RENDERER, shadow=0,
             lightDirection=self._light, lightAmbientCoeff=self.options.ambient,
@@ -543,6 +558,22 @@ class _World:
             self._ground.composite(rgba, np.asarray(depth, np.float32).reshape(h, w), pidx, pose,
                                    self.intrinsics.scaled(s))  # fmt: skip
         return rgba[:, :, :3], pidx
+
+    def _cull(self, pose: CameraPose, intr: CameraIntrinsics) -> None:
+        """Hide the bodies whose bounding box lies wholly outside the view frustum (beyond one side plane,
+        with a margin of CULL_MARGIN_PX, or before the near plane) and show the others: the image is the
+        same, TinyRenderer just skips their vertices and triangles."""
+        pc = pose.world_to_camera(self._box_corners)  # (B, 8, 3)
+        x, y, z = pc[..., 0], pc[..., 1], pc[..., 2]
+        m = CULL_MARGIN_PX
+        out = ((x < -(intr.cx + m) / intr.fx * z).all(1) | (x > (intr.width_px - intr.cx + m) / intr.fx * z).all(1)
+               | (y < -(intr.cy + m) / intr.fy * z).all(1) | (y > (intr.height_px - intr.cy + m) / intr.fy * z).all(1)
+               | (z < NEAR_M).all(1))  # fmt: skip
+        show = ~out
+        for i in np.flatnonzero(show != self._shown):
+            pb.changeVisualShape(int(self._bodies[i]), -1, rgbaColor=[1, 1, 1, float(show[i])],
+                                 physicsClientId=self._client)  # fmt: skip
+        self._shown = show
 
     def render(self, position_enu, r_enu_from_cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Clean float image (H, W, 3), person fraction (H, W) and person index (H, W)."""
