@@ -419,6 +419,8 @@ class GroundCompositor:
         """Lay the ground under the bodies of a TinyRenderer frame, in place: rgba (h, w, 4) uint8, its
         window depth (h, w) float32, person index (h, w) (cleared where the ground wins)."""
         h, w = depth.shape
+        if float(pose.position_enu[2]) <= 0.0:
+            return  # at or below the ground: the quad's back face, which TinyRenderer culls
         pixel_from_index = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
         # ENU z of the camera ray through index (x, y) scaled to z_cam = 1, as a row over (x, y, 1)
         ray_z = pose.R_enu_from_cam[2] @ np.linalg.inv(intr.K) @ pixel_from_index
