@@ -18,6 +18,7 @@ import argparse
 import multiprocessing as mp
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
@@ -130,7 +131,15 @@ def frame_breakdown(ground: str, frames: int, seed: int = 1) -> list[tuple[str, 
     return rows
 
 
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a live process (Linux /proc), e.g. a render worker."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def _run(seed: int, frames: int, supersample: int, ground: str, with_grid: bool, barrier=None, queue=None):
+    """Render `frames` views through a render worker; returns (frames, wall s, CPU s of this process and
+    its worker together)."""
     intr = CameraIntrinsics()
     spec = generate_scene(seed, 5)
     grid = Grid()
@@ -138,34 +147,36 @@ def _run(seed: int, frames: int, supersample: int, ground: str, with_grid: bool,
         r.render(POSES[0])  # warm-up
         if barrier is not None:
             barrier.wait()
-        t0 = time.perf_counter()
+        worker = r._worker.proc.pid
+        t0, c0 = time.perf_counter(), time.process_time() + _cpu_s(worker)
         for i in range(frames):
             pose = POSES[i % len(POSES)]
             r.render(pose)
             if with_grid:
                 cell_label_image(grid, intr, pose)
                 cell_pixel_areas(grid, intr, pose)
-        dt = time.perf_counter() - t0
+        dt, cpu = time.perf_counter() - t0, time.process_time() + _cpu_s(worker) - c0
     if queue is not None:
-        queue.put((frames, dt))
-    return frames, dt
+        queue.put((frames, dt, cpu))
+    return frames, dt, cpu
 
 
-def throughput(procs: int, frames: int, supersample: int, ground: str, with_grid: bool) -> float:
-    """Frames/s over all processes (wall clock; each process renders through its render worker)."""
+def throughput(procs: int, frames: int, supersample: int, ground: str, with_grid: bool) -> tuple[float, float]:
+    """Frames/s over all processes (wall clock) and CPU ms per frame (each process with its worker)."""
     if procs == 1:
-        n, dt = _run(1, frames, supersample, ground, with_grid)
-        return n / dt
-    ctx = mp.get_context("fork")
-    barrier, queue = ctx.Barrier(procs), ctx.Queue()
-    ps = [ctx.Process(target=_run, args=(1 + i, frames, supersample, ground, with_grid, barrier, queue))
-          for i in range(procs)]  # fmt: skip
-    for p in ps:
-        p.start()
-    results = [queue.get() for _ in ps]
-    for p in ps:
-        p.join()
-    return sum(n for n, _ in results) / max(dt for _, dt in results)
+        results = [_run(1, frames, supersample, ground, with_grid)]
+    else:
+        ctx = mp.get_context("fork")
+        barrier, queue = ctx.Barrier(procs), ctx.Queue()
+        ps = [ctx.Process(target=_run, args=(1 + i, frames, supersample, ground, with_grid, barrier, queue))
+              for i in range(procs)]  # fmt: skip
+        for p in ps:
+            p.start()
+        results = [queue.get() for _ in ps]
+        for p in ps:
+            p.join()
+    n = sum(r[0] for r in results)
+    return n / max(r[1] for r in results), sum(r[2] for r in results) / n * 1e3
 
 
 def main() -> None:
@@ -199,21 +210,25 @@ def main() -> None:
         for name, ms, limit, lim_ms in rows:
             print(f"| {name} | {ms:.2f} | {limit} | {lim_ms:.2f} | {ms / lim_ms:.2f} |")
 
-    print(f"\nFrames/s at 224x224 (wall clock, render workers), supersample {default_ss}, {args.frames} frames per "
-          "process; 2 processes vs twice 1 as the ratio:")  # fmt: skip
-    print("| ground | processes | render only | render + cell_label_image + cell_pixel_areas | ratio to 2 x 1 |")
-    print("|---|---|---|---|---|")
+    print(f"\nThroughput at 224x224 through render workers, supersample {default_ss}, {args.frames} frames per "
+          "process: wall frames/s (load-sensitive) and CPU ms per frame (process + its worker); ratio: 2 processes "
+          "vs twice 1 (wall):")  # fmt: skip
+    print("| ground | processes | render fps | render CPU ms | + grid projection fps | + grid CPU ms | ratio |")
+    print("|---|---|---|---|---|---|---|")
     for ground in ("composite", "mesh"):
         f = {(p, g): throughput(p, args.frames, default_ss, ground, g) for p in (1, 2) for g in (False, True)}
-        print(f"| {ground} | 1 | {f[1, False]:.1f} | {f[1, True]:.1f} | |")
-        print(f"| {ground} | 2 | {f[2, False]:.1f} | {f[2, True]:.1f} | {f[2, False] / (2 * f[1, False]):.2f} |")
+        for p in (1, 2):
+            ratio = f"{f[2, False][0] / (2 * f[1, False][0]):.2f}" if p == 2 else ""
+            print(f"| {ground} | {p} | {f[p, False][0]:.1f} | {f[p, False][1]:.1f} | {f[p, True][0]:.1f} | "
+                  f"{f[p, True][1]:.1f} | {ratio} |")  # fmt: skip
 
-    print(f"\nRender cost vs supersampling (1 process, render only, {args.frames} frames, wall clock):")
-    print("| supersample | rendered px | composite frames/s | mesh frames/s | ratio |\n|---|---|---|---|---|")
+    rows = []
     for ss in tqdm(args.supersample, desc="supersampling", leave=False):
-        fc = throughput(1, args.frames, ss, "composite", False)
-        fm = throughput(1, args.frames, ss, "mesh", False)
-        print(f"| {ss} | {224 * ss}x{224 * ss} | {fc:.1f} | {fm:.1f} | {fc / fm:.2f} |")
+        rows.append((ss, throughput(1, args.frames, ss, "composite", False), throughput(1, args.frames, ss, "mesh", False)))
+    print(f"\nRender cost vs supersampling (1 process, render only, {args.frames} frames), CPU ms per frame:")
+    print("| supersample | rendered px | composite ms | mesh ms | composite / mesh |\n|---|---|---|---|---|")
+    for ss, (_, c), (_, m) in rows:
+        print(f"| {ss} | {224 * ss}x{224 * ss} | {c:.1f} | {m:.1f} | {c / m:.2f} |")
     print(f"\nload average at end: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
 
 
