@@ -238,3 +238,20 @@ def test_a_step_that_does_not_settle_fails_cleanly_and_lands(tmp_path):
     assert "\nlanded\n" in r.stdout
     summary = json.loads((run / "summary.json").read_text())
     assert summary["status"].startswith("failed: goto") and summary["end"] == "landed" and summary["steps"] == 0
+
+
+def test_flown_search_opens_as_a_plan(flown):
+    """Every flight leaves flown.plan: take off, each view with a photo, then the end action, in QGC's format."""
+    from uavsearch.plan_files import load_plan, mission_items
+
+    _, run, _ = flown
+    steps = [json.loads(x) for x in (run / "search.jsonl").read_text().splitlines()[1:]]
+    items = mission_items(load_plan(run / "flown.plan"))
+    assert [i.command for i in items] == [22] + [16, 2000] * T + [21]
+    home = json.loads((run / "mission.json").read_text())["home"]
+    from uavsearch.geometry import GeodeticOrigin
+
+    origin = GeodeticOrigin(home["lat_deg"], home["lon_deg"], home["alt_m"])
+    for wp, step in zip([i for i in items if i.command == 16], steps):
+        enu = origin.geodetic_to_enu([wp.lat_deg, wp.lon_deg, home["alt_m"] + wp.z])
+        np.testing.assert_allclose(enu, step["waypoint_enu"], atol=0.02)

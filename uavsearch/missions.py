@@ -102,6 +102,7 @@ class Mission(_Strict):
     greedy_policy: bool = False  # the learned policy takes its most likely action instead of sampling
     home: Home = Home()
     flight: FlightSection = FlightSection()
+    plan: str | None = None  # a QGroundControl .plan (relative to this file): `uavsearch mission upload` flies it
     source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
 
     @model_validator(mode="after")
@@ -150,6 +151,10 @@ class Mission(_Strict):
         return self._resolve(self.perception) if self.perception else MODELS_DIR / "perception.pt"
 
     @property
+    def plan_path(self) -> Path | None:
+        return self._resolve(self.plan) if self.plan else None
+
+    @property
     def spec_path(self) -> Path | None:
         return self._resolve(self.scene.spec) if self.scene.spec else None
 
@@ -196,7 +201,8 @@ class Mission(_Strict):
         return mission_from_dict(data, self.source)
 
 
-def _format_error(e: ValidationError, source: str) -> str:
+def format_validation_error(e: ValidationError, source: str, kind: str = "mission") -> str:
+    """pydantic's first error as one line: '<kind> <source>: <field>: <problem> (got <value>)'."""
     err = e.errors()[0]
     loc = ".".join(str(x) for x in err.get("loc", ()) if not str(x).startswith("function-after"))
     msg = err.get("msg", "invalid")
@@ -209,7 +215,7 @@ def _format_error(e: ValidationError, source: str) -> str:
     if err.get("type") == "extra_forbidden":
         msg = "unknown field"
     more = f" [+{len(e.errors()) - 1} more]" if len(e.errors()) > 1 else ""
-    return f"mission {source}: {where}{msg}{tail}{more}"
+    return f"{kind} {source}: {where}{msg}{tail}{more}"
 
 
 def mission_from_dict(data, source: str | None = None) -> Mission:
@@ -221,7 +227,7 @@ def mission_from_dict(data, source: str | None = None) -> Mission:
     try:
         m = Mission.model_validate(data)
     except ValidationError as e:
-        raise MissionError(_format_error(e, src)) from None
+        raise MissionError(format_validation_error(e, src)) from None
     return m.model_copy(update={"source": source})
 
 
