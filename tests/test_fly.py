@@ -291,9 +291,17 @@ def test_flight_review_page_renders_in_chromium(flown, tmp_path):
         severe, plots = open_page(drv, page, shot)
         # self-contained: plotly.js inlined, images as data URIs, nothing loaded from elsewhere
         external = drv.execute_script("return document.querySelectorAll('script[src], link[href], img[src]').length")
+        # a bare .tlog gets the same page without the per-view panels
+        tlog_page = tmp_path / "tlog.html"
+        rr = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(run / "telemetry.tlog"), "--html",
+                             str(tlog_page)], capture_output=True, text=True, timeout=120)
+        assert rr.returncode == 0, rr.stderr
+        tlog_severe, tlog_plots = open_page(drv, tlog_page, tmp_path / "tlog.png")
     finally:
         close(drv)
     assert external == 0
+    assert tlog_severe == [] and len(tlog_plots) == 2
+    assert {t["name"]: len(t["x"]) for t in tlog_plots[1]["traces"]}["altitude (estimate)"] == len(pos)
     if os.environ.get("UAVSEARCH_SCREENSHOT_DIR"):
         shutil.copy(shot, Path(os.environ["UAVSEARCH_SCREENSHOT_DIR"]) / "flight_review.png")
     assert severe == [], severe
