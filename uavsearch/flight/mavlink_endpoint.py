@@ -352,6 +352,9 @@ class MavlinkEndpoint:
             return self._flush_links()
         built: dict = {}  # one message object per id and tick, packed per link (own sequence, signing)
         for link in self.links:
+            if self.camera is not None and now >= link.next_due_us.get("camera_hb", 0):
+                link.next_due_us["camera_hb"] = now + 1_000_000
+                self._camera_heartbeat(link, now)
             for mid, interval in link.intervals_us.items():
                 if interval <= 0 or now < link.next_due_us.get(mid, 0):
                     continue
@@ -363,13 +366,25 @@ class MavlinkEndpoint:
                     except (struct.error, OverflowError, ValueError):  # a field out of its wire range
                         log.warning("cannot pack %s", msg.get_type(), exc_info=True)
                         built[mid] = None
-            if self.camera is not None and now >= link.next_due_us.get("camera_hb", 0):
-                link.next_due_us["camera_hb"] = now + 1_000_000
-                link.send(link.mav.heartbeat_encode(M.MAV_TYPE_CAMERA, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE), CAMERA_COMPID)
         due = [t for link in self.links for mid, t in link.next_due_us.items()
                if mid == "camera_hb" or link.intervals_us.get(mid, 0) > 0]
         self._next_due_any = min(due) if due else now + 1_000_000
         self._flush_links()
+
+    def _camera_heartbeat(self, link, now: int) -> None:
+        """The camera's heartbeat, always followed by the autopilot's in the same datagram.
+
+        pymavlink (so MAVProxy) takes a system's autopilot type from the LAST heartbeat of that system,
+        whichever component sent it; after the camera's (MAV_AUTOPILOT_INVALID) it falls back to ArduPilot
+        mode handling ("required argument is not a float"). Clients parse a datagram at once, so they never
+        act between the two."""
+        link.flush()
+        link.send(link.mav.heartbeat_encode(M.MAV_TYPE_CAMERA, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE),
+                  CAMERA_COMPID)
+        link.send(self._heartbeat())
+        hb = M.MAVLINK_MSG_ID_HEARTBEAT
+        if link.intervals_us.get(hb, 0) > 0:
+            link.next_due_us[hb] = now + link.intervals_us[hb]
 
     def _send_state_if_changed(self) -> None:
         """HEARTBEAT + EXTENDED_SYS_STATE at once when arming, mode or landed state changed."""
