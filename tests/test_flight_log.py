@@ -2,7 +2,6 @@
 survives a torn last line (a flight killed mid-write) with a warning."""
 
 import json
-import socket
 import time
 
 import numpy as np
@@ -10,6 +9,7 @@ import pytest
 from pymavlink import mavutil
 
 from uavsearch.errors import LogError
+from uavsearch.flight.sitl_process import free_udp_port
 from uavsearch.logs.flight_log import FlightLogWriter, read_flight_log
 from uavsearch.logs.replay import read_tlog
 from uavsearch.logs.tlog import TlogWriter
@@ -17,19 +17,11 @@ from uavsearch.logs.tlog import TlogWriter
 M = mavutil.mavlink
 
 
-def _free_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
 @pytest.fixture
 def recorded_tlog(tmp_path, monkeypatch):
     """A pymavlink 'vehicle' and a recorded pymavlink client exchanging real UDP packets (MAVLink 2)."""
     monkeypatch.setenv("MAVLINK20", "1")
-    port = _free_port()
+    port = free_udp_port()
     path = tmp_path / "telemetry.tlog"
     tlog = TlogWriter(path)
     client = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=245, source_component=190,

@@ -16,7 +16,7 @@ import pytest
 import yaml
 from pymavlink import mavutil
 
-from sitl_process import SitlProcess
+from uavsearch.flight.sitl_process import SitlProcess
 from uavsearch.paths import MODELS_DIR
 from uavsearch.search.config import ACTIONS
 from uavsearch.search.fusion import fuse
@@ -176,7 +176,7 @@ def test_connect_to_a_running_vehicle_flies_the_same_flight(flown, tmp_path):
     """--connect: a `uavsearch sitl --lockstep` started by someone else, same scene and seeds -> same flight,
     with the true poses read from the camera's captures.jsonl beside its images."""
     _, run, _ = flown
-    sitl = SitlProcess(tmp_path / "vehicle", "--lockstep", "--scene", "3", "--cells", "5", camera=True)
+    sitl = SitlProcess(tmp_path / "vehicle", "--scene", "3", "--cells", "5", lockstep=True)
     try:
         r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--connect", f"udpin:127.0.0.1:{sitl.api_port}",
                             "--mission", str(run.parent / "m.yaml"), "--out", str(tmp_path / "run")],

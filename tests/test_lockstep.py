@@ -7,8 +7,9 @@ import time
 import pytest
 from pymavlink import mavutil
 
-from sitl_process import Client, SitlProcess
+from mavlink_client import Client
 from uavsearch.flight.lockstep import MAV_CMD_SIM_ADVANCE
+from uavsearch.flight.sitl_process import SitlProcess
 
 M = mavutil.mavlink
 
@@ -31,7 +32,7 @@ def _drain(c: Client, seconds: float) -> list:
 
 @pytest.fixture
 def lockstep(tmp_path):
-    p = SitlProcess(tmp_path, "--lockstep", "--gcs-port", "0")
+    p = SitlProcess(tmp_path, lockstep=True, gcs_port=0, camera=False)
     assert "lockstep" in "".join(p.banner)
     c = Client(p.api_port)  # the vehicle heartbeats while it waits for its first grant
     yield c
@@ -90,7 +91,7 @@ def test_bad_grants_are_denied(lockstep):
 
 
 def test_a_free_running_vehicle_refuses_grants(tmp_path):
-    p = SitlProcess(tmp_path, "--gcs-port", "0")
+    p = SitlProcess(tmp_path, gcs_port=0, camera=False)
     c = Client(p.api_port)
     try:
         assert _grant(c, 10_000).result == M.MAV_RESULT_UNSUPPORTED

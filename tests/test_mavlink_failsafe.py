@@ -6,7 +6,8 @@ import math
 import pytest
 from pymavlink import mavutil
 
-from sitl_process import NAN, Client, SitlProcess
+from mavlink_client import NAN, Client
+from uavsearch.flight.sitl_process import SitlProcess
 
 M = mavutil.mavlink
 ORIGIN_ALT = 488.0
@@ -22,7 +23,7 @@ def _latlon(north_m, east_m):
 @pytest.fixture(scope="module")
 def flying(tmp_path_factory):
     p = SitlProcess(tmp_path_factory.mktemp("sitl"), "--param", "GF_MAX_HOR_DIST=40", "--param", "COM_DL_LOSS_T=1",
-                    "--param", "NAV_DLL_ACT=2", "--param", "MIS_TAKEOFF_ALT=4", "--param", "RTL_RETURN_ALT=6")
+                    "--param", "NAV_DLL_ACT=2", "--param", "MIS_TAKEOFF_ALT=4", "--param", "RTL_RETURN_ALT=6", camera=False)
     c = Client(p.gcs_port)
     assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == M.MAV_RESULT_ACCEPTED
     assert c.command(M.MAV_CMD_NAV_TAKEOFF, *[NAN] * 7).result == M.MAV_RESULT_ACCEPTED
@@ -87,7 +88,7 @@ def _signed_frame(m) -> bool:
 
 @pytest.fixture(scope="module")
 def signed(tmp_path_factory):
-    p = SitlProcess(tmp_path_factory.mktemp("sitl"), "--signing-key", KEY.hex())
+    p = SitlProcess(tmp_path_factory.mktemp("sitl"), "--signing-key", KEY.hex(), camera=False)
     yield p
     code, out = p.stop()
     assert code == 0, out

@@ -7,14 +7,15 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from sitl_process import NAN, Client, SitlProcess
+from mavlink_client import NAN, Client
+from uavsearch.flight.sitl_process import SitlProcess
 
 M = mavutil.mavlink
 
 
 @pytest.fixture(scope="module")
 def sitl(tmp_path_factory):
-    p = SitlProcess(tmp_path_factory.mktemp("sitl"))
+    p = SitlProcess(tmp_path_factory.mktemp("sitl"), camera=False)
     yield p
     code, out = p.stop()
     assert code == 0, out  # Ctrl-C stops it cleanly

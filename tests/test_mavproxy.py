@@ -21,7 +21,8 @@ import time
 
 import pytest
 
-from sitl_process import Client, SitlProcess, free_udp_port
+from mavlink_client import Client
+from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
 
 needs_mavproxy = pytest.mark.skipif(importlib.util.find_spec("MAVProxy") is None,
                                     reason="MAVProxy not installed (make setup installs mavproxy==1.8.75 --no-deps)")
@@ -135,7 +136,7 @@ def _wpl(path, alt_m: float = 10.0):
 
 @needs_mavproxy
 def test_mavproxy_flies_takeoff_modes_mission_rtl_land_by_name(tmp_path):
-    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="4")
+    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="4", camera=False)
     mp = obs = None
     try:
         obs = Observer(sitl.api_port)

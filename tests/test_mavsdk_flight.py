@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from sitl_process import SitlProcess
+from uavsearch.flight.sitl_process import SitlProcess
 
 mavsdk_asyncio = pytest.importorskip("mavsdk.asyncio")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from pymavlink import mavutil
 
-from sitl_process import SitlProcess, free_udp_port
 from uavsearch.errors import MissionError
+from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
 from uavsearch.plan_files import flown_search_items, load_plan, mission_items, plan_from_dict, save_plan
 
 M = mavutil.mavlink
@@ -91,7 +91,7 @@ def test_unflyable_commands_and_broken_files_are_one_line(tmp_path):
 def test_a_qgc_plan_flies_and_downloads_as_uploaded(tmp_path):
     """`uavsearch mission upload survey.plan --start` on a running vehicle: every item is reached, it
     returns and lands; the mission downloaded afterwards is the file's items."""
-    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="max")
+    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="max", camera=False)
     try:
         r = subprocess.run([sys.executable, "-m", "uavsearch", "mission", "upload", str(DATA / "survey.plan"),
                             "--connect", f"udpin:127.0.0.1:{sitl.gcs_port}", "--start", "--timeout", "150"],

@@ -3,7 +3,7 @@
     python tools/bench_flight.py [--seconds 60]
 
 Sections: `bench_fdm()` (JSBSim alone; the whole Multicopter: sensors, EKF, control; a takeoff + four
-10 m moves + landing flown on the Multicopter without MAVLink) and, when present, `bench_mavlink()`
+10 m moves + landing flown on the Multicopter without MAVLink) and `bench_mavlink()` from bench_mavlink.py
 (the whole vehicle with MAVLink streams, command latency). Each returns rows (name, value, unit).
 CPU time is reported beside wall time because the machine is shared: the CPU figure is the cost.
 """
@@ -11,9 +11,7 @@ CPU time is reported beside wall time because the machine is shared: the CPU fig
 from __future__ import annotations
 
 import argparse
-import math
 import sys
-import time
 
 import numpy as np
 from tqdm import tqdm
@@ -25,17 +23,8 @@ from uavsearch.flight.params import ParamStore
 from uavsearch.flight.step_response import Flight
 from uavsearch.geometry import GeodeticOrigin
 
-try:  # the MAVLink section (whole vehicle with streams, ACK latency, MAVLink episode) lives beside this file
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
-    from bench_mavlink import bench_mavlink  # noqa: F401
-except ImportError:
-    pass
-
-
-def _timed(fn):
-    w0, c0 = time.perf_counter(), time.process_time()
-    fn()
-    return time.perf_counter() - w0, time.process_time() - c0
+from bench_mavlink import bench_mavlink  # the MAVLink section; tools/ is on sys.path when run as a script
+from bench_table import print_table, timed
 
 
 def bench_fdm(seconds: float = 60.0, physics_hz: int = 100) -> list[tuple[str, float, str]]:
@@ -50,7 +39,7 @@ def bench_fdm(seconds: float = 60.0, physics_hz: int = 100) -> list[tuple[str, f
             fdm.set_motor_commands(cmd)
             fdm.step()
 
-    wall, cpu = _timed(run_fdm)
+    wall, cpu = timed(run_fdm)
     rows += [
         (f"JSBSim alone, {physics_hz} Hz: real-time factor (wall)", seconds / wall, "x"),
         (f"JSBSim alone, {physics_hz} Hz: real-time factor (CPU)", seconds / cpu, "x"),
@@ -61,7 +50,7 @@ def bench_fdm(seconds: float = 60.0, physics_hz: int = 100) -> list[tuple[str, f
     v.arm()
     v.set_setpoint(TrajectorySetpoint(0, np.array([0.0, 0.0, -20.0]), yaw_rad=0.0))
     v.run_for(10.0)
-    wall, cpu = _timed(lambda: v.run_for(seconds))
+    wall, cpu = timed(lambda: v.run_for(seconds))
     rows += [
         (f"Multicopter.step, {v.physics_hz}/{v.ctrl_hz}/{v.ekf_hz} Hz: real-time factor (wall)", seconds / wall, "x"),
         ("Multicopter.step: real-time factor (CPU)", seconds / cpu, "x"),
@@ -87,7 +76,7 @@ def bench_fdm(seconds: float = 60.0, physics_hz: int = 100) -> list[tuple[str, f
         episode.sim_s = f.vehicle.time_us / 1e6
         episode.landed = f.vehicle.land_detected.landed
 
-    wall, cpu = _timed(episode)
+    wall, cpu = timed(episode)
     rows += [
         ("episode (takeoff 70 m, 4 x 10 m, land): simulated time", episode.sim_s, "s"),
         ("episode: wall time", wall, "s"),
@@ -97,21 +86,12 @@ def bench_fdm(seconds: float = 60.0, physics_hz: int = 100) -> list[tuple[str, f
     return rows
 
 
-def print_table(rows) -> None:
-    w = max(len(r[0]) for r in rows)
-    print()
-    for name, value, unit in rows:
-        val = "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:10.2f}"
-        print(f"{name:{w}}  {val} {unit}")
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0, help="simulated seconds per speed measurement")
     args = ap.parse_args(argv)
-    sections = [("JSBSim / Multicopter", lambda: bench_fdm(args.seconds))]
-    if "bench_mavlink" in globals():
-        sections.append(("MAVLink vehicle", lambda: globals()["bench_mavlink"](args.seconds)))
+    sections = [("JSBSim / Multicopter", lambda: bench_fdm(args.seconds)),
+                ("MAVLink vehicle", lambda: bench_mavlink(args.seconds))]
     rows = []
     for _name, fn in tqdm(sections, desc="bench", unit="section"):
         rows += fn()

@@ -23,11 +23,15 @@ import numpy as np
 from pymavlink import mavutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from sitl_process import NAN, Client, SitlProcess  # noqa: E402
+from mavlink_client import NAN, Client  # noqa: E402
 
 from uavsearch.flight.commander import VehicleCommand  # noqa: E402
+from uavsearch.flight.mavlink.wire_units import deg_to_e7  # noqa: E402
 from uavsearch.flight.sitl import Sitl, SitlConfig  # noqa: E402
+from uavsearch.flight.sitl_process import SitlProcess  # noqa: E402
 from uavsearch.geometry import GeodeticOrigin  # noqa: E402
+
+from bench_table import print_table  # noqa: E402  (tools/ is on sys.path when run as a script)
 
 M = mavutil.mavlink
 
@@ -70,7 +74,7 @@ def _rtf_in_process(seconds: float) -> list[tuple[str, float, str]]:
 
 def _ack_latency(speed: str, n: int = 200) -> tuple[float, float]:
     with tempfile.TemporaryDirectory() as tmp:
-        p = SitlProcess(Path(tmp), speed=speed)
+        p = SitlProcess(Path(tmp), speed=speed, camera=False)
         try:
             c = Client(p.gcs_port)
             lat = []
@@ -90,7 +94,7 @@ def _episode() -> tuple[float, float, bool]:
     """Takeoff 70 m + four 10 m moves + land over MAVLink at --speed max: (sim s, wall s, landed)."""
     origin = GeodeticOrigin()
     with tempfile.TemporaryDirectory() as tmp:
-        p = SitlProcess(Path(tmp), speed="max")
+        p = SitlProcess(Path(tmp), speed="max", camera=False)
         try:
             c = Client(p.gcs_port)
             c.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, M.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 50_000)
@@ -104,7 +108,7 @@ def _episode() -> tuple[float, float, bool]:
                 pos = pos + 10.0 * np.array(d)
                 lla = origin.enu_to_geodetic([pos[1], pos[0], 0.0])
                 c.mav.command_int_send(1, 1, M.MAV_FRAME_GLOBAL_INT, M.MAV_CMD_DO_REPOSITION, 0, 0, -1, 1, 0, NAN,
-                                       int(round(lla[0] * 1e7)), int(round(lla[1] * 1e7)), origin.alt_m + 70.0)
+                                       deg_to_e7(lla[0]), deg_to_e7(lla[1]), origin.alt_m + 70.0)
                 c.recv("LOCAL_POSITION_NED", timeout=60, cond=lambda m: np.hypot(m.x - pos[0], m.y - pos[1]) < 0.5
                        and np.hypot(m.vx, m.vy) < 0.3)
             c.command(M.MAV_CMD_NAV_LAND)
@@ -144,12 +148,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=60.0, help="simulated seconds of the hover measurement")
     args = ap.parse_args(argv)
-    from bench_flight import print_table
-
     print_table(bench_mavlink(args.seconds))
     return 0
 
 
 if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     sys.exit(main())

@@ -108,7 +108,7 @@ class Camera:
             pose = camera_pose_from_vehicle(ts.position_enu_m, ts.roll_rad, ts.pitch_rad, ts.yaw_rad, gimbal_stabilised=True)
             rgb = self.render(pose)
             path.parent.mkdir(parents=True, exist_ok=True)
-            import cv2
+            import cv2  # lazy: ~50 ms on every `uavsearch` command; the renderer has loaded it by now
 
             ok = bool(cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., :3][..., ::-1])))
         rec = CaptureRecord(
@@ -137,6 +137,7 @@ def scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntri
     Sensor randomisation (if the options enable it) draws from a generator seeded by (seed, shot
     number), so the same flight gives the same pixels.
     """
+    # lazy: PyBullet and the scene generator cost ~0.4 s, and `uavsearch` (any command) imports this module
     from ..world.render import RenderOptions, SceneRenderer
     from ..world.scene import generate_scene
 

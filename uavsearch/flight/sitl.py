@@ -27,7 +27,10 @@ from ..paths import RUNS_DIR
 from .camera import Camera, scene_renderer
 from .commander import Commander, autopilot_params
 from .lockstep import LockstepGate
-from .mavlink_endpoint import GCS_RATES_HZ, LinkConfig, MavlinkEndpoint, parse_signing_key
+from .mavlink.endpoint import MavlinkEndpoint
+from .mavlink.links import LinkConfig
+from .mavlink.signing import parse_signing_key
+from .mavlink.streams import GCS_RATES_HZ
 from .params import ParamError, ParamStore
 
 
@@ -57,13 +60,13 @@ class SitlConfig:
 
 
 def _default_vehicle(params: ParamStore, cfg: SitlConfig):
-    from .multicopter import Multicopter
+    from .multicopter import Multicopter  # lazy: ~0.8 s (JSBSim, EKF), and every `uavsearch` command imports sitl
 
     return Multicopter(params, cfg.home, cfg.seed, start_enu=cfg.start_enu, start_yaw_rad=cfg.start_yaw_rad)
 
 
 def _vehicle_params():
-    from .multicopter import MC_PARAMS
+    from .multicopter import MC_PARAMS  # lazy: see _default_vehicle
 
     return MC_PARAMS
 
@@ -94,7 +97,7 @@ class Sitl:
         if render is None and cfg.scene_seed is not None:
             spec = None
             if cfg.scene_file is not None:
-                from ..world.scene import load_scene
+                from ..world.scene import load_scene  # lazy: ~0.4 s, only for --scene-file
 
                 spec = load_scene(cfg.scene_file)
                 cfg.scene_seed = spec.seed

@@ -28,7 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import LogError, UavsearchError
-from ..geometry import GeodeticOrigin, Grid, camera_pose_from_vehicle, euler_from_quaternion
+from ..flight.mavlink import wire_units as wire
+from ..geometry import GeodeticOrigin, Grid, camera_pose_from_vehicle
 
 # --------------------------------------------------------------------------------------------------
 # tlog reading (robust: stops at the first damaged record)
@@ -103,15 +104,16 @@ def read_tlog(path) -> TlogTrack:
         typ = m.get_type()
         if typ == "GLOBAL_POSITION_INT" and m.get_srcComponent() in (1, 0):
             t_pos.append(t)
-            lla.append((m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3))
+            lla.append(wire.lla(m))
         elif typ == "ATTITUDE":
             rpy_at.append((t, (float(m.roll), float(m.pitch), float(m.yaw))))
         elif typ == "CAMERA_IMAGE_CAPTURED":
             url = m.file_url if isinstance(m.file_url, str) else bytes(m.file_url).decode(errors="replace")
-            caps.append(dict(t_s=t, lat=m.lat * 1e-7, lon=m.lon * 1e-7, alt=m.alt * 1e-3, q=list(m.q),
+            lat, lon, alt = wire.lla(m)
+            caps.append(dict(t_s=t, lat=lat, lon=lon, alt=alt, q=list(m.q),
                              index=int(m.image_index), url=url.rstrip("\x00"), ok=int(m.capture_result)))
         elif typ == "HOME_POSITION" and home is None:
-            home = (m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3)
+            home = wire.home_lla(m)
     if n == 0 and warning is None:
         raise LogError(f"{path}: no MAVLink messages (empty, or not a telemetry log)")
     if n == 0:
@@ -265,7 +267,7 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     origin = GeodeticOrigin(*tr.home) if tr.home else mission.origin()
     shots = []  # (t, lla, rpy), in log time order
     for c in tr.captures:
-        shots.append((c["t_s"], (c["lat"], c["lon"], c["alt"]), euler_from_quaternion(c["q"])))
+        shots.append((c["t_s"], (c["lat"], c["lon"], c["alt"]), wire.rpy_rad(c["q"])))
     if every_s:
         t_next = -math.inf
         for t, lla in zip(tr.t_s, tr.lla):

@@ -37,7 +37,8 @@ from pymavlink import mavutil
 
 from ..errors import UavsearchError
 from ..flight.lockstep import MAV_CMD_SIM_ADVANCE
-from ..geometry import GeodeticOrigin, camera_pose_from_vehicle, euler_from_quaternion
+from ..flight.mavlink import wire_units as wire
+from ..geometry import GeodeticOrigin, camera_pose_from_vehicle
 from .config import SearchConfig
 from .views import View, make_view
 
@@ -202,7 +203,7 @@ class MavlinkVehicle:
         elif t == "GLOBAL_POSITION_INT":
             self._gpos = m
             if self._settle is not None:
-                self._settle.update(self.position_enu(), self.velocity_enu(), m.time_boot_ms * 1e-3)
+                self._settle.update(self.position_enu(), self.velocity_enu(), wire.seconds(m.time_boot_ms))
         elif t == "SYS_STATUS":
             self._sys_status = m
         elif t == "EXTENDED_SYS_STATE":
@@ -270,7 +271,7 @@ class MavlinkVehicle:
     @property
     def sim_time_s(self) -> float | None:
         """The vehicle's clock (time since boot) from its last position report."""
-        return None if self._gpos is None else self._gpos.time_boot_ms * 1e-3
+        return None if self._gpos is None else wire.seconds(self._gpos.time_boot_ms)
 
     # ------------------------------------------------------------------ commands
     def command_long(self, command: int, *params: float, compid: int = AUTOPILOT_COMPID,
@@ -317,11 +318,11 @@ class MavlinkVehicle:
         g = self._gpos
         if g is None:
             return None
-        return self.origin.geodetic_to_enu([g.lat * 1e-7, g.lon * 1e-7, g.alt * 1e-3])
+        return wire.position_enu(g, self.origin)
 
     def velocity_enu(self) -> np.ndarray | None:
         g = self._gpos
-        return None if g is None else np.array([g.vy, g.vx, -g.vz], dtype=float) * 0.01
+        return None if g is None else wire.velocity_enu_m_s(g)
 
     def mode(self) -> tuple[int, int] | None:
         return (self._hb["main"], self._hb["sub"]) if self._hb else None
@@ -375,7 +376,7 @@ class MavlinkVehicle:
                    sim_timeout_s=st.takeoff_timeout_s)
 
     def _at_alt(self, alt_amsl: float, tol_m: float = 1.0) -> bool:
-        return self._gpos is not None and abs(self._gpos.alt * 1e-3 - alt_amsl) < tol_m
+        return self._gpos is not None and abs(wire.lla(self._gpos)[2] - alt_amsl) < tol_m
 
     def goto(self, position_enu) -> float:
         """DO_REPOSITION to the waypoint; returns the simulation time it took to arrive and settle."""
@@ -387,7 +388,7 @@ class MavlinkVehicle:
         try:
             r = self.command_int(M.MAV_CMD_DO_REPOSITION, M.MAV_FRAME_GLOBAL_INT, -1,
                                  M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.radians(st.yaw_deg),
-                                 int(round(lat * 1e7)), int(round(lon * 1e7)), float(alt))
+                                 wire.deg_to_e7(lat), wire.deg_to_e7(lon), float(alt))
             if r != M.MAV_RESULT_ACCEPTED:
                 raise StepFailed(f"goto {np.round(target, 1).tolist()} refused "
                                  f"({'; '.join(self._texts[-1:]) or f'MAV_RESULT {r}'})")
@@ -434,8 +435,8 @@ class MavlinkVehicle:
             cv2.imwrite(str(copy), bgr)
             path = copy
         rgb = np.ascontiguousarray(bgr[..., ::-1])
-        pos = self.origin.geodetic_to_enu([msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3])
-        rpy = euler_from_quaternion(list(msg.q))
+        pos = wire.position_enu(msg, self.origin)
+        rpy = wire.rpy_rad(msg.q)
         pose = camera_pose_from_vehicle(pos, *rpy, gimbal_stabilised=True)
         cfg = self.config
         view = make_view(rgb, pose, cfg.grid, cfg.intrinsics, None, cfg.min_cell_area_px)
@@ -454,7 +455,7 @@ class MavlinkVehicle:
             index=int(msg.image_index), waypoint_enu=[float(x) for x in position_enu],
             reported_position_enu=[float(x) for x in pos], reported_rpy_rad=[float(x) for x in rpy],
             image_path=str(path), camera_dir=str(self.image_path(msg).parent.parent),
-            time_boot_s=msg.time_boot_ms * 1e-3, flight_time_s=float(flight),
+            time_boot_s=wire.seconds(msg.time_boot_ms), flight_time_s=float(flight),
             wall_s=time.monotonic() - wall0)
         return view
 

@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
@@ -31,6 +29,7 @@ import numpy as np
 import torch
 
 from ..errors import MissionError, UavsearchError
+from ..flight.sitl_process import SitlProcess
 from ..paths import MODELS_DIR, RUNS_DIR
 from .config import lattice_positions
 from .mavlink_vehicle import FlightError, MavlinkVehicle, StepFailed
@@ -247,58 +246,14 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
 # Starting the simulated vehicle as its own process
 
 
-def _die_with_parent() -> None:
-    """In the child: get SIGTERM when the controller dies, so a killed `uavsearch fly` leaves no vehicle running."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-
-        try:
-            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-        except OSError:
-            pass
-
-
-class SitlProcess:
-    """`uavsearch sitl` in its own process, its output in RUN_DIR/sitl.log; stopped with SIGINT."""
-
-    def __init__(self, run_dir: Path, mission, api_port: int, gcs_port: int = 0, timeout_s: float = 120.0):
-        self.log_path = Path(run_dir) / "sitl.log"
-        s, h = mission.flight, mission.home
-        speed = "max" if s.speed == "max" else f"{float(s.speed):g}"
-        scene = ["--scene-file", str(mission.spec_path)] if mission.spec_path is not None else \
-            ["--scene", str(mission.scene.seed), "--cells", str(mission.scene.k)]
-        cmd = [sys.executable, "-m", "uavsearch.flight.sitl", *scene, "--seed", str(s.vehicle_seed), "--speed", speed,
-               "--out", str(run_dir), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}", "--api-port", str(api_port),
-               "--gcs-port", str(gcs_port), "--api-local-port", "0", "--gcs-local-port", "0"]
-        if s.lockstep:
-            cmd.append("--lockstep")
-        self._out = open(self.log_path, "w")
-        self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
-                                     start_new_session=True)  # Ctrl-C reaches the controller only: it lands first
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            text = self.log_path.read_text()
-            if "\nready" in text or text.startswith("ready"):
-                return
-            if self.proc.poll() is not None:
-                self.stop()
-                last = [ln for ln in text.strip().splitlines() if ln.strip()][-1:] or ["no output"]
-                raise FlightError(f"uavsearch sitl exited at start: {last[0]} (see {self.log_path})")
-            time.sleep(0.1)
-        self.stop()
-        raise FlightError(f"uavsearch sitl did not get ready in {timeout_s:.0f} s (see {self.log_path})")
-
-    def stop(self) -> int | None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._out.close()
-        return self.proc.returncode
+def _start_sitl(run_dir: Path, mission, api_port: int, gcs_port: int) -> SitlProcess:
+    """The simulated vehicle for `mission`: its scene, noise seed, home, pacing and lockstep."""
+    s, h = mission.flight, mission.home
+    scene = ["--scene-file", str(mission.spec_path)] if mission.spec_path is not None else \
+        ["--scene", str(mission.scene.seed), "--cells", str(mission.scene.k)]
+    return SitlProcess(run_dir, *scene, "--seed", str(s.vehicle_seed), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}",
+                       speed="max" if s.speed == "max" else f"{float(s.speed):g}", lockstep=s.lockstep,
+                       api_port=api_port, gcs_port=gcs_port)
 
 
 def default_run_dir(mission) -> Path:
@@ -335,7 +290,7 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             port = vehicle.conn.port.getsockname()[1]
             progress(f"starting uavsearch sitl (scene {spec.seed}, {int(labels.sum())} occupied cells, speed "
                      f"{mission.flight.speed}) -> API link udp 127.0.0.1:{port}")
-            sitl = SitlProcess(run_dir, mission, api_port=port, gcs_port=gcs_port)
+            sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port)
         fwall0 = time.monotonic()
         try:
             rec, status = fly_search(vehicle, loaded, config, labels, log, run_dir, mission.policy_seed, progress)

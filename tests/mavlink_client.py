@@ -1,64 +1,14 @@
-"""Start `uavsearch sitl` as a real process on free loopback ports, and a pymavlink client for it."""
+"""A pymavlink ground station for the tests and benchmarks that fly `uavsearch sitl` (flight/sitl_process.py)."""
 
 from __future__ import annotations
 
 import math
-import os
-import signal
 import socket
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 from pymavlink import mavutil
 
 NAN = math.nan
-
-
-def free_udp_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
-
-
-class SitlProcess:
-    """`python -m uavsearch.flight.sitl` with the given arguments; stopped with SIGINT (Ctrl-C)."""
-
-    def __init__(self, run_dir: Path, *args: str, api_port: int | None = None, gcs_port: int | None = None,
-                 speed: str = "max", camera: bool = False):
-        self.api_port = api_port or free_udp_port()
-        self.gcs_port = gcs_port or free_udp_port()
-        cmd = [sys.executable, "-m", "uavsearch.flight.sitl", "--speed", speed, "--out", str(run_dir),
-               "--api-port", str(self.api_port), "--gcs-port", str(self.gcs_port),
-               "--api-local-port", "0", "--gcs-local-port", "0", *args]
-        if not camera:
-            cmd.append("--no-camera-scene")
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        self.banner = []
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            line = self.proc.stdout.readline()
-            if not line:
-                raise RuntimeError("sitl exited early:\n" + "".join(self.banner))
-            self.banner.append(line)
-            if line.startswith("ready"):
-                return
-        raise RuntimeError("sitl did not get ready:\n" + "".join(self.banner))
-
-    def stop(self) -> tuple[int, str]:
-        """Ctrl-C, then the exit code and the rest of the output."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-        try:
-            out, _ = self.proc.communicate(timeout=20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, _ = self.proc.communicate()
-        return self.proc.returncode, out
 
 
 class Client:

@@ -1,0 +1,96 @@
+"""`uavsearch sitl` as its own process: what the mission controller and the tests fly against.
+
+The vehicle runs in a separate process on loopback UDP, sharing nothing with its client but the run
+directory, like PX4 SITL. It gets its own session, so a Ctrl-C in the terminal reaches only the client
+(which lands first) and the vehicle is stopped after it with SIGINT; on Linux it also dies with its
+parent, so a killed client leaves no vehicle running. Its output goes to RUN_DIR/sitl.log.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from ..errors import UavsearchError
+
+
+class SitlStartError(UavsearchError):
+    """The vehicle process exited or did not get ready."""
+
+
+def free_udp_port() -> int:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def _die_with_parent() -> None:
+    """In the child: get SIGTERM when the parent dies (PR_SET_PDEATHSIG)."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
+        except OSError:
+            pass
+
+
+class SitlProcess:
+    """`python -m uavsearch.flight.sitl ARGS` on the given (or free) UDP ports; returns once it is ready.
+
+    `args` are more `uavsearch sitl` options (scene, seed, home, params); `camera=False` skips building
+    the scene (faster start; captures fail). A port of None is a free one, 0 turns the link off.
+    """
+
+    def __init__(self, run_dir: Path, *args: str, api_port: int | None = None, gcs_port: int | None = None,
+                 speed: str = "max", lockstep: bool = False, camera: bool = True, timeout_s: float = 120.0):
+        run_dir = Path(run_dir)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        self.log_path = run_dir / "sitl.log"
+        self.api_port = free_udp_port() if api_port is None else api_port
+        self.gcs_port = free_udp_port() if gcs_port is None else gcs_port
+        cmd = [sys.executable, "-m", "uavsearch.flight.sitl", "--speed", speed, "--out", str(run_dir),
+               "--api-port", str(self.api_port), "--gcs-port", str(self.gcs_port),
+               "--api-local-port", "0", "--gcs-local-port", "0", *args]
+        if lockstep:
+            cmd.append("--lockstep")
+        if not camera:
+            cmd.append("--no-camera-scene")
+        self._out = open(self.log_path, "w")
+        self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
+                                     start_new_session=True)  # Ctrl-C reaches the client only: it lands first
+        self.banner: list[str] = []  # the lines up to "ready" (ports, signing, run directory)
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            text = self.log_path.read_text()
+            if "\nready" in text or text.startswith("ready"):
+                end_of_banner = 0 if text.startswith("ready") else text.index("\nready") + 1
+                self.banner = text[:end_of_banner].splitlines(keepends=True) + ["ready\n"]
+                return
+            if self.proc.poll() is not None:
+                self.stop()
+                last = [ln for ln in text.strip().splitlines() if ln.strip()][-1:] or ["no output"]
+                raise SitlStartError(f"uavsearch sitl exited at start: {last[0]} (see {self.log_path})")
+            time.sleep(0.1)
+        self.stop()
+        raise SitlStartError(f"uavsearch sitl did not get ready in {timeout_s:.0f} s (see {self.log_path})")
+
+    def stop(self) -> tuple[int | None, str]:
+        """Ctrl-C (SIGINT), then the exit code and everything it printed."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if not self._out.closed:
+            self._out.close()
+        return self.proc.returncode, self.log_path.read_text()
