@@ -273,7 +273,7 @@ def test_flight_review_page_renders_in_chromium(flown, tmp_path):
     # the log, independently
     home = json.loads((run / "mission.json").read_text())["home"]
     log = mavutil.mavlink_connection(str(run / "telemetry.tlog"), dialect="common")
-    pos, att, texts, modes = [], 0, [], []
+    pos, att, texts, modes, truth = [], 0, [], [], 0
     while (m := log.recv_match()) is not None:
         if m.get_srcSystem() != 1:
             continue
@@ -281,6 +281,8 @@ def test_flight_review_page_renders_in_chromium(flown, tmp_path):
             pos.append((m.time_boot_ms * 1e-3, m.alt * 1e-3 - home["alt_m"]))
         elif m.get_type() == "ATTITUDE":
             att += 1
+        elif m.get_type() == "SIM_STATE":
+            truth += 1
         elif m.get_type() == "STATUSTEXT":
             texts.append(m.text)
         elif m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 1:
@@ -312,6 +314,8 @@ def test_flight_review_page_renders_in_chromium(flown, tmp_path):
     np.testing.assert_allclose(alt["y"], [p[1] for p in pos], atol=0.02)  # ENU up vs AMSL - home over < 100 m
     assert len(series["roll"]["y"]) == att and len(series["N velocity"]["y"]) == len(pos)
     assert len(series["STATUSTEXT"]["x"]) == len(texts) > 0
+    assert len(series["horizontal, estimate - truth"]["y"]) == truth > 0  # the client asked for SIM_STATE
+    assert max(series["horizontal, estimate - truth"]["y"][10:]) < 3.0  # the EKF stays within metres of the truth
     assert {"TAKEOFF", "LAND"} <= set(plots[1]["annotations"]) and (4, 2) in modes and (4, 6) in modes
     steps = plots[2]
     assert steps["sliders"] == [T] and sum(t["type"] == "image" and t["source"] > 1000 for t in steps["traces"]) == T

@@ -34,6 +34,9 @@ DEFAULT_RATES_HZ = {
     M.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     M.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
     M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 2.0,
+    # The simulator's ground truth (as ArduPilot SITL sends it; PX4 SITL does not): off unless a client asks
+    # with SET_MESSAGE_INTERVAL, e.g. to log estimator error against truth.
+    M.MAVLINK_MSG_ID_SIM_STATE: 0.0,
 }
 # Ground stations get PX4's lighter "normal" profile: half the position/attitude rates.
 GCS_RATES_HZ = {
