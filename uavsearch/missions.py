@@ -231,13 +231,18 @@ def mission_from_dict(data, source: str | None = None) -> Mission:
     return m.model_copy(update={"source": source})
 
 
+def read_user_file(path: Path, kind: str = "mission") -> str:
+    """A file the user named, or the one-line error saying why it cannot be read."""
+    try:
+        return path.read_text()
+    except OSError as e:
+        raise MissionError(f"{kind} {path}: cannot read ({e.strerror or e})") from None
+
+
 def load_mission(path=None) -> Mission:
     """Read and validate a mission file (default: missions/default.yaml)."""
     path = Path(path) if path else DEFAULT_MISSION
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise MissionError(f"mission {path}: cannot read ({e.strerror or e})") from None
+    text = read_user_file(path)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:

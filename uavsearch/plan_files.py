@@ -24,7 +24,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from .errors import MissionError
 from .flight.mission import (FRAME_GLOBAL_RELATIVE_ALT, FRAME_MISSION, IMAGE_START_CAPTURE, NAV_LAND,
                              NAV_RETURN_TO_LAUNCH, NAV_TAKEOFF, NAV_WAYPOINT, SUPPORTED_COMMANDS, MissionItem)
-from .missions import format_validation_error
+from .missions import format_validation_error, read_user_file
 
 # QGC's numbers for what it writes: MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR, altitude relative to home.
 FIRMWARE_PX4 = 12
@@ -177,10 +177,7 @@ def plan_from_dict(data: Any, source: str = "<dict>") -> Plan:
 def load_plan(path) -> Plan:
     """Read and validate a `.plan` file."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise MissionError(f"plan {path}: cannot read ({e.strerror or e})") from None
+    text = read_user_file(path, "plan")
     try:
         data = json.loads(text)
     except ValueError as e:
