@@ -28,17 +28,16 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import LogError
+from ..flight.commander import PX4_MODES
 from ..geometry import GeodeticOrigin
 
-# PX4 main/sub modes by name (the autopilot's own table), inverted for the HEARTBEAT's custom_mode.
 _MODE_COLOURS = {"TAKEOFF": "#fdd49e", "HOLD": "#c6dbef", "MISSION": "#c7e9c0", "RTL": "#fcbba1",
                  "LAND": "#dadaeb", "OFFBOARD": "#fee391", "POSCTL": "#d9f0d3"}
 _SEVERITY = ["EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING", "NOTICE", "INFO", "DEBUG"]
 
 
-def mode_name(base_mode: int, custom_mode: int) -> str:
-    from ..flight.commander import PX4_MODES
-
+def mode_name(custom_mode: int) -> str:
+    """A HEARTBEAT's PX4 custom_mode as the autopilot names it (its own table), else 'main/sub'."""
     main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
     for name, ms in PX4_MODES.items():
         if ms == (main, sub):
@@ -110,7 +109,7 @@ def read_telemetry(path) -> Telemetry:
                                                              m.lon_int * 1e-7 if m.lon_int else m.lon, m.alt)):
                     tel.truth[k].append(v)
             elif typ == "HEARTBEAT" and comp == 1:
-                mode = (mode_name(m.base_mode, m.custom_mode), bool(m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED))
+                mode = (mode_name(m.custom_mode), bool(m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED))
                 if mode != last_mode:
                     tel.modes.append((t, *mode))
                     last_mode = mode
