@@ -233,3 +233,22 @@ def test_pymavlink_set_mode_by_name_always_sees_the_autopilot(tmp_path):
         assert ack is not None and ack.result == mavutil.mavlink.MAV_RESULT_ACCEPTED
     finally:
         sitl.stop()
+
+
+def test_mavlink_ftp_requests_get_an_answer_at_once(tmp_path):
+    """The vehicle serves no files; an FTP request is NAKed at once (MAVProxy's parameter download over FTP
+    falls back to PARAM_REQUEST_LIST without waiting for a time-out)."""
+    import struct
+
+    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="1", camera=False)
+    try:
+        c = Client(sitl.gcs_port)
+        path = b"@PARAM/param.pck"
+        req = struct.pack("<HBBBBBBI", 7, 0, 4, len(path), 0, 0, 0, 0) + path  # OpenFileRO
+        c.mav.file_transfer_protocol_send(0, 1, 1, list(req.ljust(251, b"\0")))
+        m = c.recv("FILE_TRANSFER_PROTOCOL", 3)
+        assert m is not None
+        seq, _session, opcode, size, req_opcode = struct.unpack_from("<HBBBB", bytes(m.payload))
+        assert (seq, opcode, size, req_opcode, bytes(m.payload)[12]) == (8, 129, 1, 4, 10)  # NAK FileNotFound
+    finally:
+        sitl.stop()
