@@ -3,12 +3,18 @@
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 
 import uavsearch  # noqa: F401  (registers the env)
 from uavsearch.errors import SceneError
 from uavsearch.search.config import SearchConfig, lattice_index, lattice_positions
 from uavsearch.search.env import ActiveSearchEnv
+from uavsearch.search.perception import PerceptionConfig, PerceptionNet
+from uavsearch.search.search_loop import R_RE, Agent, LiveViews, run_search
+from uavsearch.search.train_policy import Args, returns
+from uavsearch.search.views import TeleportVehicle
+from uavsearch.world.scene import generate_scene
 
 NORTH, EAST, WEST, SOUTH = 0, 1, 2, 3
 
@@ -70,7 +76,7 @@ def test_going_back_is_a_revisit(env):
     env.reset(seed=4)
     env.step(NORTH)
     _, r, _, _, info = env.step(SOUTH)
-    assert info["revisit"] and r == -1.0
+    assert info["revisit"] and r == R_RE == -0.5  # the R_re stage 2 trains with
 
 
 def test_same_seed_same_scene_and_images():
@@ -97,3 +103,40 @@ def test_reset_options_choose_the_scene(env):
     assert info["occupancy"].sum() == 7 and info["scene_seed"] == 123
     with pytest.raises(SceneError):
         env.reset(options={"setting": 9})
+
+
+class _Scripted:
+    """A policy that plays a fixed action sequence."""
+
+    def __init__(self, actions):
+        self.actions = actions
+
+    def act(self, inp, generator=None):
+        return torch.full((1,), self.actions[inp.step], dtype=torch.long), None, None
+
+
+@pytest.mark.parametrize("actions", [(WEST, WEST, WEST, EAST), (NORTH, SOUTH, NORTH, EAST), (EAST, NORTH, WEST, SOUTH)])
+def test_env_and_search_loop_agree_step_for_step(env, actions):
+    """Same scene, seed and actions: the env and run_search visit the same positions, flag the same
+    revisits and give the same move rewards as training computes from the episode."""
+    scene = generate_scene(11, 2)
+    obs, info = env.reset(seed=0, options={"scene": scene})
+    env_pos, env_idx, env_rev, env_r = [obs["position_enu"]], [info["lattice_index"]], [info["revisit"]], []
+    for a in actions:
+        obs, r, term, _, info = env.step(a)
+        env_pos.append(obs["position_enu"])
+        env_idx.append(info["lattice_index"])
+        env_rev.append(info["revisit"])
+        env_r.append(r)
+    assert term
+    torch.manual_seed(0)
+    with TeleportVehicle(scene, env.config) as vehicle, torch.no_grad():
+        views = LiveViews(vehicle, PerceptionNet(PerceptionConfig()), scene.occupancy_array())
+        ep = run_search(views, Agent("average", _Scripted(actions)), generator=torch.Generator().manual_seed(0))
+    assert ep.lattice_idx[0].tolist() == env_idx
+    assert ep.revisit[0].tolist() == env_rev
+    np.testing.assert_array_equal(np.stack([v.position_enu for v in views.views]).astype(np.float32), env_pos)
+    R, r_cls = returns(ep, torch.zeros_like(ep.maps[:, -1]), ep.labels, Args())  # empty map: R_cls = 0
+    assert float(r_cls[0]) == 0.0
+    per_move = (R[0] - torch.cat([R[0, 1:], torch.zeros(1)])).tolist()
+    assert per_move == pytest.approx(env_r, abs=0) and sum(env_r) == R_RE * sum(env_rev)

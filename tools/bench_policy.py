@@ -19,11 +19,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from synthetic_views import synthetic_cache  # noqa: E402
 
+from uavsearch.search.agents import new_agent  # noqa: E402
 from uavsearch.search.config import SearchConfig  # noqa: E402
-from uavsearch.search.perception import ConfidenceNet, PerceptionConfig, PerceptionNet  # noqa: E402
-from uavsearch.search.policy import PolicyConfig, PolicyNet  # noqa: E402
-from uavsearch.search.search_loop import Agent, CachedViews, LiveViews, run_search  # noqa: E402
+from uavsearch.search.perception import PerceptionConfig, PerceptionNet  # noqa: E402
+from uavsearch.search.search_loop import CachedViews, LiveViews, run_search  # noqa: E402
 from uavsearch.search.train_policy import Args, train  # noqa: E402
+from uavsearch.search.views import TeleportVehicle  # noqa: E402
+from uavsearch.world.scene import generate_scene  # noqa: E402
 
 
 def timed(fn, repeat):
@@ -42,8 +44,9 @@ def main():
     torch.set_num_threads(a.threads)
     cfg, pc = SearchConfig(), PerceptionConfig()
     cache = synthetic_cache(20, 5, cell_dim=pc.cell_dim, global_dim=pc.global_dim)
-    policy, conf = PolicyNet(PolicyConfig(pc.global_dim)).eval(), ConfidenceNet(pc.cell_dim).eval()
-    agent = Agent("learned", policy, conf)
+    agent = new_agent("learned", cfg, pc.global_dim, pc.cell_dim)
+    conf = agent.confidence.eval()
+    agent.policy.eval()
     moves = cfg.budget_T - 1
     rows = []
     for B in (1, 128):
@@ -58,13 +61,10 @@ def main():
     rows.append(("cached, training iteration (rollout + REINFORCE + Eq. 11), B=128", res.steps_per_s,
                  128 * moves / res.steps_per_s * 1e3))
     if a.live:
-        from uavsearch.search.views import TeleportVehicle
-        from uavsearch.world.scene import generate_scene
-
         net = PerceptionNet().eval()
         with TeleportVehicle(generate_scene(1200, 2), cfg) as vehicle:
             t = time.perf_counter()
-            run_search(LiveViews(vehicle, net), Agent("learned", policy, conf), generator=torch.Generator().manual_seed(0))
+            run_search(LiveViews(vehicle, net), agent, generator=torch.Generator().manual_seed(0))
             dt = time.perf_counter() - t
         rows.append(("live teleport: render + perception per view, B=1", moves / dt, dt * 1e3))
     print(f"{'mode':70s} {'policy steps/s':>15s} {'ms per rollout/iteration':>25s}")

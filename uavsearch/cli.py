@@ -1,4 +1,11 @@
-"""The `uavsearch` command: every subcommand is wired here; each one's work lives in its module."""
+"""The `uavsearch` command: every subcommand is wired here; each one's work lives in its module.
+
+Imports of the subcommands' modules are lazy (inside the handlers) on purpose, measured on a shared
+2-core machine: `uavsearch --help` takes ~1.4 s; the scene modules (pydantic + OpenCV: world.scene, and
+search.config / search.views / viz, which import it) would add 0.3-0.45 s, and torch (missions, the
+mission controller, replay, the train / eval groups) 2-5 s more. Nothing a subcommand imports ever
+imports this module back.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +15,7 @@ from pathlib import Path
 
 from . import __version__
 from .errors import UavsearchError, run_command
+from .flight.sitl import add_sitl_parser
 
 
 # --------------------------------------------------------------------------------------------------
@@ -15,6 +23,7 @@ from .errors import UavsearchError, run_command
 
 
 def _scene_from_args(args):
+    # lazy: world.scene costs --help 0.3-0.45 s (pydantic + OpenCV)
     from .world.scene import generate_scene, load_scene
     from .world.settings import SETTINGS
 
@@ -30,6 +39,7 @@ def _scene_from_args(args):
 
 
 def _cmd_scene_show(args) -> int:
+    # lazy: these import world.scene (see _scene_from_args)
     from .search.config import SearchConfig
     from .search.views import TeleportVehicle
     from .viz import scene_show_figure
@@ -45,6 +55,7 @@ def _cmd_scene_show(args) -> int:
 
 
 def _cmd_scene_save(args) -> int:
+    # lazy: see _scene_from_args
     from .world.scene import save_scene
 
     spec = _scene_from_args(args)
@@ -79,10 +90,11 @@ def _add_scene_parser(sub) -> None:
 
 
 # --------------------------------------------------------------------------------------------------
-# fly / replay (the flying issue: uavsearch/search/mission_controller.py, uavsearch/logs/replay.py)
+# fly / replay (uavsearch/search/mission_controller.py, uavsearch/logs/replay.py)
 
 
 def _cmd_fly(args) -> int:
+    # lazy: torch (2-5 s)
     from .missions import load_mission
     from .search.mission_controller import fly, format_maps
 
@@ -142,11 +154,12 @@ def _add_vehicle_option(p) -> None:
     def run(args):
         if args.vehicle == "teleport":
             return teleport(args)
+        from .missions import load_mission  # lazy: torch (2-5 s)
         from .search.mission_controller import eval_flight_vs_teleport
 
         setting = 2 if str(args.setting) == "all" else int(args.setting)
-        res = eval_flight_vs_teleport(setting, args.split, args.mission, args.speed, args.out, args.scenes,
-                                      progress=args.progress)
+        res = eval_flight_vs_teleport(load_mission(args.mission), setting, args.split, args.speed, args.out,
+                                      args.scenes, progress=args.progress)
         print(res["table"].read_text())
         print(f"wrote {res['table']}")
         return 0
@@ -155,7 +168,7 @@ def _add_vehicle_option(p) -> None:
 
 
 def _cmd_replay(args) -> int:
-    from .logs.replay import replay_command
+    from .logs.replay import replay_command  # lazy: torch (2-5 s)
 
     if args.html is not None:
         from .logs.flight_review import write_flight_review
@@ -196,6 +209,7 @@ EVAL_HELP = "evaluate: single-view perception (Table I, Fig. 4), search methods 
 
 
 def _add_train_parser(sub) -> None:
+    # lazy: torch (2-5 s); built only when `train` is the command (build_parser)
     from .search.train_perception import add_train_perception_parser
     from .search.train_policy import add_train_policy_parser
 
@@ -206,6 +220,7 @@ def _add_train_parser(sub) -> None:
 
 
 def _add_eval_parser(sub) -> None:
+    # lazy: torch (2-5 s); built only when `eval` is the command (build_parser)
     from .search.eval_search import add_eval_search_parser
     from .search.eval_single_view import add_eval_single_view_parser
 
@@ -229,8 +244,6 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"uavsearch {__version__}")
     sub = parser.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     _add_scene_parser(sub)
-    from .flight.sitl import add_sitl_parser
-
     add_sitl_parser(sub)
     for name, add, text in (("train", _add_train_parser, TRAIN_HELP), ("eval", _add_eval_parser, EVAL_HELP)):
         if command is None or command == name:

@@ -15,10 +15,17 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator,
+                      model_validator)
 
 from .errors import MissionError
+from .geometry import GeodeticOrigin
 from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
+from .search.agents import FUSION_METHODS, POLICIES, LoadedAgent, build_agent, checkpoint_path, needs_confidence
+from .search.config import ACTIONS, SearchConfig
+from .search.mavlink_vehicle import FlightSettings
+from .world.scene import generate_scene, load_scene
+from .world.settings import SETTINGS
 
 DEFAULT_MISSION = MISSIONS_DIR / "default.yaml"
 
@@ -37,8 +44,6 @@ class SceneRef(_Strict):
 
     @property
     def k(self) -> int:
-        from .world.settings import SETTINGS
-
         return int(self.occupied_cells) if self.occupied_cells is not None else SETTINGS[int(self.setting or 2)]
 
 
@@ -51,8 +56,6 @@ class SearchSection(_Strict):
     @field_validator("actions")
     @classmethod
     def _known(cls, v):
-        from .search.config import ACTIONS
-
         bad = [a for a in v if a not in ACTIONS]
         if bad:
             raise ValueError(f"unknown action(s) {bad}; valid: {sorted(ACTIONS)}")
@@ -94,8 +97,8 @@ class Mission(_Strict):
     description: str = ""
     scene: SceneRef = SceneRef()
     search: SearchSection = SearchSection()
-    fusion: Literal["learned", "average", "bayes", "size", "oracle"] = "learned"
-    policy: Literal["learned", "random", "coverage", "greedy"] = "learned"
+    fusion: str = "learned"  # a fusion method of the agent registry (search/agents.py)
+    policy: str = "learned"  # a policy of the agent registry
     checkpoint: str | None = None  # default: models/search_s<setting>_<fusion>.pt
     perception: str | None = None  # default: models/perception.pt
     policy_seed: int = Field(0, ge=0)
@@ -105,6 +108,15 @@ class Mission(_Strict):
     plan: str | None = None  # a QGroundControl .plan (relative to this file): `uavsearch mission upload` flies it
     source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
 
+    @field_validator("fusion", "policy")
+    @classmethod
+    def _registered(cls, v, info: ValidationInfo):
+        known = {"fusion": FUSION_METHODS, "policy": POLICIES}[info.field_name]  # the agent registry
+        if v not in known:
+            kind = "fusion method" if info.field_name == "fusion" else "policy"
+            raise ValueError(f"unknown {kind} {v!r}; valid: {', '.join(map(repr, known))}")
+        return v
+
     @model_validator(mode="after")
     def _consistent(self):
         s = self.scene
@@ -112,8 +124,8 @@ class Mission(_Strict):
             raise ValueError("scene: give a seed or a spec file")
         if s.occupied_cells is not None and s.setting is not None and "setting" in s.model_fields_set:
             raise ValueError("scene: give setting OR occupied_cells, not both")
-        if self.fusion == "learned" and self.policy != "learned" and self.checkpoint is None and s.setting is None:
-            raise ValueError("learned fusion needs a checkpoint (no setting to pick a shipped one)")
+        if needs_confidence(self.fusion) and self.policy != "learned" and self.checkpoint is None and s.setting is None:
+            raise ValueError(f"{self.fusion} fusion needs a checkpoint (no setting to pick a shipped one)")
         return self
 
     # -- derived ---------------------------------------------------------------------------------
@@ -144,7 +156,7 @@ class Mission(_Strict):
     def checkpoint_path(self) -> Path:
         if self.checkpoint:
             return self._resolve(self.checkpoint)
-        return MODELS_DIR / f"search_s{self.setting_for_models}_{self.fusion}.pt"
+        return checkpoint_path(self.setting_for_models, self.fusion)
 
     @property
     def perception_path(self) -> Path:
@@ -158,32 +170,34 @@ class Mission(_Strict):
     def spec_path(self) -> Path | None:
         return self._resolve(self.scene.spec) if self.scene.spec else None
 
-    def search_config(self):
-        from .search.config import SearchConfig
-
+    def search_config(self) -> SearchConfig:
         s = self.search
         return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions))
 
-    def flight_settings(self):
-        from .search.mavlink_vehicle import FlightSettings
-
+    def flight_settings(self) -> FlightSettings:
         f = self.flight
         return FlightSettings(arrive_radius_m=f.arrive_radius_m, settle_speed_m_s=f.settle_speed_m_s,
                               settle_time_s=f.settle_time_s, step_timeout_s=f.step_timeout_s, end_action=f.end_action,
                               lockstep=f.lockstep)
 
-    def origin(self):
-        from .geometry import GeodeticOrigin
-
+    def origin(self) -> GeodeticOrigin:
         return GeodeticOrigin(self.home.lat_deg, self.home.lon_deg, self.home.alt_m)
 
     def scene_spec(self):
         """The ground-truth scene (generated from the seed, or loaded from the spec file)."""
-        from .world.scene import generate_scene, load_scene
-
         if self.spec_path is not None:
             return load_scene(self.spec_path)
         return generate_scene(int(self.scene.seed), self.scene.k)
+
+    def agent(self, config: SearchConfig | None = None) -> LoadedAgent:
+        """Perception + fusion + policy of the mission, from its checkpoints (agents.build_agent); the
+        confidence net of learned fusion comes along for logging scores whatever the fusion."""
+        learned_ck = self.checkpoint_path if needs_confidence(self.fusion) and self.checkpoint else \
+            checkpoint_path(self.setting_for_models, "learned")
+        return build_agent(self.fusion, self.policy, config or self.search_config(), checkpoint=self.checkpoint_path,
+                           confidence_checkpoint=learned_ck, greedy=self.greedy_policy,
+                           perception=self.perception_path, scores_net=True, error=MissionError,
+                           where=f"mission {self.source}: ")
 
     def with_overrides(self, **changes) -> "Mission":
         """A copy with dotted-path overrides ({'scene.seed': 4, 'flight.speed': 'max'}), re-validated."""

@@ -9,6 +9,18 @@ import numpy as np
 
 from .errors import UavsearchError
 from .geometry import CameraIntrinsics, Grid, cell_image_polygons
+from .world.topdown import draw_topdown
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (files, no display)."""
+    # lazy: choosing the backend is process-wide, and pyplot costs ~1 s (shared machine); only drawing pays it
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def draw_grid_overlay(
@@ -48,21 +60,13 @@ def save_figure(fig, out: str | Path) -> Path:
     except OSError as e:
         raise UavsearchError(f"cannot write {out}: {e.strerror or e}") from None
     finally:
-        import matplotlib.pyplot as plt
-
-        plt.close(fig)
+        pyplot().close(fig)
     return out
 
 
 def scene_show_figure(spec, view, grid: Grid, intrinsics: CameraIntrinsics, out: str | Path) -> Path:
     """The start view with the grid and the occupied cells, beside a top-down map of the scene."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .world.topdown import draw_topdown
-
+    plt = pyplot()
     occ = spec.occupancy_array()
     fig, axes = plt.subplots(1, 2, figsize=(13, 6.5))
     axes[0].imshow(draw_grid_overlay(view.image, view.pose, grid, intrinsics, occ))

@@ -22,14 +22,30 @@ import json
 import math
 import struct
 import sys
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
+import imageio.v2 as imageio
 import numpy as np
+import torch
+from tqdm import tqdm
 
 from ..errors import LogError, UavsearchError
 from ..flight.mavlink import wire_units as wire
-from ..geometry import GeodeticOrigin, Grid, camera_pose_from_vehicle
+from ..geometry import CameraIntrinsics, GeodeticOrigin, Grid, camera_pose_from_vehicle
+from ..missions import load_mission, mission_from_dict
+from ..search.agents import FUSION_METHODS, check_names
+from ..search.fusion import fuse_prefixes
+from ..search.metrics import map_accuracy, map_f1
+from ..search.views import make_view
+from ..viz import draw_grid_overlay, pyplot, save_figure
+from ..world.render import SceneRenderer
+from ..world.scene import generate_scene
+from ..world.settings import resolve_k
+from ..world.topdown import draw_topdown
+from .flight_log import read_flight_log
 
 # --------------------------------------------------------------------------------------------------
 # tlog reading (robust: stops at the first damaged record)
@@ -153,32 +169,21 @@ class ReplayData:
 
     @property
     def acc(self) -> np.ndarray:
-        from ..search.metrics import map_accuracy
-
         return map_accuracy(self.maps, np.broadcast_to(self.labels, self.maps.shape))
 
     @property
     def f1(self) -> np.ndarray:
-        from ..search.metrics import map_f1
-
         return map_f1(self.maps, np.broadcast_to(self.labels, self.maps.shape))
 
 
 def _fuse_all(method: str, p, valid, area=None, scores=None, labels=None) -> np.ndarray:
-    from ..search.fusion import FUSION_METHODS, fuse_prefixes
-
-    if method not in FUSION_METHODS:
-        raise UavsearchError(f"unknown fusion method {method!r}; choose one of {', '.join(FUSION_METHODS)}")
-    kw = {}
-    if method == "size":
-        kw["area_px"] = area
-    elif method == "learned":
-        if scores is None:
-            raise LogError("learned fusion needs confidence scores, which this log does not hold "
-                           "(it was flown without a learned confidence network)")
-        kw["scores"] = scores
-    elif method == "oracle":
-        kw["labels"] = labels
+    """The fused map after each view, with the inputs the method needs (the fusion table's `needs`)."""
+    check_names(fusion=method)
+    given = {"area_px": area, "scores": scores, "labels": labels}
+    kw = {need: given[need] for need in FUSION_METHODS[method].needs}
+    if "scores" in kw and scores is None:
+        raise LogError(f"{method} fusion needs confidence scores, which this log does not hold "
+                       "(it was flown without a learned confidence network)")
     return np.asarray(fuse_prefixes(method, np.asarray(p, float), np.asarray(valid, bool), **kw), dtype=float)
 
 
@@ -198,12 +203,6 @@ def _track_from_tlog(path: Path, origin: GeodeticOrigin):
 
 def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
     """Re-fuse and re-score a `uavsearch fly` run directory."""
-    from ..geometry import camera_pose_from_vehicle as cpv
-    from ..missions import mission_from_dict
-    from .flight_log import read_flight_log
-
-    import warnings
-
     run_dir = Path(run_dir)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -218,13 +217,11 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
     p, valid, area = log.array("p_occ"), log.array("valid") > 0.5, log.array("cell_area_px")
     scores = None if any(s.get("scores") is None for s in log.steps) else log.array("scores")
     maps = _fuse_all(method, p, valid, area, scores, labels)
-    import cv2
-
     images, poses = [], []
     for s in log.steps:
         img = cv2.imread(str(run_dir / s["image"]), cv2.IMREAD_COLOR)
         images.append(None if img is None else img[..., ::-1].copy())
-        poses.append(cpv(s["reported_position_enu"], *s["reported_rpy_rad"]))
+        poses.append(camera_pose_from_vehicle(s["reported_position_enu"], *s["reported_rpy_rad"]))
     spec = None
     try:
         mission = mission_from_dict(h["mission"], h.get("mission_file"))
@@ -252,13 +249,6 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
 def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float | None = None,
                 progress: bool = True) -> ReplayData:
     """Re-render the camera along any MAVLink log's trajectory in `spec` and run perception + fusion."""
-    import torch
-    from tqdm import tqdm
-
-    from ..search.mission_controller import load_agent
-    from ..search.views import make_view
-    from ..world.render import SceneRenderer
-
     path = Path(path)
     tr = read_tlog(path)
     warns = [tr.warning] if tr.warning else []
@@ -278,7 +268,7 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     if not shots:
         raise LogError(f"{path}: no CAMERA_IMAGE_CAPTURED in the log (and no --every S to sample the track)")
     loaded_mission = mission.model_copy(update={"fusion": method, "policy": "random"})
-    loaded = load_agent(loaded_mission, config)
+    loaded = loaded_mission.agent(config)
     renderer = SceneRenderer(spec, config.intrinsics, config.render)
     p_list, valid_list, area_list, score_list, images, poses, positions = [], [], [], [], [], [], []
     try:
@@ -292,8 +282,8 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
                 p_list.append(o.log_probs[0, :, 1].exp().numpy())
                 valid_list.append(np.asarray(view.cells_in_view) & (o.cell_pixels[0].numpy() > 0))
                 area_list.append(view.cell_area_px)
-                if loaded.log_confidence is not None:
-                    score_list.append(loaded.log_confidence(o.cell_features)[0].reshape(-1).numpy())
+                if loaded.scores_net is not None:
+                    score_list.append(loaded.scores_net(o.cell_features)[0].reshape(-1).numpy())
             images.append(img)
             poses.append(pose)
             positions.append(pos)
@@ -314,18 +304,7 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
 # Figures and video
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def _draw_track(ax, d: ReplayData, upto: int | None = None) -> None:
-    from ..world.topdown import draw_topdown
-
     if d.spec is not None:
         draw_topdown(d.spec, ax=ax)
     else:
@@ -358,16 +337,14 @@ def _draw_map(ax, d: ReplayData, t: int, title: str | None = None) -> None:
     y = d.labels.reshape(n, n)
     for r, c in zip(*np.nonzero(y)):
         x0, y0 = -h + c * d.grid.cell_m, h - (r + 1) * d.grid.cell_m
-        ax.add_patch(_plt().Rectangle((x0, y0), d.grid.cell_m, d.grid.cell_m, fill=False, ec="cyan", lw=1.5))
+        ax.add_patch(pyplot().Rectangle((x0, y0), d.grid.cell_m, d.grid.cell_m, fill=False, ec="cyan", lw=1.5))
     ax.set_title(title or f"fused after view {t + 1}\nacc {d.acc[t]:.2f}  F1 {d.f1[t]:.2f}", fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
 
 
 def write_figures(d: ReplayData, out: Path) -> list[Path]:
-    from ..viz import save_figure
-
-    plt = _plt()
+    plt = pyplot()
     out.mkdir(parents=True, exist_ok=True)
     paths = []
     fig, ax = plt.subplots(figsize=(7, 7))
@@ -394,8 +371,6 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
     ax.plot(steps, d.acc, "o-", label="accuracy (Eq. 16)")
     ax.plot(steps, d.f1, "s-", label="F1 (Eq. 17)")
     if d.logged_maps is not None and not np.allclose(d.logged_maps, d.maps, atol=1e-5):  # re-fused: show both
-        from ..search.metrics import map_accuracy, map_f1
-
         y = np.broadcast_to(d.labels, d.logged_maps.shape)
         ax.plot(steps, map_f1(d.logged_maps, y), "s--", color="grey", alpha=0.6, label="F1 as flown")
         ax.plot(steps, map_accuracy(d.logged_maps, y), "o--", color="silver", alpha=0.6, label="accuracy as flown")
@@ -410,9 +385,7 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
 
 
 def _frame(d: ReplayData, t: int) -> np.ndarray:
-    from ..viz import draw_grid_overlay
-
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 3, figsize=(12, 4.2))
     img = d.images[t] if t < len(d.images) else None
     if img is not None:
@@ -431,22 +404,16 @@ def _frame(d: ReplayData, t: int) -> np.ndarray:
 
 
 def _intrinsics_of(img):
-    from ..geometry import CameraIntrinsics
-
     c = CameraIntrinsics()
     return c if (c.height_px, c.width_px) == img.shape[:2] else CameraIntrinsics(img.shape[1], img.shape[0], c.hfov_deg)
 
 
 def write_video(d: ReplayData, out: Path, fmt: str = "gif", seconds_per_view: float = 1.0) -> Path:
-    import imageio.v2 as imageio
-
     frames = [_frame(d, t) for t in range(len(d.maps))]
     path = out / f"replay.{fmt}"
     if fmt == "gif":
         imageio.mimsave(path, frames, duration=seconds_per_view * 1000, loop=0)
     else:  # MP4 through OpenCV's bundled FFmpeg (no extra imageio plugin needed)
-        import cv2
-
         h, w = frames[0].shape[:2]
         fps = 10
         vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w - w % 2, h - h % 2))
@@ -485,10 +452,6 @@ def replay_command(args) -> int:
     if src.is_dir():
         d = replay_run_dir(src, args.fusion)
     elif src.is_file():
-        from ..missions import load_mission
-        from ..world.scene import generate_scene
-        from ..world.settings import resolve_k
-
         if args.scene is None:
             raise UavsearchError("replaying a .tlog needs --scene SEED (the scene to re-render the camera in)")
         k = resolve_k(args.occupied_cells, is_setting=False) if args.occupied_cells is not None \

@@ -8,6 +8,7 @@ import numpy as np
 
 from ..errors import UavsearchError
 from ..geometry import CameraIntrinsics, Grid
+from ..world.render import RenderOptions
 
 # The paper's action set: heading fixed north, a constant step along one axis (ENU unit vectors).
 ACTIONS: dict[str, tuple[int, int]] = {
@@ -20,8 +21,6 @@ PAPER_ACTIONS = ("MoveAhead", "MoveRight", "MoveLeft", "MoveBack")
 
 
 def _default_render_options():
-    from ..world.render import RenderOptions
-
     return RenderOptions()
 
 

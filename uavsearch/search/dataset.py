@@ -42,6 +42,11 @@ from tqdm import tqdm
 from uavsearch.errors import UavsearchError
 from uavsearch.geometry import cell_label_image, nadir_camera_pose
 from uavsearch.paths import REPO_ROOT
+from uavsearch.world.scene import generate_scene
+from uavsearch.world.settings import SETTINGS, scene_seeds
+
+from .config import SearchConfig, lattice_positions
+from .views import TeleportVehicle
 
 FORMAT = "uavsearch-views/1"
 DATA_DIR = REPO_ROOT / "data" / "views"
@@ -50,7 +55,6 @@ DATA_DIR = REPO_ROOT / "data" / "views"
 @dataclass(frozen=True)
 class ViewSetSpec:
     """What to render: which scenes, how many lattice positions per scene, and the seed of the draw."""
-
     name: str
     scenes: tuple[tuple[int, int], ...]  # (scene_seed, occupied_cells K)
     views_per_scene: int = 5  # distinct lattice positions per scene
@@ -80,8 +84,6 @@ def perception_scenes(part: str, n: int, seed: int, k_range: tuple[int, int] = (
     """Scenes for stage 1: the large split's `part` seeds of settings 1-3 in turn, each with K drawn
     uniformly in k_range (a seed fixes the city, K the people), so perception sees every density of
     Table I while the test seeds of every split and the density set stay unseen."""
-    from uavsearch.world.settings import SETTINGS, scene_seeds
-
     if part not in ("train", "val"):
         raise UavsearchError(f"perception scenes come from the train or val parts, not {part!r}")
     pools = [scene_seeds(s, "large", part) for s in sorted(SETTINGS)]
@@ -96,7 +98,6 @@ def perception_scenes(part: str, n: int, seed: int, k_range: tuple[int, int] = (
 
 
 def search_config(spec: ViewSetSpec):
-    from .config import SearchConfig
 
     return SearchConfig(altitude_m=spec.altitude_m)
 
@@ -125,10 +126,7 @@ def _render_scene(job: tuple[dict, str, int, int]) -> tuple[int, int, int, float
     out = shard_path(Path(root), scene_seed, k)
     if out.is_file():
         return scene_seed, k, 0, 0.0
-    from uavsearch.world.scene import generate_scene
 
-    from .config import lattice_positions
-    from .views import TeleportVehicle
 
     t0 = time.perf_counter()
     config = search_config(spec)
@@ -221,7 +219,6 @@ def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: boo
 
 class ViewSet(NamedTuple):
     """A whole view set in memory, one row per view; label images shared per distinct position."""
-
     images: np.ndarray  # (V, H, W, 3) uint8
     label_id: np.ndarray  # (V,) int64 index into labels
     labels: np.ndarray  # (P, H, W) int16 cell label image of each distinct position
@@ -275,7 +272,6 @@ def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only
     man = read_manifest(root)
     spec = ViewSetSpec.from_json({**man["spec"], "scenes": [[0, 0]]})
     config = search_config(spec)
-    from .config import lattice_positions
 
     centre = len(lattice_positions(config)) // 2
     wanted = list(scenes) if scenes is not None else shards_in(root)

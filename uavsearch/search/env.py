@@ -1,43 +1,4 @@
-"""The teleport search environment (gymnasium API): the paper's task, without dynamics.
-
-Registered as ``uavsearch/ActiveSearch-v0``.
-
-**Task.** A nadir camera starts 70 m above the centre of a 50 m x 50 m search area (10 x 10 cells of
-5 m) and may take ``budget_T`` views in all (the start view counts as the first). Between views it
-moves one lattice step (10 m) north, east, west or south, heading fixed north.
-
-**Action space.** ``Discrete(len(config.actions))``; the paper's order: 0 MoveAhead (north),
-1 MoveRight (east), 2 MoveLeft (west), 3 MoveBack (south).
-
-**Observation space** (``Dict``):
-
-- ``image``: ``(H, W, 3)`` uint8 RGB, north up.
-- ``position_enu``: ``(3,)`` float32 camera position in scene ENU metres (origin: ground, centre).
-- ``cell_label``: ``(H, W)`` int16, the grid cell each pixel sees on the ground, -1 off the grid.
-  The paper's mask m_i^t is ``cell_label == i``.
-- ``cell_area_px``: ``(N*N,)`` float32 pixel area of each cell's (clipped) image polygon, F_size.
-- ``cells_in_view``: ``(N*N,)`` int8, c^t: 1 where the cell covers at least ``min_cell_area_px`` px.
-- ``step``: int, index of this view in the episode (0 for the start view).
-
-**Moves that leave the lattice** (the camera positions above the search area, {-20..20 m}^2 for the
-paper) keep the camera where it is; the view is re-taken and counts as a revisit.
-
-**Reward.** ``r_revisit`` (default -1, the paper's R_re) when a step returns to a position already
-visited in the episode, else 0. The classification reward R_cls (Eq. 14) needs a map estimate, which
-belongs to the learner (fusion + perception), not to the env: ``info["occupancy"]`` gives the ground
-truth for it at the end.
-
-**Episode end.** ``terminated`` after the T-th view (T - 1 steps); never truncated.
-
-**Reset options.** ``{"scene": SceneSpec | dict | JSON str}`` a given scene; ``{"scene_seed": s,
-"occupied_cells": K}`` a generated one; ``{"occupied_cells": K}`` a new scene with K occupied cells and
-a seed drawn from the env's RNG; ``{"setting": 1 | 2 | 3}`` a scene drawn from that setting's
-``split``/``part`` seed list (default: the constructor's setting). The same ``reset(seed=...)`` always
-gives the same scene and views.
-
-**Info.** ``occupancy`` (N*N,) int8 ground truth; ``revisit`` bool; ``scene_seed``; ``occupied_cells``;
-``lattice_index`` of the camera position; ``visited`` list of lattice indices so far.
-"""
+"""The teleport search environment (gymnasium API); its manual is `ActiveSearchEnv`'s docstring."""
 
 from __future__ import annotations
 
@@ -49,13 +10,14 @@ import numpy as np
 from gymnasium import spaces
 
 from ..errors import SceneError
-from .config import SearchConfig, lattice_index, lattice_positions
+from ..world.scene import SceneSpec, generate_scene, scene_from_json, scene_to_json
+from ..world.settings import SETTINGS, scene_seeds
+from .config import SearchConfig, lattice_positions
+from .search_loop import R_RE, lattice_moves, start_index
 from .views import TeleportVehicle, View
 
 
 def _as_scene(obj):
-    from ..world.scene import SceneSpec, scene_from_json
-
     if isinstance(obj, SceneSpec):
         return obj
     if isinstance(obj, dict):
@@ -66,6 +28,53 @@ def _as_scene(obj):
 
 
 class ActiveSearchEnv(gym.Env):
+    """The paper's search task without dynamics (teleport camera), registered as ``uavsearch/ActiveSearch-v0``.
+
+    **Task.** A nadir camera starts 70 m above the centre of a 50 m x 50 m search area (10 x 10 cells of
+    5 m) and may take ``budget_T`` views in all (the start view counts as the first). Between views it
+    moves one lattice step (10 m) north, east, west or south, heading fixed north.
+
+    **Action space.** ``Discrete(len(config.actions))``; the paper's order: 0 MoveAhead (north),
+    1 MoveRight (east), 2 MoveLeft (west), 3 MoveBack (south).
+
+    **Observation space** (``Dict``):
+
+    - ``image``: ``(H, W, 3)`` uint8 RGB, north up.
+    - ``position_enu``: ``(3,)`` float32 camera position in scene ENU metres (origin: ground, centre).
+    - ``cell_label``: ``(H, W)`` int16, the grid cell each pixel sees on the ground, -1 off the grid.
+      The paper's mask m_i^t is ``cell_label == i``.
+    - ``cell_area_px``: ``(N*N,)`` float32 pixel area of each cell's (clipped) image polygon, F_size.
+    - ``cells_in_view``: ``(N*N,)`` int8, c^t: 1 where the cell covers at least ``min_cell_area_px`` px.
+    - ``step``: int, index of this view in the episode (0 for the start view).
+
+    **Moves** follow the search loop's move rule (``search_loop.lattice_moves``, the table training,
+    evaluation and flight use): a move that would leave the lattice (the camera positions above the search
+    area, {-20..20 m}^2 for the paper) keeps the camera where it is; the view is re-taken and counts as a
+    revisit.
+
+    **Reward.** ``r_revisit`` when a step returns to a position already visited in the episode, else 0; the
+    default is ``search_loop.R_RE`` (-0.5), the revisit reward R_re (Eq. 15) stage 2 trains with (the paper
+    leaves its value open). The classification reward R_cls (Eq. 14) needs a map estimate, which
+    belongs to the learner (fusion + perception), not to the env: ``info["occupancy"]`` gives the ground
+    truth for it at the end.
+
+    **Episode end.** ``terminated`` after the T-th view (T - 1 steps); never truncated.
+
+    **Reset options.** ``{"scene": SceneSpec | dict | JSON str}`` a given scene; ``{"scene_seed": s,
+    "occupied_cells": K}`` a generated one; ``{"occupied_cells": K}`` a new scene with K occupied cells and
+    a seed drawn from the env's RNG; ``{"setting": 1 | 2 | 3}`` a scene drawn from that setting's
+    ``split``/``part`` seed list (default: the constructor's setting). The same ``reset(seed=...)`` always
+    gives the same scene and views.
+
+    **Arguments.** ``config`` (SearchConfig: altitude, step, budget T, action set, camera), ``setting`` /
+    ``split`` / ``part`` (where reset draws scenes from), ``r_revisit``, ``render_mode`` (``"rgb_array"``: the
+    last view's image), ``cache_scenes`` (scenes whose renders are kept).
+
+    **Info.** ``occupancy`` (N*N,) int8 ground truth; ``revisit`` bool; ``scene_seed``; ``occupied_cells``;
+    ``lattice_index`` of the camera position; ``visited`` list of lattice indices so far; ``person_mask``
+    of the view (or None).
+    """
+
     metadata = {"render_modes": ["rgb_array"], "render_fps": 2}
 
     def __init__(
@@ -74,12 +83,10 @@ class ActiveSearchEnv(gym.Env):
         setting: int = 2,
         split: str = "paper",
         part: str = "train",
-        r_revisit: float = -1.0,
+        r_revisit: float = R_RE,
         render_mode: str | None = None,
         cache_scenes: int = 8,
     ):
-        from ..world.settings import SETTINGS, scene_seeds
-
         self.config = config or SearchConfig()
         if setting not in SETTINGS:
             raise SceneError(f"unknown setting {setting!r}; valid: {sorted(SETTINGS)}")
@@ -88,7 +95,7 @@ class ActiveSearchEnv(gym.Env):
         self.r_revisit = float(r_revisit)
         self.render_mode = render_mode
         self._lattice = lattice_positions(self.config)
-        self._moves = self.config.action_vectors()
+        self._moves = lattice_moves(self.config).numpy()  # (P, A) the loop's move rule
         self._vehicles: dict[str, TeleportVehicle] = {}  # scene JSON hash -> vehicle with its render cache
         self._cache_scenes = cache_scenes
         intr, n_cells = self.config.intrinsics, self.config.grid.num_cells
@@ -106,16 +113,13 @@ class ActiveSearchEnv(gym.Env):
         )
         self.scene = None
         self._vehicle: TeleportVehicle | None = None
-        self._ij = (0, 0)
+        self._idx = start_index(self.config)
         self._t = 0
         self._visited: list[int] = []
         self._last_view: View | None = None
 
     # ----------------------------------------------------------------------------------------------
     def _pick_scene(self, options: dict):
-        from ..world.scene import generate_scene
-        from ..world.settings import SETTINGS, scene_seeds
-
         if "scene" in options:
             return _as_scene(options["scene"])
         if "occupied_cells" in options:
@@ -133,8 +137,6 @@ class ActiveSearchEnv(gym.Env):
         return generate_scene(int(seeds[int(self.np_random.integers(len(seeds)))]), SETTINGS[setting])
 
     def _vehicle_for(self, scene) -> TeleportVehicle:
-        from ..world.scene import scene_to_json
-
         key = scene_to_json(scene)
         v = self._vehicles.pop(key, None)
         if v is None:
@@ -168,9 +170,8 @@ class ActiveSearchEnv(gym.Env):
         }
 
     def _capture(self) -> View:
-        idx = lattice_index(self.config, self._ij)
-        self._visited.append(idx)
-        self._last_view = self._vehicle.capture(self._lattice[idx])
+        self._visited.append(self._idx)
+        self._last_view = self._vehicle.capture(self._lattice[self._idx])
         return self._last_view
 
     # ----------------------------------------------------------------------------------------------
@@ -178,7 +179,7 @@ class ActiveSearchEnv(gym.Env):
         super().reset(seed=seed)
         self.scene = self._pick_scene(options or {})
         self._vehicle = self._vehicle_for(self.scene)
-        self._ij, self._t, self._visited = (0, 0), 0, []
+        self._idx, self._t, self._visited = start_index(self.config), 0, []
         view = self._capture()
         return self._obs(view), self._info(False)
 
@@ -189,13 +190,9 @@ class ActiveSearchEnv(gym.Env):
             raise gym.error.ResetNeeded(f"the episode's budget of T={self.config.budget_T} views is spent")
         if not self.action_space.contains(action):
             raise gym.error.InvalidAction(f"action {action!r} not in {self.action_space}")
-        di, dj = self._moves[int(action)]
-        h = self.config.lattice_half_steps
-        ni, nj = self._ij[0] + di, self._ij[1] + dj
-        if abs(ni) <= h and abs(nj) <= h:
-            self._ij = (ni, nj)
+        self._idx = int(self._moves[self._idx, int(action)])
         self._t += 1
-        revisit = lattice_index(self.config, self._ij) in self._visited
+        revisit = self._idx in self._visited
         view = self._capture()
         reward = self.r_revisit if revisit else 0.0
         terminated = self._t >= self.config.budget_T - 1

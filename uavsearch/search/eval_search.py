@@ -1,6 +1,7 @@
 """The paper's Table II and Fig. 6 for our testbed: every method on the TEST scenes of each setting.
 
-Rows (Sec. VII-D; "+ policy" = a policy trained with that fusion, shipped in models/):
+Rows (Sec. VII-D; "+ policy" = a policy trained with that fusion, shipped in models/), each built by
+agents.build_agent from its (fusion, policy) names:
 
     single view                          the start view's classification alone
     oracle fusion + random policy        evaluation bound with random moves
@@ -17,11 +18,12 @@ standard deviation over seeds of the per-seed means. Deterministic methods (sing
 greedy) give the same number for every seed.
 
 Everything goes through search_loop.run_search over cached perception outputs (view_cache.py); the same
-loop flies a vehicle (search_loop.LiveViews), so `methods()` is the one list of agents for both.
+loop flies a vehicle (search_loop.LiveViews), and agents.build_agent builds the agents of both.
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import time
 from dataclasses import dataclass
@@ -32,37 +34,39 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from uavsearch.errors import UavsearchError
+from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import MODELS_DIR
+from uavsearch.world.settings import SETTINGS
+from uavsearch.viz import pyplot
 
+from .agents import build_agent, checkpoint_path, needs_confidence
 from .config import SearchConfig
 from .metrics import map_accuracy, map_f1
+from .perception import load_perception
 from .search_loop import Agent, CachedViews, Episode, run_search
+from .view_cache import get_view_cache
 
-# (key, Table II label, fusion, policy kind); policy kind: "single" | "random" | "trained" | "coverage" | "greedy"
+# (key, Table II label, fusion, policy): names from the agent registry (agents.py). The single-view row is
+# the start view alone (budget 1), so its policy never moves.
 ROWS: tuple[tuple[str, str, str, str], ...] = (
-    ("single_view", "single view", "average", "single"),
+    ("single_view", "single view", "average", "random"),
     ("oracle_random", "oracle fusion + random policy", "oracle", "random"),
     ("learned_random", "learned confidence fusion + random policy", "learned", "random"),
-    ("average_policy", "average + policy", "average", "trained"),
-    ("bayes_policy", "bayes rule + policy", "bayes", "trained"),
-    ("size_policy", "by grid size + policy", "size", "trained"),
-    ("learned_policy", "(ours) learned confidence fusion + policy", "learned", "trained"),
-    ("oracle_policy", "oracle fusion + policy", "oracle", "trained"),
+    ("average_policy", "average + policy", "average", "learned"),
+    ("bayes_policy", "bayes rule + policy", "bayes", "learned"),
+    ("size_policy", "by grid size + policy", "size", "learned"),
+    ("learned_policy", "(ours) learned confidence fusion + policy", "learned", "learned"),
+    ("oracle_policy", "oracle fusion + policy", "oracle", "learned"),
     ("learned_coverage", "learned confidence fusion + coverage route", "learned", "coverage"),
     ("learned_greedy", "learned confidence fusion + greedy uncertainty", "learned", "greedy"),
 )
 NON_ORACLE = [r[0] for r in ROWS if r[2] != "oracle"]
-
-
-def model_path(setting: int, fusion: str, models_dir=None) -> Path:
-    """Where the shipped policy trained with `fusion` for `setting` lives."""
-    return Path(models_dir or MODELS_DIR) / f"search_s{int(setting)}_{fusion}.pt"
+model_path = checkpoint_path  # where the shipped policy trained with a fusion for a setting lives
 
 
 class EpisodeScores(NamedTuple):
     """Per-episode, per-step map metrics of one method: (E, T) each."""
-
     acc: np.ndarray
     f1: np.ndarray
     revisit_rate: float
@@ -86,7 +90,7 @@ def evaluate_agent(cache, agent: Agent, episodes_per_scene: int = 10, seed: int 
             m.eval()
     rows = np.repeat(np.arange(cache.num_scenes), episodes_per_scene)
     gen = torch.Generator().manual_seed(int(seed))
-    conf = agent.confidence if agent.fusion == "learned" else None
+    conf = agent.confidence if needs_confidence(agent.fusion) else None
     ep = run_search(CachedViews(cache, rows, config, conf), agent, 1 if single_view else budget_T, generator=gen)
     return score_episode(ep)
 
@@ -95,38 +99,25 @@ def evaluate_agent(cache, agent: Agent, episodes_per_scene: int = 10, seed: int 
 
 
 def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = False) -> dict[str, Agent]:
-    """Every Table II row (plus coverage and greedy) as an Agent, from the shipped checkpoints."""
-    from .policy import ArgmaxPolicy, CoverageRoute, GreedyUncertainty, RandomPolicy, load_search_model
-
-    trained, confidence = {}, None
-    for fusion in ("learned", "average", "bayes", "size", "oracle"):
-        f, net, conf, _ = load_search_model(model_path(setting, fusion, models_dir))
-        if f != fusion:
-            raise UavsearchError(f"{model_path(setting, fusion, models_dir)} holds a {f!r} policy, not {fusion!r}")
-        trained[fusion] = ArgmaxPolicy(net) if argmax else net
-        if fusion == "learned":
-            confidence = conf
-    rnd = RandomPolicy(len(config.actions))
-    out = {}
-    for key, _, fusion, kind in ROWS:
-        policy = {"single": rnd, "random": rnd, "trained": trained.get(fusion), "coverage": CoverageRoute(config),
-                  "greedy": GreedyUncertainty(config)}[kind]
-        out[key] = Agent(fusion, policy, confidence if fusion == "learned" else None)
-    return out
+    """Every Table II row (plus coverage and greedy) as an Agent, from the checkpoints in `models_dir`."""
+    return {key: build_agent(fusion, policy, config, checkpoint=checkpoint_path(setting, fusion, models_dir),
+                             confidence_checkpoint=checkpoint_path(setting, "learned", models_dir),
+                             greedy=argmax).agent
+            for key, _, fusion, policy in ROWS}
 
 
 @dataclass
 class EvalArgs:
-    setting: str = "all"  # 1 | 2 | 3 | all
-    split: str = "paper"  # scene split (paper: 10 test scenes per setting; large: 100)
-    out: str = "eval_search"  # output folder: table2.md, table2.csv, fig6.png
-    perception: str = str(MODELS_DIR / "perception.pt")  # frozen perception checkpoint
-    models_dir: str = str(MODELS_DIR)  # where search_s<K>_<fusion>.pt live
-    episodes: int = 10  # episodes per test scene per seed
-    seeds: int = 5  # evaluation seeds (0..seeds-1): the spread over seeds
-    argmax: bool = False  # trained policies take their most likely action instead of sampling (paper: sample)
-    workers: int = 2  # rendering processes when a view cache must be built
-    progress: bool = True
+    setting: str = opt("all", "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells) | all")
+    split: str = opt("paper", "scene split (paper: 10 test scenes per setting; large: 100)")
+    out: str = opt("eval_search", "output folder: table2.md, table2.csv, fig6.png", required=True)
+    perception: str = opt(str(MODELS_DIR / "perception.pt"), "frozen perception checkpoint")
+    models_dir: str = opt(str(MODELS_DIR), "where search_s<K>_<fusion>.pt live")
+    episodes: int = opt(10, "episodes per test scene per seed")
+    seeds: int = opt(5, "evaluation seeds (0..seeds-1): the spread over seeds")
+    argmax: bool = opt(False, "trained policies take their most likely action instead of sampling (paper: sample)")
+    workers: int = opt(2, "rendering processes when a view cache must be built")
+    progress: bool = opt(True, "progress bars")
 
 
 def evaluate_setting(setting: int, cache, args: EvalArgs) -> dict[str, dict]:
@@ -174,7 +165,6 @@ def gap_closure(rows: list[dict], setting: int) -> float:
 
 
 def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict) -> tuple[Path, Path]:
-    from uavsearch.world.settings import SETTINGS
 
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "table2.csv"
@@ -216,13 +206,7 @@ def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict) ->
 
 
 def plot_fig6(results: dict[int, dict[str, dict]], path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from uavsearch.world.settings import SETTINGS
-
+    plt = pyplot()
     settings = list(results)
     fig, axes = plt.subplots(2, len(settings), figsize=(4.6 * len(settings), 7.2), squeeze=False)
     labels = {k: lab for k, lab, _, _ in ROWS}
@@ -253,10 +237,6 @@ def plot_fig6(results: dict[int, dict[str, dict]], path: Path) -> Path:
 
 def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
     """Table II + Fig. 6 into args.out; `caches` ({setting: ViewCache}) skips perception and rendering."""
-    from uavsearch.world.settings import SETTINGS
-
-    from .perception import load_perception
-    from .view_cache import get_view_cache
 
     if args.setting == "all":
         settings = sorted(SETTINGS)
@@ -293,37 +273,17 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
 
 
 def add_eval_search_parser(subparsers) -> None:
-    """`uavsearch eval search ...` (subparsers: the `eval` command's)."""
+    """`uavsearch eval search ...` (subparsers: the `eval` command's); one flag per EvalArgs field."""
     p = subparsers.add_parser("search", help="Table II and Fig. 6: every fusion/policy method on the test scenes")
-    d = EvalArgs()
-    p.add_argument("--setting", default=d.setting, help="1 | 2 | 3 | all (default all)")
-    p.add_argument("--split", default=d.split, help="scene split: paper (10 test scenes) | large (100)")
-    p.add_argument("--out", required=True, help="output folder for table2.md/.csv and fig6.png")
-    p.add_argument("--perception", default=d.perception, help="perception checkpoint (default models/perception.pt)")
-    p.add_argument("--models-dir", default=d.models_dir, help="folder of search_s<K>_<fusion>.pt (default models/)")
-    p.add_argument("--episodes", type=int, default=d.episodes, help="episodes per test scene per seed (default 10)")
-    p.add_argument("--seeds", type=int, default=d.seeds, help="evaluation seeds for the spread (default 5)")
-    p.add_argument("--argmax", action="store_true", help="trained policies act greedily instead of sampling")
-    p.add_argument("--workers", type=int, default=d.workers, help="rendering processes if a cache is built")
-    p.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    add_dataclass_args(p, EvalArgs)
     p.set_defaults(func=cmd_eval_search)
 
 
 def cmd_eval_search(args) -> int:
-    eval_search(EvalArgs(setting=str(args.setting), split=args.split, out=args.out, perception=args.perception,
-                         models_dir=args.models_dir, episodes=args.episodes, seeds=args.seeds, argmax=args.argmax,
-                         workers=args.workers, progress=args.progress))
+    eval_search(dataclass_from_args(EvalArgs, args))
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    """`python -m uavsearch.search.eval_search [flags]`: the same as `uavsearch eval search [flags]`."""
-    import sys
-
-    from ..cli import main as cli_main
-
-    return cli_main(["eval", "search", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+if __name__ == "__main__":  # python -m uavsearch.search.eval_search [flags] = uavsearch eval search [flags]
+    raise SystemExit(run_command(cmd_eval_search, add_dataclass_args(argparse.ArgumentParser(
+        prog="python -m uavsearch.search.eval_search"), EvalArgs).parse_args()))

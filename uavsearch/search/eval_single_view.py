@@ -16,20 +16,26 @@ trees and buildings hide some of them).
 
 from __future__ import annotations
 
-import argparse
 import csv
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR
+from uavsearch.world.settings import density_scenes
+from uavsearch.viz import pyplot
+
+from .config import SearchConfig, lattice_positions
 
 from .dataset import DATA_DIR, ViewSetSpec, generate_views, load_views
 from .metrics import average_metrics, cell_correct
 from .perception import load_perception
+from .train_perception import predict_views
 
 PAPER_TABLE1 = {  # pair -> (Aacc, AF1), paper Table I
     (1, 2): (0.896, 0.201), (3, 4): (0.892, 0.356), (5, 6): (0.883, 0.445),
@@ -41,21 +47,19 @@ PERSON_PX_BINS = np.array([0, 1, 2, 3, 5, 9, 17, 10_000])  # [lo, hi) visible pe
 
 @dataclass
 class EvalArgs:
-    out: str = "runs/single_view"  # directory for table1.md/.csv and fig4.png
-    checkpoint: str = str(MODELS_DIR / "perception.pt")
-    scenes_per_pair: int = 80  # test scenes per pair of densities (paper: 80)
-    views_per_scene: int = 3  # the start view + random lattice positions (for Fig. 4)
-    seed: int = 0  # draw of the extra lattice positions
-    workers: int = 2
-    data_dir: str = str(DATA_DIR)
-    threads: int = 2
-    progress: bool = True
+    out: str = opt("runs/single_view", "directory for table1.md/.csv and fig4.png")
+    checkpoint: str = opt(str(MODELS_DIR / "perception.pt"), "perception checkpoint")
+    scenes_per_pair: int = opt(80, "test scenes per pair of densities (paper: 80)")
+    views_per_scene: int = opt(3, "the start view + random lattice positions (for Fig. 4)")
+    seed: int = opt(0, "draw of the extra lattice positions")
+    workers: int = opt(2, "rendering processes")
+    data_dir: str = opt(str(DATA_DIR), "cache of rendered view sets")
+    threads: int = opt(2, "torch CPU threads")
+    progress: bool = opt(True, "progress bars")
 
 
 def density_test_scenes(scenes_per_pair: int) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
     """The first `scenes_per_pair` density-set scenes of each pair; returns (scenes, pair of each)."""
-    from uavsearch.world.settings import density_scenes
-
     allp = density_scenes()
     by_pair: dict[tuple[int, int], list] = {}
     for s, k in allp:
@@ -72,10 +76,7 @@ def density_test_scenes(scenes_per_pair: int) -> tuple[list[tuple[int, int]], li
 
 
 def evaluate_single_view(args: EvalArgs) -> dict:
-    import torch
 
-    from .config import SearchConfig, lattice_positions
-    from .train_perception import predict_views
 
     torch.set_num_threads(max(1, args.threads))
     net, extra = load_perception(args.checkpoint)
@@ -145,11 +146,7 @@ def _binned(x: np.ndarray, ok: np.ndarray, edges: np.ndarray):
 
 
 def _plot_fig4(area, correct, dist, person_px, correct_pos, path: Path) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (a, c, b) = plt.subplots(1, 3, figsize=(15, 4))
     acc, n = _binned(area, correct, AREA_BINS)
     centres = (AREA_BINS[:-1] + AREA_BINS[1:]) / 2
@@ -202,22 +199,11 @@ def _plot_fig4(area, correct, dist, person_px, correct_pos, path: Path) -> Path:
 
 
 def add_eval_single_view_parser(subparsers) -> None:
-    p = subparsers.add_parser("single-view", help="Table I and Fig. 4: single-view perception on the density set",
-                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    d = EvalArgs()
-    p.add_argument("--out", default=d.out, help="output directory (table1.md, table1.csv, fig4.png)")
-    p.add_argument("--checkpoint", default=d.checkpoint, help="perception checkpoint")
-    p.add_argument("--scenes-per-pair", type=int, default=d.scenes_per_pair, help="test scenes per density pair")
-    p.add_argument("--views-per-scene", type=int, default=d.views_per_scene, help="views per scene (Fig. 4)")
-    p.add_argument("--workers", type=int, default=d.workers, help="rendering processes")
-    p.add_argument("--threads", type=int, default=d.threads, help="torch CPU threads")
-    p.add_argument("--data-dir", default=d.data_dir, help="cache of rendered view sets")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p = subparsers.add_parser("single-view", help="Table I and Fig. 4: single-view perception on the density set")
+    add_dataclass_args(p, EvalArgs)
     p.set_defaults(func=cmd_eval_single_view)
 
 
-def cmd_eval_single_view(a) -> int:
-    evaluate_single_view(EvalArgs(out=a.out, checkpoint=a.checkpoint, scenes_per_pair=a.scenes_per_pair,
-                                  views_per_scene=a.views_per_scene, workers=a.workers, threads=a.threads,
-                                  data_dir=a.data_dir, progress=not a.no_progress))
+def cmd_eval_single_view(args) -> int:
+    evaluate_single_view(dataclass_from_args(EvalArgs, args))
     return 0

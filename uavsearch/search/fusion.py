@@ -10,7 +10,8 @@ Every method maps a sequence of T per-view estimates of p(y_i = 1) to one fused 
            valid = False).
 - returns: (..., N) fused p(y_i = 1). A cell that no valid view measured gets `prior`.
 
-Methods:
+Methods (the `FUSION_METHODS` table at the end names each with its kernel and the inputs it needs; a new
+method is one kernel and one entry there):
 - "bayes":   log-odds occupancy update (Elfes / Thrun): L = logit(prior) + sum_t [logit(p_t) - logit(prior)].
 - "average": mean of p_t over the valid views (the paper's Average baseline).
 - "size":    p_t of the valid view where the cell's pixel area is largest (needs area_px; ties -> earliest).
@@ -27,15 +28,12 @@ Works on numpy arrays or torch tensors (the result has the input's type). Probab
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Callable, NamedTuple
 
 import numpy as np
 import torch
 
 from uavsearch.errors import UavsearchError
-
-FusionName = Literal["bayes", "average", "size", "learned", "oracle"]
-FUSION_METHODS: tuple[str, ...] = ("bayes", "average", "size", "learned", "oracle")
 
 # A never-seen cell must land on one side of 0.5 (the metric's test is strict, so 0.5 is wrong for either
 # label); the few occupied cells of every setting (2-12 of 100) make "empty" the right default.
@@ -63,32 +61,20 @@ def fuse(
     v = torch.as_tensor(np.asarray(valid) if as_numpy else valid, device=p.device).to(torch.bool)
     if p.shape != v.shape or p.dim() < 2:
         raise UavsearchError(f"p_occ {tuple(p.shape)} and valid {tuple(v.shape)} must both be (..., T, N)")
-
-    def _aux(x, name):
+    given = {"area_px": area_px, "scores": scores, "labels": labels}
+    inputs = {}
+    for name in FUSION_METHODS[method].needs:
+        x = given[name]
         if x is None:
             raise UavsearchError(f"fusion method {method!r} needs {name}")
         t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x, device=p.device)
-        return t
-
-    if method == "bayes":
-        out = _bayes(p, v, prior)
-    elif method == "average":
-        out = _average(p, v, prior)
-    elif method == "size":
-        a = _aux(area_px, "area_px").to(p.dtype)
-        if a.shape != p.shape:
-            raise UavsearchError(f"area_px {tuple(a.shape)} must match p_occ {tuple(p.shape)}")
-        out = _by_size(p, v, a, prior)
-    elif method == "learned":
-        s = _aux(scores, "scores").to(p.dtype)
-        if s.shape != p.shape:
-            raise UavsearchError(f"scores {tuple(s.shape)} must match p_occ {tuple(p.shape)}")
-        out = _learned(p, v, s, prior)
-    else:
-        y = _aux(labels, "labels").to(torch.bool)
-        if y.shape != p.shape[:-2] + p.shape[-1:]:
-            raise UavsearchError(f"labels {tuple(y.shape)} must be p_occ's shape without T, (..., N)")
-        out = _oracle(p, v, y, prior)
+        inputs[name] = t.to(torch.bool) if name == "labels" else t.to(p.dtype)
+        want = p.shape[:-2] + p.shape[-1:] if name == "labels" else p.shape
+        if inputs[name].shape != want:
+            shape = "p_occ's shape without T, (..., N)" if name == "labels" else f"match p_occ {tuple(p.shape)}"
+            raise UavsearchError(f"{name} {tuple(inputs[name].shape)} must " + (
+                f"be {shape}" if name == "labels" else shape))
+    out = FUSION_METHODS[method].fn(p, v, prior, **inputs)
     return out.numpy() if as_numpy else out
 
 
@@ -121,7 +107,8 @@ def _average(p, v, prior):
     return torch.where(n > 0, s / n.clamp(min=1), torch.full_like(s, prior))
 
 
-def _by_size(p, v, a, prior):
+def _by_size(p, v, prior, area_px):
+    a = area_px
     masked = torch.where(v, a, torch.full_like(a, -np.inf))
     # argmax returns the first maximal index on ties in torch >= 1.7 for CPU tensors; make it explicit
     # by breaking ties toward earlier views with a tiny decreasing offset.
@@ -132,7 +119,8 @@ def _by_size(p, v, a, prior):
     return torch.where(_no_view(v), torch.full_like(picked, prior), picked)
 
 
-def _learned(p, v, s, prior):
+def _learned(p, v, prior, scores):
+    s = scores
     # Masked softmax over views (Eq. 5). Fill masked scores with a large negative finite number rather than
     # -inf so an all-masked column gives finite (then replaced) values and no NaN gradients.
     neg = torch.finfo(s.dtype).min / 4
@@ -142,8 +130,26 @@ def _learned(p, v, s, prior):
     return torch.where(_no_view(v), torch.full_like(fused, prior), fused)
 
 
-def _oracle(p, v, y, prior):
+def _oracle(p, v, prior, labels):
+    y = labels
     hi = torch.where(v, p, torch.full_like(p, -np.inf)).amax(dim=-2)
     lo = torch.where(v, p, torch.full_like(p, np.inf)).amin(dim=-2)
     out = torch.where(y, hi, lo)
     return torch.where(_no_view(v), torch.full_like(out, prior), out)
+
+
+class FusionMethod(NamedTuple):
+    """One fusion method: its kernel and the inputs it needs beyond p_occ and valid."""
+
+    fn: Callable  # (p, valid, prior, **inputs) -> fused, all torch
+    needs: tuple[str, ...]  # of "area_px" (F_size per view), "scores" (a confidence net's), "labels" (ground truth)
+
+
+# THE table of fusion methods (search/agents.py builds agents from it; replay and the loop read `needs`).
+FUSION_METHODS: dict[str, FusionMethod] = {
+    "bayes": FusionMethod(_bayes, ()),
+    "average": FusionMethod(_average, ()),
+    "size": FusionMethod(_by_size, ("area_px",)),
+    "learned": FusionMethod(_learned, ("scores",)),
+    "oracle": FusionMethod(_oracle, ("labels",)),
+}

@@ -3,7 +3,7 @@
 There is no second loop here. `run_search` runs with `LiveViews(MavlinkVehicle, perception)` as its view
 source; this module only adds what a flight needs around it:
 
-- the agent from the mission (fusion + policy + checkpoints, as eval_search builds them);
+- the agent from the mission (fusion + policy + checkpoints, built by agents.build_agent like every agent);
 - recording: a thin wrapper on the policy sees each fused map M-bar^t and the move chosen after view t,
   so every step is written to search.jsonl (and flushed) before the vehicle flies on;
 - the vehicle's life cycle: connect, take off, the search, then land / RTL even when a step fails;
@@ -27,82 +27,18 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
-from ..errors import MissionError, UavsearchError
 from ..flight.sitl_process import SitlProcess
-from ..paths import MODELS_DIR, RUNS_DIR
+from ..logs.flight_log import FlightLogWriter
+from ..paths import RUNS_DIR
+from ..world.settings import scene_seeds
+from .agents import LoadedAgent
 from .config import lattice_positions
 from .mavlink_vehicle import FlightError, MavlinkVehicle, StepFailed
 from .metrics import map_accuracy, map_f1
-from .search_loop import Agent, LiveViews, run_search
-
-# Reward weights of Eq. 13-15 as stage 2 trains with them (train_policy.Args defaults), for the log.
-R_TP, R_FP, R_RE = 1.0, -1.0, -0.5
-
-
-# --------------------------------------------------------------------------------------------------
-# The agent
-
-
-@dataclass
-class LoadedAgent:
-    agent: Agent
-    perception: torch.nn.Module
-    log_confidence: torch.nn.Module | None  # scores logged for replay's re-fusion (learned fusion's net)
-    description: str
-
-
-def _check_tag(extra, perception, path) -> None:
-    """A policy / confidence net trained on another perception net's outputs reads them wrongly: say so."""
-    from .view_cache import perception_tag
-
-    tag = (extra or {}).get("perception_tag") if isinstance(extra, dict) else None
-    if tag and tag != perception_tag(perception):
-        print(f"uavsearch: warning: {path} was trained with perception {tag}, the mission's perception is "
-              f"{perception_tag(perception)}", file=sys.stderr)
-
-
-def load_agent(mission, config) -> LoadedAgent:
-    """Perception + fusion + policy of a mission, from its checkpoints (clear one-line errors)."""
-    from .perception import load_perception
-    from .policy import ArgmaxPolicy, CoverageRoute, GreedyUncertainty, RandomPolicy, load_search_model
-
-    perception, _ = load_perception(mission.perception_path)
-    policy, confidence, log_conf = None, None, None
-    if mission.policy == "learned":
-        fusion, net, conf, extra = load_search_model(mission.checkpoint_path)
-        _check_tag(extra, perception, mission.checkpoint_path)
-        if fusion != mission.fusion:
-            raise MissionError(f"mission {mission.source}: checkpoint {mission.checkpoint_path} holds a policy trained "
-                               f"with {fusion!r} fusion, the mission asks for {mission.fusion!r}")
-        if net.cfg.num_actions != len(config.actions):
-            raise MissionError(f"mission {mission.source}: checkpoint has {net.cfg.num_actions} actions, "
-                               f"search.actions has {len(config.actions)}")
-        policy = ArgmaxPolicy(net) if mission.greedy_policy else net
-        confidence = conf
-    elif mission.policy == "random":
-        policy = RandomPolicy(len(config.actions))
-    elif mission.policy == "coverage":
-        policy = CoverageRoute(config)
-    else:
-        policy = GreedyUncertainty(config)
-    learned_ck = mission.checkpoint_path if mission.fusion == "learned" and mission.checkpoint else \
-        MODELS_DIR / f"search_s{mission.setting_for_models}_learned.pt"
-    if confidence is None and (mission.fusion == "learned" or learned_ck.is_file()):
-        try:
-            _, _, confidence_ck, _ = load_search_model(learned_ck)
-        except UavsearchError:
-            if mission.fusion == "learned":
-                raise
-            confidence_ck = None
-        if mission.fusion == "learned" and confidence_ck is None:
-            raise MissionError(f"mission {mission.source}: {learned_ck} has no confidence network for learned fusion")
-        confidence = confidence_ck
-    log_conf = confidence
-    agent = Agent(mission.fusion, policy, confidence if mission.fusion == "learned" else None)
-    desc = f"{mission.fusion} fusion + {mission.policy} policy"
-    return LoadedAgent(agent, perception, log_conf, desc)
-
+from .search_loop import R_RE, Agent, LiveViews, classification_reward, run_search
+from .views import TeleportVehicle
 
 # --------------------------------------------------------------------------------------------------
 # Recording wrappers (no loop of their own)
@@ -183,15 +119,14 @@ class SearchRecorder:
         fused = np.asarray(fused.detach().float(), dtype=float).reshape(-1)
         p = o.log_probs[0, :, 1].exp().numpy()
         scores = None
-        if self.loaded.log_confidence is not None:
+        if self.loaded.scores_net is not None:
             with torch.no_grad():
-                scores = self.loaded.log_confidence(o.cell_features).reshape(-1).numpy()
+                scores = self.loaded.scores_net(o.cell_features).reshape(-1).numpy()
         acc = float(map_accuracy(fused, self.labels))
         f1 = float(map_f1(fused, self.labels))
         reward = (R_RE if revisit and t > 0 else 0.0)
         if t == self.T - 1:
-            pred = fused > 0.5
-            reward += R_TP * float((pred & self.labels).sum()) + R_FP * float((pred & ~self.labels).sum())
+            reward += float(classification_reward(fused, self.labels))
         rec = dict(
             t=t, sim_time_s=cap.time_boot_s, wall_s=cap.wall_s, flight_time_s=cap.flight_time_s,
             lattice_idx=idx, waypoint_enu=cap.waypoint_enu,
@@ -267,10 +202,8 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
     config = mission.search_config()
     spec = mission.scene_spec()
     labels = np.asarray(spec.occupancy_array(), dtype=bool)
-    loaded = load_agent(mission, config)
+    loaded = mission.agent(config)
     run_dir = Path(out) if out else default_run_dir(mission)
-    from ..logs.flight_log import FlightLogWriter
-
     log = FlightLogWriter(run_dir)
     (run_dir / "mission.json").write_text(mission.model_dump_json(indent=2) + "\n")
     url = connect or "udpin:127.0.0.1:0"
@@ -349,7 +282,7 @@ def format_maps(fused, labels, n: int) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["LoadedAgent", "MissionResult", "SitlProcess", "fly", "fly_search", "format_maps", "load_agent"]
+__all__ = ["LoadedAgent", "MissionResult", "SitlProcess", "fly", "fly_search", "format_maps"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -358,10 +291,8 @@ __all__ = ["LoadedAgent", "MissionResult", "SitlProcess", "fly", "fly_search", "
 
 def teleport_episode(mission, loaded: LoadedAgent | None = None):
     """The same mission's search with the teleport vehicle (exact poses, no dynamics): (fused map, positions)."""
-    from .views import TeleportVehicle
-
     config = mission.search_config()
-    loaded = loaded or load_agent(mission, config)
+    loaded = loaded or mission.agent(config)
     spec = mission.scene_spec()
     labels = np.asarray(spec.occupancy_array(), dtype=bool)
     gen = torch.Generator().manual_seed(int(mission.policy_seed))
@@ -371,25 +302,21 @@ def teleport_episode(mission, loaded: LoadedAgent | None = None):
     return ep.maps[0, -1].numpy(), pos, labels
 
 
-def eval_flight_vs_teleport(setting: int = 2, split: str = "paper", mission_file=None, speed="max", out=None,
+def eval_flight_vs_teleport(mission, setting: int = 2, split: str = "paper", speed="max", out=None,
                             scenes: list[int] | None = None, progress: bool = True) -> dict:
     """Fly the mission on every test scene of a setting and run the same episode in teleport mode.
 
     The policy acts greedily (its most likely move) in both modes, so the two runs take the same route
     unless a view's outputs differ enough to change a decision; what separates them is then the flown
     vehicle's pose error (projection at the reported pose) and the render at the true, not the nominal, pose.
+    `mission` (a missions.Mission) gives everything but the scene.
     """
-    from tqdm import tqdm
-
-    from ..missions import load_mission
-    from ..world.settings import scene_seeds
-
-    base = load_mission(mission_file).with_overrides(**{"scene.setting": setting, "scene.occupied_cells": None,
+    base = mission.with_overrides(**{"scene.setting": setting, "scene.occupied_cells": None,
                                                          "greedy_policy": True, "flight.speed": speed})
     seeds = scenes or scene_seeds(setting, split, "test")
     out = Path(out or RUNS_DIR / f"eval_flight_s{setting}")
     out.mkdir(parents=True, exist_ok=True)
-    loaded = load_agent(base, base.search_config())
+    loaded = base.agent()
     rows = []
     for seed in tqdm(seeds, desc=f"flight vs teleport, setting {setting}", disable=not progress):
         m = base.with_overrides(**{"scene.seed": seed})

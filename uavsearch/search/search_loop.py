@@ -11,8 +11,8 @@ evaluation and the flying mission controller all run this same function:
   the MAVLink vehicle that flies) to capture at the lattice position and runs perception on the image
   against the REPORTED pose's cell labels.
 
-Moves follow the teleport env (env.py) exactly: a move that would leave the lattice keeps the camera
-where it is, the view is re-taken and counts as a revisit.
+The move rule is `lattice_moves` (the gymnasium env, env.py, steps through it too): a move that would
+leave the lattice keeps the camera where it is, the view is re-taken and counts as a revisit.
 """
 
 from __future__ import annotations
@@ -24,9 +24,22 @@ import numpy as np
 import torch
 
 from uavsearch.errors import UavsearchError
+from uavsearch.geometry import cell_pixel_areas, nadir_camera_pose
 
 from .config import SearchConfig, lattice_positions
-from .fusion import fuse
+from .fusion import FUSION_METHODS, fuse
+
+
+# The rewards of Eq. 13-15 (stage 2 trains with these; the env and the flight log report them)
+R_TP = 1.0  # per true positive cell of the final map (Eq. 14)
+R_FP = -1.0  # per false positive cell of the final map (Eq. 14)
+R_RE = -0.5  # per revisit (Eq. 15; the paper leaves its value open, -0.5 trains best here)
+
+
+def classification_reward(final_map, labels, r_tp: float = R_TP, r_fp: float = R_FP):
+    """R_cls of Eq. 14: N_tp R_tp + N_fp R_fp of the map thresholded at 0.5 ((B, N) -> (B,), or (N,) -> ())."""
+    pred = final_map > 0.5
+    return r_tp * (pred & labels).sum(-1) + r_fp * (pred & ~labels).sum(-1)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -53,8 +66,6 @@ def lattice_moves(config: SearchConfig) -> torch.Tensor:
 @functools.lru_cache(maxsize=8)
 def lattice_cell_areas(config: SearchConfig) -> torch.Tensor:
     """(P, N) float: each cell's pixel area (F_size) in the nadir view from each lattice position."""
-    from uavsearch.geometry import cell_pixel_areas, nadir_camera_pose
-
     return torch.as_tensor(np.stack([
         cell_pixel_areas(config.grid, config.intrinsics, nadir_camera_pose(p)) for p in lattice_positions(config)
     ]), dtype=torch.float32)
@@ -207,14 +218,16 @@ def fuse_views(agent: Agent, obs: list[Observation], scores: list[torch.Tensor |
     p = torch.stack([o.log_probs[..., 1].exp() for o in obs], dim=1)
     valid = torch.stack([o.valid for o in obs], dim=1)
     kw = {}
-    if agent.fusion == "size":
-        kw["area_px"] = torch.stack([o.cell_area_px for o in obs], dim=1)
-    elif agent.fusion == "learned":
-        kw["scores"] = torch.stack(scores, dim=1)
-    elif agent.fusion == "oracle":
-        if labels is None:
-            raise UavsearchError("oracle fusion needs the ground truth, which this view source does not know")
-        kw["labels"] = labels
+    for need in FUSION_METHODS[agent.fusion].needs:
+        if need == "area_px":
+            kw[need] = torch.stack([o.cell_area_px for o in obs], dim=1)
+        elif need == "scores":
+            kw[need] = torch.stack(scores, dim=1)
+        elif need == "labels":
+            if labels is None:
+                raise UavsearchError(f"{agent.fusion} fusion needs the ground truth, which this view source does "
+                                     "not know")
+            kw[need] = labels
     return fuse(agent.fusion, p, valid, **kw)
 
 
@@ -227,8 +240,9 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
     """
     config = source.config
     T = int(budget_T or config.budget_T)
-    if agent.fusion == "learned" and agent.confidence is None:
-        raise UavsearchError("learned fusion needs a confidence network")
+    with_scores = "scores" in FUSION_METHODS[agent.fusion].needs
+    if with_scores and agent.confidence is None:
+        raise UavsearchError(f"{agent.fusion} fusion needs a confidence network")
     moves = lattice_moves(config)
     B, P = source.batch_size, config.lattice_size ** 2
     idx = torch.full((B,), start_index(config) if start_idx is None else int(start_idx), dtype=torch.long)
@@ -243,7 +257,7 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
         positions.append(idx)
         o = source.observe(idx)
         obs.append(o)
-        if agent.fusion == "learned":
+        if with_scores:
             scores.append(o.scores if o.scores is not None else agent.confidence(o.cell_features))
         else:
             scores.append(None)
@@ -271,4 +285,5 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
 
 
 __all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
-           "fuse_views", "lattice_cell_areas", "lattice_cell_distances", "lattice_moves", "run_search", "start_index"]
+           "R_FP", "R_RE", "R_TP", "classification_reward", "fuse_views", "lattice_cell_areas",
+           "lattice_cell_distances", "lattice_moves", "run_search", "start_index"]

@@ -15,18 +15,18 @@ cell label image together, which keeps every cell's ground truth (the heading is
 this only adds orientation variety).
 
 Output: runs/<exp_name>__<seed>__<unix time>/ with args.json (written first), metrics.csv (grouped
-names: losses/, charts/, eval/), learning_curve.png and the best checkpoint (by validation AF1), copied
-to `args.out` (models/perception.pt by default).
+names: losses/, charts/, eval/), learning_curve.png and the best checkpoint (by validation AF1). Only
+`--out PATH` or `--ship` (models/perception.pt, the shipped net) copies it elsewhere.
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
+import random
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,9 +34,12 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
+from uavsearch.viz import pyplot
 
+from .config import SearchConfig, lattice_positions
 from .dataset import DATA_DIR, ViewSet, ViewSetSpec, generate_views, load_views, perception_scenes
 from .fusion import DEFAULT_PRIOR
 from .metrics import average_metrics, cell_correct
@@ -45,33 +48,46 @@ from .perception import PerceptionConfig, PerceptionNet, images_to_tensor, save_
 
 @dataclass
 class Args:
-    exp_name: str = "perception"  # the run's name in runs/
-    seed: int = 1  # seeds numpy, torch and the scene/position draw
-    train_scenes: int = 150  # training scenes (large-split train seeds of settings 1-3, K drawn in 1..12)
-    train_views_per_scene: int = 8  # distinct lattice positions rendered per training scene
-    val_scenes: int = 30  # validation scenes (large-split val seeds), K drawn in 1..12
-    val_views_per_scene: int = 4  # lattice positions per validation scene (the start view included)
-    data_dir: str = str(DATA_DIR)  # where rendered view sets are cached
-    workers: int = 2  # rendering processes
-    steps: int = 800  # optimiser steps
-    batch_size: int = 32  # views per mini-batch (paper: 32)
-    lr: float = 1e-3  # Adam learning rate (cosine-decayed to 5% of it); from scratch, not fine-tuning
-    weight_decay: float = 1e-5  # Adam L2 (paper's alpha: 1e-6)
-    pos_weight: float = 4.0  # loss weight of the occupied class (class imbalance; see module docstring)
-    augment: bool = True  # random flips / 90-degree rotations of image + label image
-    min_cell_px: float = 16.0  # cells smaller than this in a view are not trained on
-    eval_every: int = 100  # steps between validations
-    threads: int = 2  # torch CPU threads
-    out: str = str(MODELS_DIR / "perception.pt")  # where the best checkpoint is copied
-    runs_dir: str = str(RUNS_DIR)  # parent of the run directory
-    progress: bool = True  # tqdm bars
-    layers: tuple = field(default_factory=lambda: PerceptionConfig().layers)  # backbone (out, kernel, stride)
+    exp_name: str = opt("perception", "the run's name in runs/")
+    seed: int = opt(1, "seeds numpy, torch and the scene/position draw")
+    train_scenes: int = opt(150, "training scenes (large-split train seeds of settings 1-3, K drawn in 1..12)")
+    train_views_per_scene: int = opt(8, "distinct lattice positions rendered per training scene", flag="--train-views")
+    val_scenes: int = opt(30, "validation scenes (large-split val seeds), K drawn in 1..12")
+    val_views_per_scene: int = opt(4, "lattice positions per validation scene (the start view included)",
+                                   flag="--val-views")
+    data_dir: str = opt(str(DATA_DIR), "where rendered view sets are cached")
+    workers: int = opt(2, "rendering processes")
+    steps: int = opt(800, "optimiser steps")
+    batch_size: int = opt(32, "views per mini-batch (paper: 32)")
+    lr: float = opt(1e-3, "Adam learning rate (cosine-decayed to 5% of it); from scratch, not fine-tuning")
+    weight_decay: float = opt(1e-5, "Adam L2 (paper's alpha: 1e-6)")
+    pos_weight: float = opt(4.0, "loss weight of the occupied class (class imbalance; see module docstring)")
+    augment: bool = opt(True, "random flips / 90-degree rotations of image + label image")
+    min_cell_px: float = opt(16.0, "cells smaller than this in a view are not trained on")
+    eval_every: int = opt(100, "steps between validations")
+    threads: int = opt(2, "torch CPU threads")
+    out: str | None = opt(None, "also copy the best checkpoint here (it always stays in the run directory)")
+    ship: bool = opt(False, "copy the best checkpoint over the shipped models/perception.pt")
+    runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
+    progress: bool = opt(True, "tqdm bars")
+    layers: tuple = opt(factory=lambda: PerceptionConfig().layers, help="backbone (out, kernel, stride)", cli=False)
+
+
+def copy_checkpoint(ckpt: Path, out, ship: bool, shipped: Path) -> Path | None:
+    """Training writes into its run directory; only an explicit `out`, or `ship` (the shipped file in
+    models/), copies the best checkpoint elsewhere. Returns where it went (None: nowhere)."""
+    if ship and out and Path(out).resolve() != Path(shipped).resolve():
+        raise UavsearchError(f"--ship writes {shipped}; drop --out {out} or --ship")
+    target = Path(shipped) if ship else Path(out) if out else None
+    if target is not None:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if target.resolve() != Path(ckpt).resolve():
+            shutil.copyfile(ckpt, target)
+    return target
 
 
 def seed_everything(seed: int) -> np.random.Generator:
     """One call seeds numpy, torch and Python's random; returns the generator the run draws from."""
-    import random
-
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
@@ -133,11 +149,7 @@ def evaluate(net: PerceptionNet, views: ViewSet, centre_index: int) -> dict[str,
 
 
 def _plot_curves(rows: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
     tr = [r for r in rows if r.get("losses/train_loss") not in (None, "")]
     if tr:
@@ -163,8 +175,6 @@ def _plot_curves(rows: list[dict], path: Path) -> None:
 
 def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     """Render (or reuse) the training and validation view sets; returns them and the start-view index."""
-    from .config import SearchConfig, lattice_positions
-
     train_spec = ViewSetSpec(f"train_v{args.train_views_per_scene}_s{args.seed}",
                              perception_scenes("train", args.train_scenes, args.seed),
                              views_per_scene=args.train_views_per_scene, seed=args.seed)
@@ -241,14 +251,11 @@ def train(args: Args) -> dict:
     bar.close()
     train_s = time.perf_counter() - t_train
     _plot_curves(rows, run_dir / "learning_curve.png")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if out.resolve() != ckpt.resolve():
-        shutil.copyfile(ckpt, out)
+    out = copy_checkpoint(ckpt, args.out, args.ship, MODELS_DIR / "perception.pt")
     report = {
         "best_step": best["step"], **{k: best[k] for k in best if k.startswith("eval/")},
         "train_views": len(train_set), "val_views": len(val_set), "data_s": t_data, "train_s": train_s,
-        "run_dir": str(run_dir), "checkpoint": str(out),
+        "run_dir": str(run_dir), "checkpoint": str(out or ckpt),
     }
     (run_dir / "report.json").write_text(json.dumps(report, indent=1))
     _print_report(report)
@@ -272,34 +279,12 @@ def _print_report(r: dict) -> None:
 
 
 def add_train_perception_parser(subparsers) -> None:
-    """Add `perception` to the `uavsearch train` subcommands; options mirror Args."""
-    p = subparsers.add_parser("perception", help="stage 1: train the per-cell perception (one-view training)",
-                              formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    d = Args()
-    p.add_argument("--out", default=d.out, help="checkpoint to write")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed of the scene draw, init and batches")
-    p.add_argument("--steps", type=int, default=d.steps, help="optimiser steps")
-    p.add_argument("--batch-size", type=int, default=d.batch_size, help="views per mini-batch")
-    p.add_argument("--lr", type=float, default=d.lr, help="Adam learning rate")
-    p.add_argument("--pos-weight", type=float, default=d.pos_weight, help="loss weight of occupied cells")
-    p.add_argument("--train-scenes", type=int, default=d.train_scenes, help="training scenes to render")
-    p.add_argument("--train-views", type=int, default=d.train_views_per_scene, help="views per training scene")
-    p.add_argument("--val-scenes", type=int, default=d.val_scenes, help="validation scenes")
-    p.add_argument("--val-views", type=int, default=d.val_views_per_scene, help="views per validation scene")
-    p.add_argument("--eval-every", type=int, default=d.eval_every, help="steps between validations")
-    p.add_argument("--workers", type=int, default=d.workers, help="rendering processes")
-    p.add_argument("--threads", type=int, default=d.threads, help="torch CPU threads")
-    p.add_argument("--data-dir", default=d.data_dir, help="cache of rendered view sets")
-    p.add_argument("--runs-dir", default=d.runs_dir, help="parent directory of the run directory")
-    p.add_argument("--no-augment", action="store_true", help="no flips / rotations")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    """Add `perception` to the `uavsearch train` subcommands; one flag per Args field."""
+    p = subparsers.add_parser("perception", help="stage 1: train the per-cell perception (one-view training)")
+    add_dataclass_args(p, Args)
     p.set_defaults(func=cmd_train_perception)
 
 
-def cmd_train_perception(a) -> int:
-    args = Args(out=a.out, seed=a.seed, steps=a.steps, batch_size=a.batch_size, lr=a.lr, pos_weight=a.pos_weight,
-                train_scenes=a.train_scenes, train_views_per_scene=a.train_views, val_scenes=a.val_scenes,
-                val_views_per_scene=a.val_views, eval_every=a.eval_every, workers=a.workers, threads=a.threads,
-                data_dir=a.data_dir, runs_dir=a.runs_dir, augment=not a.no_augment, progress=not a.no_progress)
-    train(args)
+def cmd_train_perception(args) -> int:
+    train(dataclass_from_args(Args, args))
     return 0

@@ -21,14 +21,15 @@ ground truth, as the oracle does: that row is a bound, not a method.)
 
 Output: runs/<name>__<seed>__<unix time>/ with args.json (first), metrics.csv (losses/, charts/, eval/),
 learning_curve.png and model.pt, the checkpoint with the best validation AF1 (validation scenes of the
-same setting, never the test scenes); copied to `out` when given.
+same setting, never the test scenes). Only `--out PATH` or `--ship` (models/search_s<K>_<fusion>.pt,
+the shipped model Table II and the default mission use) copies it elsewhere.
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
-import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -37,53 +38,59 @@ from typing import NamedTuple
 import torch
 from tqdm import tqdm
 
-from uavsearch.errors import UavsearchError
+from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
+from uavsearch.viz import pyplot
 
+from .agents import FUSION_METHODS, check_names, checkpoint_path, new_agent
 from .config import SearchConfig
 from .eval_search import evaluate_agent
-from .fusion import FUSION_METHODS, fuse
-from .perception import ConfidenceNet
-from .policy import PolicyConfig, PolicyNet, save_search_model
-from .search_loop import Agent, CachedViews, run_search
-from .train_perception import seed_everything
+from .fusion import fuse
+from .perception import ConfidenceNet, load_perception
+from .policy import save_search_model
+from .search_loop import R_FP, R_RE, R_TP, Agent, CachedViews, classification_reward, run_search
+from .train_perception import copy_checkpoint, seed_everything
+from .view_cache import get_view_cache
 
 
 @dataclass
 class Args:
-    setting: int = 2  # paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)
-    fusion: str = "learned"  # fusion the policy is trained with: learned | average | bayes | size | oracle
+    setting: int = opt(2, "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)")
+    fusion: str = opt("learned", "fusion the policy is trained with and rewarded through",
+                      choices=tuple(FUSION_METHODS))
     # scene split: train on its train part, select on its val part. "large" (500 + 50 scenes per setting)
     # for the shipped models: on the paper's 20 training scenes the confidence net and policy overfit
     # within 50-150 iterations (train AF1 0.7, validation falling).
-    split: str = "large"
-    perception: str = str(MODELS_DIR / "perception.pt")  # frozen stage-1 checkpoint
-    out: str | None = None  # copy the best checkpoint here (e.g. models/search_s2_learned.pt)
-    name: str | None = None  # run name (default policy_s<setting>_<fusion>)
-    seed: int = 0  # seeds random, numpy, torch and the episode sampling
-    iterations: int = 1200  # optimiser steps (large split: validation AF1 still rises slowly at 1000)
-    scenes_per_batch: int = 16  # training scenes per batch (drawn with replacement)
-    episodes_per_scene: int = 8  # episodes per scene per batch (>= 2 for the "loo" baseline)
-    lr_policy: float = 1e-3  # Adam, policy + state + embedding
-    lr_confidence: float = 1e-3  # Adam, confidence net
-    weight_decay: float = 1e-6  # Adam L2 (the paper's alpha)
-    r_tp: float = 1.0  # R_tp, reward per true positive cell at T (Eq. 14)
-    r_fp: float = -1.0  # R_fp, reward per false positive cell at T (Eq. 14)
-    r_re: float = -0.5  # R_re, reward per revisit (Eq. 15)
-    baseline: str = "loo"  # loo (other episodes of the same scene) | ema (moving average per step)
-    ema_decay: float = 0.95  # decay of the "ema" baseline
-    entropy_coef: float = 0.01  # entropy bonus weight
-    conf_pos_weight: float = 3.0  # weight of occupied cells in the confidence loss (F1 needs the few positives)
-    conf_episodes: int = 32  # episodes of each batch the confidence loss is taken over (dropout is costly)
-    state_extras: bool = True  # position / visited / step in the policy state (see policy.py)
-    eval_every: int = 25  # iterations between validations
-    eval_episodes: int = 8  # episodes per validation scene
-    threads: int = 1  # torch CPU threads
-    cache_dir: str | None = None  # view cache root (default cache/)
-    runs_dir: str = str(RUNS_DIR)  # parent of the run directory
-    workers: int = 2  # rendering processes when a view cache must be built
-    progress: bool = True  # tqdm bar
-    plot: bool = True  # write learning_curve.png at the end
+    split: str = opt("large", "scene split: trains on its train part, selects on its val part")
+    perception: str = opt(str(MODELS_DIR / "perception.pt"), "frozen stage-1 checkpoint")
+    out: str | None = opt(None, "also copy the best checkpoint here (it always stays in the run directory)")
+    ship: bool = opt(False, "copy the best checkpoint over the shipped models/search_s<setting>_<fusion>.pt")
+    name: str | None = opt(None, "run name (default policy_s<setting>_<fusion>)")
+    seed: int = opt(0, "seeds random, numpy, torch and the episode sampling")
+    iterations: int = opt(1200, "optimiser steps (large split: validation AF1 still rises slowly at 1000)")
+    scenes_per_batch: int = opt(16, "training scenes per batch (drawn with replacement)")
+    episodes_per_scene: int = opt(8, "episodes per scene per batch (>= 2 for the \"loo\" baseline)")
+    lr_policy: float = opt(1e-3, "Adam, policy + state + embedding")
+    lr_confidence: float = opt(1e-3, "Adam, confidence net")
+    weight_decay: float = opt(1e-6, "Adam L2 (the paper's alpha)")
+    r_tp: float = opt(R_TP, "R_tp, reward per true positive cell at T (Eq. 14)")
+    r_fp: float = opt(R_FP, "R_fp, reward per false positive cell at T (Eq. 14)")
+    r_re: float = opt(R_RE, "R_re, reward per revisit (Eq. 15)")
+    baseline: str = opt("loo", "loo (other episodes of the same scene) | ema (moving average per step)")
+    ema_decay: float = opt(0.95, "decay of the \"ema\" baseline")
+    entropy_coef: float = opt(0.01, "entropy bonus weight")
+    conf_pos_weight: float = opt(3.0, "weight of occupied cells in the confidence loss (F1 needs the few positives)")
+    conf_episodes: int = opt(32, "episodes of each batch the confidence loss is taken over (dropout is costly)")
+    state_extras: bool = opt(True, "position / visited / step in the policy state (see policy.py)")
+    eval_every: int = opt(25, "iterations between validations")
+    eval_episodes: int = opt(8, "episodes per validation scene")
+    threads: int = opt(1, "torch CPU threads")
+    cache_dir: str | None = opt(None, "view cache root (default cache/)")
+    runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
+    workers: int = opt(2, "rendering processes when a view cache must be built")
+    progress: bool = opt(True, "progress bar")
+    plot: bool = opt(True, "write learning_curve.png at the end")
 
 
 class TrainResult(NamedTuple):
@@ -95,8 +102,7 @@ class TrainResult(NamedTuple):
 
 
 def check_args(args: Args) -> None:
-    if args.fusion not in FUSION_METHODS:
-        raise UavsearchError(f"unknown fusion {args.fusion!r}; choose one of {', '.join(FUSION_METHODS)}")
+    check_names(fusion=args.fusion)
     if args.baseline not in ("loo", "ema"):
         raise UavsearchError(f"unknown baseline {args.baseline!r}; choose loo or ema")
     if args.baseline == "loo" and args.episodes_per_scene < 2:
@@ -106,8 +112,6 @@ def check_args(args: Args) -> None:
 
 
 def load_caches(args: Args):
-    from .perception import load_perception
-    from .view_cache import get_view_cache
 
     net, _ = load_perception(args.perception)
     kw = dict(cache_dir=args.cache_dir, workers=args.workers, progress=args.progress)
@@ -116,10 +120,7 @@ def load_caches(args: Args):
 
 def returns(ep, final_map, labels, args: Args) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, T-1) return from each move (Eq. 13-15, undiscounted) and the (B,) classification reward."""
-    pred = final_map.detach() > 0.5
-    tp = (pred & labels).sum(1).float()
-    fp = (pred & ~labels).sum(1).float()
-    r_cls = args.r_tp * tp + args.r_fp * fp
+    r_cls = classification_reward(final_map.detach(), labels, args.r_tp, args.r_fp).float()
     r = args.r_re * ep.revisit[:, 1:].float()  # move t lands on view t + 1
     r[:, -1] += r_cls
     return r.flip(1).cumsum(1).flip(1), r_cls
@@ -127,7 +128,6 @@ def returns(ep, final_map, labels, args: Args) -> tuple[torch.Tensor, torch.Tens
 
 class _EvalScores(torch.nn.Module):
     """The confidence net in eval mode without grad: what the rollout's M-bar^t (and reward) use."""
-
     def __init__(self, conf: ConfidenceNet):
         super().__init__()
         self.conf = conf
@@ -153,11 +153,7 @@ def confidence_loss(conf: ConfidenceNet, cache, rows, lattice_idx, pos_weight: f
 
 
 def _plot(rows: list[dict], path: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     it = [r["iteration"] for r in rows]
     ev = [r for r in rows if r.get("eval/af1") is not None]
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
@@ -198,16 +194,13 @@ def train(args: Args, caches=None) -> TrainResult:
 
     train_cache, val_cache = caches if caches is not None else load_caches(args)
     config = SearchConfig()
-    policy = PolicyNet(PolicyConfig(global_dim=int(train_cache.global_feature.shape[-1]),
-                                    num_cells=config.grid.num_cells, num_positions=config.lattice_size ** 2,
-                                    num_actions=len(config.actions), budget_T=config.budget_T,
-                                    extras=args.state_extras))
-    conf = ConfidenceNet(int(train_cache.cell_features.shape[-1])) if args.fusion == "learned" else None
+    agent = new_agent(args.fusion, config, int(train_cache.global_feature.shape[-1]),
+                      int(train_cache.cell_features.shape[-1]), args.state_extras)  # evaluation
+    policy, conf = agent.policy, agent.confidence
     groups = [{"params": policy.parameters(), "lr": args.lr_policy}]
     if conf is not None:
         groups.append({"params": conf.parameters(), "lr": args.lr_confidence})
     opt = torch.optim.Adam(groups, weight_decay=args.weight_decay)
-    agent = Agent(args.fusion, policy, conf)  # evaluation
     rollout_conf = _EvalScores(conf) if conf is not None else None
     rollout_agent = Agent(args.fusion, policy, rollout_conf)
     T, S = config.budget_T, train_cache.num_scenes
@@ -281,31 +274,16 @@ def train(args: Args, caches=None) -> TrainResult:
     bar.close()
     if args.plot:
         _plot(rows, run_dir / "learning_curve.png", f"{name}, seed {args.seed}")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(ckpt, args.out)
+    out = copy_checkpoint(ckpt, args.out, args.ship, checkpoint_path(args.setting, args.fusion))
     seconds = time.perf_counter() - t_start
     summary = {"best": best, "seconds": seconds, "train_steps_per_s": steps / max(roll_s, 1e-9),
-               "checkpoint": str(args.out or ckpt)}
+               "checkpoint": str(out or ckpt)}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
-    return TrainResult(run_dir, Path(args.out) if args.out else ckpt, best, seconds, steps / max(roll_s, 1e-9))
+    return TrainResult(run_dir, out or ckpt, best, seconds, steps / max(roll_s, 1e-9))
 
 
 # --------------------------------------------------------------------------------------------------
 # CLI
-
-
-def _field_help() -> dict[str, str]:
-    """The one-line comment after each Args field is its --help text (one source of truth)."""
-    import inspect
-    import re
-
-    out = {}
-    for line in inspect.getsource(Args).splitlines():
-        m = re.match(r"\s+(\w+):[^#]*#\s*(.*)$", line)
-        if m:
-            out[m.group(1)] = m.group(2).replace("%", "%%")
-    return out
 
 
 def add_train_policy_parser(subparsers) -> None:
@@ -313,35 +291,18 @@ def add_train_policy_parser(subparsers) -> None:
     p = subparsers.add_parser("policy", help="stage 2: confidence fusion + REINFORCE view-selection policy",
                               description="Stage 2 (paper Sec. V-B) on cached teleport views; see "
                                           "uavsearch/search/train_policy.py.")
-    helps = _field_help()
-    for name, value in asdict(Args()).items():
-        flag = "--" + name.replace("_", "-")
-        h = f"{helps.get(name, '')} (default {value})"
-        if isinstance(value, bool):
-            p.add_argument(flag, type=lambda s: s.lower() in ("1", "true", "yes"), default=value, metavar="BOOL",
-                           help=h)
-        else:
-            p.add_argument(flag, type=type(value) if value is not None else str, default=value, help=h)
+    add_dataclass_args(p, Args)
     p.set_defaults(func=cmd_train_policy)
 
 
 def cmd_train_policy(args) -> int:
-    fields = set(asdict(Args()))
-    res = train(Args(**{k: v for k, v in vars(args).items() if k in fields}))
+    res = train(dataclass_from_args(Args, args))
     print(f"best validation: {json.dumps(res.best)}")
     print(f"{res.seconds:.0f} s, {res.steps_per_s:.0f} policy steps/s in training; run {res.run_dir}; "
           f"checkpoint {res.checkpoint}")
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    """`python -m uavsearch.search.train_policy [flags]`: the same as `uavsearch train policy [flags]`."""
-    import sys
-
-    from ..cli import main as cli_main
-
-    return cli_main(["train", "policy", *(sys.argv[1:] if argv is None else argv)])
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+if __name__ == "__main__":  # python -m uavsearch.search.train_policy [flags] = uavsearch train policy [flags]
+    raise SystemExit(run_command(cmd_train_policy, add_dataclass_args(argparse.ArgumentParser(
+        prog="python -m uavsearch.search.train_policy"), Args).parse_args()))

@@ -47,6 +47,13 @@ from tqdm import tqdm
 
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import REPO_ROOT
+from uavsearch.world import settings
+from uavsearch.world.scene import generate_scene, scene_to_json
+from uavsearch.world.settings import SETTINGS, scene_seeds
+
+from .config import SearchConfig, lattice_positions
+from .dataset import ViewSetSpec, generate_views, load_views
+from .views import TeleportVehicle
 
 FORMAT = "uavsearch-search-views/1"
 CACHE_DIR = REPO_ROOT / "cache"
@@ -56,7 +63,6 @@ PROBE_SCENE = (424242, 5)  # (seed, K) of the scene whose start view fingerprint
 
 class ViewCache(NamedTuple):
     """One (split, setting, part) in memory as torch tensors; row s is scene s, column p lattice position p."""
-
     scene_seed: np.ndarray  # (S,)
     occupied_cells: np.ndarray  # (S,)
     occupancy: torch.Tensor  # (S, N) bool
@@ -86,7 +92,6 @@ class ViewCache(NamedTuple):
 @dataclass(frozen=True)
 class CacheKey:
     """Which scenes a cache holds: one part of one split of one paper setting."""
-
     setting: int
     split: str = "paper"
     part: str = "train"
@@ -96,7 +101,6 @@ class CacheKey:
         return f"{self.split}_s{self.setting}_{self.part}"
 
     def scenes(self) -> list[tuple[int, int]]:
-        from uavsearch.world.settings import SETTINGS, scene_seeds
 
         if self.part not in PARTS:
             raise UavsearchError(f"unknown part {self.part!r}; valid: {', '.join(PARTS)}")
@@ -109,11 +113,6 @@ def world_tag() -> str:
     scene splits and the search config. Any change to how scenes are generated or drawn changes it (and
     so never silently reuses old renders); edits that change no pixel do not. About a second, once per
     process."""
-    from uavsearch.world import settings
-    from uavsearch.world.scene import generate_scene, scene_to_json
-
-    from .config import SearchConfig
-    from .views import TeleportVehicle
 
     config = SearchConfig()
     probe = generate_scene(PROBE_SCENE[0], PROBE_SCENE[1])
@@ -149,9 +148,6 @@ def perception_outputs(net, images: np.ndarray, labels: np.ndarray, batch: int =
 
 def render_lattice_views(key: CacheKey, scenes=None, root=None, workers: int = 2, progress: bool = True) -> Path:
     """Layer 1: render every lattice position of every scene (resumable); returns the view-set folder."""
-    from .config import SearchConfig, lattice_positions
-    from .dataset import ViewSetSpec, generate_views
-
     scenes = list(scenes) if scenes is not None else key.scenes()
     n_pos = len(lattice_positions(SearchConfig()))
     spec = ViewSetSpec(name=f"lattice-{key.name}", scenes=tuple((int(s), int(k)) for s, k in scenes),
@@ -163,8 +159,6 @@ def render_lattice_views(key: CacheKey, scenes=None, root=None, workers: int = 2
 def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: int = 2,
                      progress: bool = True) -> Path:
     """Render (if needed) and run perception over one part; returns the .npz path (reused when present)."""
-    from .dataset import load_views
-
     cache_dir = Path(cache_dir) if cache_dir is not None else CACHE_DIR
     tag = perception_tag(net)
     world = world_tag()

@@ -13,6 +13,7 @@ from typing import Protocol
 import numpy as np
 
 from ..geometry import CameraIntrinsics, CameraPose, Grid, cell_label_image, cell_pixel_areas, nadir_camera_pose
+from ..world.render import SceneRenderer
 from .config import SearchConfig
 
 
@@ -69,8 +70,6 @@ class TeleportVehicle:
     """
 
     def __init__(self, spec, config: SearchConfig | None = None, cache: bool = True):
-        from ..world.render import SceneRenderer
-
         self.spec = spec
         self.config = config or SearchConfig()
         self._renderer = SceneRenderer(spec, self.config.intrinsics, self.config.render)

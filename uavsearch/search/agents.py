@@ -1,0 +1,145 @@
+"""THE registry of fusion methods and policies, and the one `build_agent(...)` every user goes through.
+
+Evaluation (the rows of Table II), flying (a mission's method), replay (re-running perception + fusion on a
+log) and training all build their agents here, so a fusion method or a policy is named in one place:
+
+- fusion methods: `FUSION_METHODS` in fusion.py (kernel and the inputs it needs). A method
+  whose `needs` include "scores" needs a confidence net (learned fusion's, from a search checkpoint).
+- policies: `POLICIES` below. "learned" loads its net from a search checkpoint (search_s<K>_<fusion>.pt,
+  trained with that fusion); the others are built from the search config.
+
+Adding a fusion method is one kernel and one entry in fusion.py's table; adding a policy is one entry here.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+from torch import nn
+
+from uavsearch.errors import UavsearchError
+from uavsearch.paths import MODELS_DIR
+
+from .config import SearchConfig
+from .fusion import FUSION_METHODS
+from .perception import ConfidenceNet, load_perception
+from .policy import (ArgmaxPolicy, CoverageRoute, GreedyUncertainty, PolicyConfig, PolicyNet, RandomPolicy,
+                     load_search_model)
+from .search_loop import Agent, Policy
+from .view_cache import perception_tag
+
+
+class PolicyKind(NamedTuple):
+    """How a policy is made: from the config, or (build None) loaded from a search checkpoint."""
+
+    build: Callable[[SearchConfig], Policy] | None
+    description: str
+
+
+POLICIES: dict[str, PolicyKind] = {
+    "learned": PolicyKind(None, "the REINFORCE view-selection net of a search checkpoint"),
+    "random": PolicyKind(lambda config: RandomPolicy(len(config.actions)), "uniform random moves"),
+    "coverage": PolicyKind(CoverageRoute, "a fixed geometric route (beyond the paper)"),
+    "greedy": PolicyKind(GreedyUncertainty, "toward the most uncertain cells (beyond the paper)"),
+}
+
+
+def needs_confidence(fusion: str) -> bool:
+    """Whether the fusion method fuses with a confidence net's scores."""
+    return "scores" in FUSION_METHODS[fusion].needs
+
+
+def check_names(fusion: str | None = None, policy: str | None = None) -> None:
+    """A one-line error for a fusion method or policy the registry does not know."""
+    if fusion is not None and fusion not in FUSION_METHODS:
+        raise UavsearchError(f"unknown fusion method {fusion!r}; choose one of {', '.join(FUSION_METHODS)}")
+    if policy is not None and policy not in POLICIES:
+        raise UavsearchError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
+
+
+def checkpoint_path(setting: int, fusion: str, models_dir=None) -> Path:
+    """Where the policy trained with `fusion` for `setting` lives (default: the shipped models/)."""
+    return Path(models_dir or MODELS_DIR) / f"search_s{int(setting)}_{fusion}.pt"
+
+
+class LoadedAgent(NamedTuple):
+    agent: Agent
+    perception: nn.Module | None  # the frozen perception net, when asked for
+    scores_net: nn.Module | None  # a confidence net for logging scores (learned fusion's, when one was found)
+    description: str
+
+
+def _warn_tag(extra, perception, path) -> None:
+    """A policy / confidence net trained on another perception net's outputs reads them wrongly: say so."""
+    tag = extra.get("perception_tag") if isinstance(extra, dict) else None
+    if tag and tag != perception_tag(perception):
+        print(f"uavsearch: warning: {path} was trained with perception {tag}, the given perception is "
+              f"{perception_tag(perception)}", file=sys.stderr)
+
+
+def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=None, confidence_checkpoint=None,
+                greedy: bool = False, perception=None, scores_net: bool = False,
+                error: type[UavsearchError] = UavsearchError, where: str = "") -> LoadedAgent:
+    """The agent named by (fusion, policy).
+
+    checkpoint: the learned policy's search checkpoint (its fusion must be `fusion`).
+    confidence_checkpoint: where a confidence net comes from when the policy's checkpoint has none (learned
+        fusion with another policy; or, with `scores_net`, any fusion, to log scores for replay's re-fusion).
+    greedy: a learned policy takes its most likely move instead of sampling.
+    perception: a checkpoint path (or a loaded net) to load with the agent; the policy checkpoint's
+        perception tag is checked against it.
+    error, where: the error class and message prefix (a mission says which file is wrong).
+    """
+    try:
+        check_names(fusion, policy)
+    except UavsearchError as e:
+        raise error(f"{where}{e}") from None
+    net = None
+    if perception is not None and not isinstance(perception, nn.Module):
+        perception, _ = load_perception(perception)
+    confidence = None
+    kind = POLICIES[policy]
+    if kind.build is None:
+        if checkpoint is None:
+            raise error(f"{where}the {policy!r} policy needs a checkpoint")
+        trained_with, net, confidence, extra = load_search_model(checkpoint)
+        if perception is not None:
+            _warn_tag(extra, perception, checkpoint)
+        if trained_with != fusion:
+            raise error(f"{where}checkpoint {checkpoint} holds a policy trained with {trained_with!r} fusion, "
+                        f"not {fusion!r}")
+        if net.cfg.num_actions != len(config.actions):
+            raise error(f"{where}checkpoint has {net.cfg.num_actions} actions, search.actions has "
+                        f"{len(config.actions)}")
+        pol = ArgmaxPolicy(net) if greedy else net
+    else:
+        pol = kind.build(config)
+    needed = needs_confidence(fusion)
+    if confidence is None and confidence_checkpoint is not None and \
+            (needed or (scores_net and Path(confidence_checkpoint).is_file())):
+        try:
+            _, _, confidence, _ = load_search_model(confidence_checkpoint)
+        except UavsearchError:
+            if needed:
+                raise
+        if needed and confidence is None:
+            raise error(f"{where}{confidence_checkpoint} has no confidence network for {fusion} fusion")
+    if needed and confidence is None:
+        raise error(f"{where}{fusion} fusion needs a confidence network (a checkpoint trained with it)")
+    agent = Agent(fusion, pol, confidence if needed else None)
+    return LoadedAgent(agent, perception, confidence if scores_net else None, f"{fusion} fusion + {policy} policy")
+
+
+def new_agent(fusion: str, config: SearchConfig, global_dim: int, cell_dim: int, extras: bool = True) -> Agent:
+    """A fresh agent for stage 2 to train: a policy net and, when the fusion needs one, a confidence net."""
+    check_names(fusion)
+    policy = PolicyNet(PolicyConfig(global_dim=global_dim, num_cells=config.grid.num_cells,
+                                    num_positions=config.lattice_size ** 2, num_actions=len(config.actions),
+                                    budget_T=config.budget_T, extras=extras))
+    return Agent(fusion, policy, ConfidenceNet(cell_dim) if needs_confidence(fusion) else None)
+
+
+__all__ = ["FUSION_METHODS", "POLICIES", "LoadedAgent", "PolicyKind", "build_agent", "check_names",
+           "checkpoint_path", "needs_confidence", "new_agent"]
