@@ -18,7 +18,7 @@ import yaml
 from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator,
                       model_validator)
 
-from .errors import MissionError
+from .errors import MissionError, format_validation_error, read_user_file
 from .geometry import GeodeticOrigin
 from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
 from .search.agents import FUSION_METHODS, POLICIES, LoadedAgent, build_agent, checkpoint_path, needs_confidence
@@ -215,23 +215,6 @@ class Mission(_Strict):
         return mission_from_dict(data, self.source)
 
 
-def format_validation_error(e: ValidationError, source: str, kind: str = "mission") -> str:
-    """pydantic's first error as one line: '<kind> <source>: <field>: <problem> (got <value>)'."""
-    err = e.errors()[0]
-    loc = ".".join(str(x) for x in err.get("loc", ()) if not str(x).startswith("function-after"))
-    msg = err.get("msg", "invalid")
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, "):]
-    got = err.get("input")
-    where = f"{loc}: " if loc else ""
-    tail = f" (got {got!r})" if err.get("type") not in ("missing", "extra_forbidden", "value_error") and \
-        not isinstance(got, (dict, list)) else ""
-    if err.get("type") == "extra_forbidden":
-        msg = "unknown field"
-    more = f" [+{len(e.errors()) - 1} more]" if len(e.errors()) > 1 else ""
-    return f"{kind} {source}: {where}{msg}{tail}{more}"
-
-
 def mission_from_dict(data, source: str | None = None) -> Mission:
     src = source or "<dict>"
     if data is None:
@@ -243,14 +226,6 @@ def mission_from_dict(data, source: str | None = None) -> Mission:
     except ValidationError as e:
         raise MissionError(format_validation_error(e, src)) from None
     return m.model_copy(update={"source": source})
-
-
-def read_user_file(path: Path, kind: str = "mission") -> str:
-    """A file the user named, or the one-line error saying why it cannot be read."""
-    try:
-        return path.read_text()
-    except OSError as e:
-        raise MissionError(f"{kind} {path}: cannot read ({e.strerror or e})") from None
 
 
 def load_mission(path=None) -> Mission:

@@ -21,10 +21,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from .errors import MissionError
+from .errors import MissionError, format_validation_error, read_user_file
 from .flight.mission import (FRAME_GLOBAL_RELATIVE_ALT, FRAME_MISSION, IMAGE_START_CAPTURE, NAV_LAND,
                              NAV_RETURN_TO_LAUNCH, NAV_TAKEOFF, NAV_WAYPOINT, SUPPORTED_COMMANDS, MissionItem)
-from .missions import format_validation_error, read_user_file
 
 # QGC's numbers for what it writes: MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR, altitude relative to home.
 FIRMWARE_PX4 = 12
