@@ -14,6 +14,15 @@ MODELS_DIR = REPO_ROOT / "models"
 RUNS_DIR = Path(os.environ.get("UAVSEARCH_RUNS", Path.cwd() / "runs"))
 
 
+def display_path(path) -> str:
+    """`path` relative to the repository (or the working directory) when inside it, for files we commit."""
+    p = Path(path).resolve()
+    for base in (REPO_ROOT.resolve(), Path.cwd().resolve()):
+        if base != Path(base.anchor) and p.is_relative_to(base):
+            return p.relative_to(base).as_posix()
+    return Path(path).as_posix() if not Path(path).is_absolute() else p.name
+
+
 def prepare_output(path, kind: str = "dir") -> Path:
     """Make sure an output folder (kind 'dir') or file (kind 'file') can be written, before any work starts.
 
