@@ -230,7 +230,8 @@ def test_unwritable_out_is_one_line(tmp_path):
     afile.write_text("x")
     _one_line_error(_uavsearch("fly", "--out", afile / "run"), "cannot write")
     _one_line_error(_uavsearch("fly", "--out", afile), "a folder is needed")
-    _one_line_error(_uavsearch("replay", tmp_path, "--out", afile / "x"), "cannot write")
+    _one_line_error(_uavsearch("replay", tmp_path, "--out", afile / "x"), "cannot write", "is a file")
+    _one_line_error(_uavsearch("replay", tmp_path, "--html", afile / "x.html"), "cannot write")
     _one_line_error(_uavsearch("eval", "search", "--setting", "2", "--out", afile / "x"), "cannot write")
     _one_line_error(_uavsearch("sitl", "--out", afile / "x", "--duration", "1"), "cannot write")
 

@@ -278,6 +278,8 @@ def _check_out_then(func):
         out = getattr(args, "out", None)
         if out is not None:
             prepare_output(out, "file" if args.cmd in _OUT_IS_FILE else "dir")
+        if getattr(args, "html", None):  # replay --html FILE
+            prepare_output(args.html, "file")
         return func(args)
 
     return run

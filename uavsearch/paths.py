@@ -43,6 +43,9 @@ def prepare_output(path, kind: str = "dir") -> Path:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryFile(dir=folder):
             pass
+    except (FileExistsError, NotADirectoryError):
+        blocker = next((p for p in [folder, *folder.parents] if p.exists()), folder)
+        raise UavsearchError(f"cannot write to {folder}: {blocker} is a file") from None
     except OSError as e:
         raise UavsearchError(f"cannot write to {folder}: {e.strerror or e}") from None
     return path
