@@ -124,3 +124,23 @@ def test_bad_inputs_are_clear_errors(tmp_path):
         net(np.zeros((1, 224, 224, 3), np.uint8), _labels((0.0, 0.0), (0.0, 0.0)))
     with pytest.raises(UavsearchError, match="multiple of the feature stride"):
         cell_pooling(torch.zeros(1, 225, 224, dtype=torch.int16), 4)
+
+
+def test_bits_dropout_keeps_one_minus_p_scales_by_its_inverse_and_is_identity_in_eval():
+    from uavsearch.search.perception import BitsDropout
+
+    torch.manual_seed(0)
+    d = BitsDropout(0.3)
+    x = torch.ones(400_000)
+    y = d(x)
+    kept = y != 0
+    assert abs(kept.float().mean().item() - 0.7) < 0.003  # 0.7 +- 5 sigma at n = 4e5
+    assert torch.allclose(y[kept], torch.full_like(y[kept], 1 / 0.7))
+    torch.manual_seed(0)
+    assert torch.equal(d(x), y)  # the global torch seed decides the mask
+    x2 = torch.randn(3, 5, 7, requires_grad=True)  # odd sizes: the bit words do not divide the tensor
+    out = d(x2)
+    out.sum().backward()
+    assert torch.equal(x2.grad != 0, out != 0)
+    assert torch.equal(d.eval()(x2), x2) and torch.equal(BitsDropout(0.0)(x2), x2)
+    assert torch.equal(BitsDropout(1.0)(x2), torch.zeros_like(x2))
