@@ -94,12 +94,13 @@ def _add_scene_parser(sub) -> None:
 
 
 def _cmd_fly(args) -> int:
-    # lazy: torch (2-5 s)
+    # lazy: pydantic, pymavlink, OpenCV; torch (2-5 s) is imported by fly() once the vehicle is starting, so
+    # the mission is read without the agent registry (fly checks it then)
     from .missions import load_mission
     from .search.mission_controller import fly, format_maps
 
-    mission = load_mission(args.mission)
-    mission = mission.with_overrides(**{"scene.seed": args.scene, "flight.speed": args.speed})
+    mission = load_mission(args.mission, check_registry=False)
+    mission = mission.with_overrides(check_registry=False, **{"scene.seed": args.scene, "flight.speed": args.speed})
     r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
             progress=lambda line: print(line, flush=True))
     print()

@@ -24,7 +24,7 @@ from pathlib import Path
 from ..errors import UavsearchError, run_command
 from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import RUNS_DIR
-from .camera import Camera, scene_renderer
+from .camera import Camera, background_scene_renderer
 from .commander import Commander, autopilot_params
 from .lockstep import LockstepGate
 from .mavlink.endpoint import MavlinkEndpoint
@@ -101,8 +101,8 @@ class Sitl:
 
                 spec = load_scene(cfg.scene_file)
                 cfg.scene_seed = spec.seed
-            render, self._close_render = scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, seed=cfg.seed,
-                                                        spec=spec)
+            render, self._close_render = background_scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics,
+                                                                   self.run_dir, seed=cfg.seed, spec=spec)
         self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render,
                              home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m)
         links = []
