@@ -143,6 +143,9 @@ def background_scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: 
 
     def build():
         nonlocal spec
+        from ..world.render import prestart_worker  # lazy: see scene_renderer
+
+        prestart_worker()
         if spec is None:
             from ..world.scene import generate_scene  # lazy: see scene_renderer
 

@@ -88,8 +88,6 @@ class Sitl:
         self.params = ParamStore(mc_params, autopilot_params(mc_params))
         for name, value in cfg.params.items():
             self.params.set(name, value)
-        self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)
-        self.commander = Commander(self.params, self.vehicle, cfg.home, autopilot_hz=cfg.autopilot_hz)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
         self.run_dir = Path(cfg.run_dir) if cfg.run_dir else RUNS_DIR / f"sitl__{cfg.seed}__{stamp}"
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -103,6 +101,8 @@ class Sitl:
                 cfg.scene_seed = spec.seed
             render, self._close_render = background_scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics,
                                                                    self.run_dir, seed=cfg.seed, spec=spec)
+        self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)  # the scene builds meanwhile
+        self.commander = Commander(self.params, self.vehicle, cfg.home, autopilot_hz=cfg.autopilot_hz)
         self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render,
                              home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m)
         links = []

@@ -551,6 +551,13 @@ def _stop_idle_workers() -> None:
             w.kill()
 
 
+def prestart_worker() -> None:
+    """Start an idle worker now, so that its process start and imports (0.5-1 s) overlap the caller's own
+    work (a flight's camera: generating the scene); the next isolated SceneRenderer takes it."""
+    if not _IDLE:
+        _IDLE.append(_Worker())
+
+
 # A forked child must not talk to its parent's workers over the inherited pipes.
 os.register_at_fork(after_in_child=_IDLE.clear)
 
