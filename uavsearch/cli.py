@@ -248,11 +248,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    as_program = argv is None
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(command=next((a for a in argv if not a.startswith("-")), ""))
     args = parser.parse_args(argv)
     code = run_command(args.func, args)
-    if argv is None:  # a program about to exit: its last garbage collection would walk torch's object graph
+    if as_program:  # a program about to exit: its last garbage collection would walk torch's object graph
         gc.freeze()  # for nothing (0.25-0.3 s CPU after `import torch`, measured)
         if getattr(args, "exit_at_once", False):
             # `fly` has closed its logs and leaves no child to wait for (its vehicle exits on its own): skip
