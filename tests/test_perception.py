@@ -144,3 +144,18 @@ def test_bits_dropout_keeps_one_minus_p_scales_by_its_inverse_and_is_identity_in
     assert torch.equal(x2.grad != 0, out != 0)
     assert torch.equal(d.eval()(x2), x2) and torch.equal(BitsDropout(0.0)(x2), x2)
     assert torch.equal(BitsDropout(1.0)(x2), torch.zeros_like(x2))
+
+
+def test_confidence_forward_rows_equals_the_net_on_the_gathered_rows_with_a_mask_per_copy():
+    from uavsearch.search.perception import ConfidenceNet
+
+    torch.manual_seed(0)
+    conf = ConfidenceNet(7, dropout=0.5)
+    feats = torch.randn(3, 10, 7)
+    rows = torch.tensor([[0, 2, 2], [1, 0, 0]])
+    conf.eval()
+    assert torch.allclose(conf.forward_rows(feats, rows), conf(feats[rows]), atol=1e-6)
+    conf.train()
+    out = conf.forward_rows(feats, rows)
+    assert out.shape == (2, 3, 10)
+    assert not torch.equal(out[0, 1], out[0, 2])  # the same view in two places: two dropout draws

@@ -239,6 +239,16 @@ class ConfidenceNet(nn.Module):
     def forward(self, cell_features: torch.Tensor) -> torch.Tensor:
         return self.mlp(cell_features).squeeze(-1)
 
+    def forward_rows(self, cell_features: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """self(cell_features[rows]) with the first layer run once per row of cell_features: training's
+        Eq. 11 reads each (scene, position) in many episodes. Dropout still draws its own mask for every
+        episode's copy, so the result has the distribution of the direct form (and the same values in
+        eval mode)."""
+        h = self.mlp[0](cell_features)[rows]
+        for layer in self.mlp[1:]:
+            h = layer(h)
+        return h.squeeze(-1)
+
 
 class ImageEmbedding(nn.Module):
     """F_embedding's trainable head: the frozen global feature -> a 512-d embedding for the policy."""

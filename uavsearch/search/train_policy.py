@@ -145,16 +145,15 @@ class _EvalScores(torch.nn.Module):
 def confidence_loss(conf: ConfidenceNet, cache, rows, lattice_idx, pos_weight: float) -> torch.Tensor:
     """Eq. 11: binary NLL of the learned-fusion map at T, re-fused with the net in train mode (dropout).
 
-    The net runs once per distinct (scene, position) of the batch (episodes of one scene share the start
-    view and often more), and every episode's fusion reads those scores. Each term of the loss still sees
-    one dropout draw per view, so its expectation (and the gradient's) is unchanged; draws shared between
-    episodes only correlate their noise.
+    The net's first (largest) layer runs once per distinct (scene, position) of the batch (episodes of one
+    scene share the start view and often more); dropout and the rest run per episode and view, so every
+    term of the loss draws its own dropout masks, as if the net ran on each episode's views.
     """
     r = rows[:, None].expand_as(lattice_idx)
     P = cache.num_positions
     uniq, inv = torch.unique(r * P + lattice_idx, return_inverse=True)
     feats = cache.cell_features.reshape(-1, *cache.cell_features.shape[2:])[uniq]  # (U, N, D)
-    scores = conf(feats)[inv]  # (B, T, N)
+    scores = conf.forward_rows(feats, inv)  # (B, T, N)
     p = cache.log_probs[r, lattice_idx][..., 1].exp()  # (B, T, N)
     valid = cache.valid[r, lattice_idx]
     fused = fuse("learned", p, valid, scores=scores).clamp(1e-6, 1 - 1e-6)
