@@ -198,8 +198,8 @@ class BitsDropout(nn.Dropout):
         n = x.numel()
         words = torch.empty((n + 3) // 4, dtype=torch.int64, device=x.device).random_(-2**63, 2**63 - 1)
         bits = words.view(torch.int16)[:n].view(x.shape)  # uniform on [-2^15, 2^15)
-        keep = bits >= int(round(self.p * 65536)) - 32768
-        return x * keep * (1.0 / (1.0 - self.p))
+        scale = (bits >= int(round(self.p * 65536)) - 32768).to(x.dtype).mul_(1.0 / (1.0 - self.p))
+        return x * scale  # one product to differentiate
 
 
 def _mlp(dims: list[int], dropout: float) -> nn.Sequential:
