@@ -143,14 +143,11 @@ def background_scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: 
 
     def build():
         nonlocal spec
-        from ..world.render import prestart_worker  # lazy: see scene_renderer
-
-        prestart_worker()
-        if spec is None:
-            from ..world.scene import generate_scene  # lazy: see scene_renderer
-
-            spec = generate_scene(scene_seed, occupied_cells)
+        from ..world.render import generate_in_worker  # lazy: see scene_renderer
         from ..world.scene import save_scene
+
+        if spec is None:  # in the render worker that then builds its world: beside this process's start-up
+            spec = generate_in_worker(scene_seed, occupied_cells)
 
         tmp = Path(run_dir) / f".{SCENE_FILE}.tmp"
         save_scene(spec, tmp)
