@@ -24,7 +24,7 @@ from pathlib import Path
 from ..errors import UavsearchError, run_command
 from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import RUNS_DIR
-from .camera import Camera, scene_renderer
+from .camera import Camera, background_scene_renderer
 from .commander import Commander, autopilot_params
 from .lockstep import LockstepGate
 from .mavlink.endpoint import MavlinkEndpoint
@@ -68,7 +68,7 @@ SITL_PARAMS = [
     ParamDef("SIM_SCENE_CELLS", NO_SCENE, NO_SCENE, 10_000, type="int", readonly=True,
              description="occupied cells of the simulated scene (-1: none)"),
     ParamDef("SIM_SCENE_HASH", 0, 0, 2**31 - 1, type="int", readonly=True,
-             description="CRC-32 (31 bits) of the scene spec JSON: tells edited or regenerated scenes apart"),
+             description="CRC-32 (31 bits) of the scene spec file it was given (0: generated from seed and cells)"),
 ]
 
 
@@ -110,23 +110,25 @@ class Sitl:
         self.params = ParamStore(mc_params, autopilot_params(mc_params), SITL_PARAMS)
         for name, value in cfg.params.items():
             self.params.set(name, value)
-        self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)
-        self.commander = Commander(self.params, self.vehicle, cfg.home, autopilot_hz=cfg.autopilot_hz)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
         self.run_dir = Path(cfg.run_dir) if cfg.run_dir else RUNS_DIR / f"sitl__{cfg.seed}__{stamp}"
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._close_render = None
         if render is None and cfg.scene_seed is not None:
-            from ..world.scene import generate_scene, load_scene  # lazy: ~0.4 s, only with a camera scene
+            spec = None
+            if cfg.scene_file is not None:
+                from ..world.scene import load_scene  # lazy: ~0.4 s, only for --scene-file
 
-            spec = load_scene(cfg.scene_file) if cfg.scene_file is not None else \
-                generate_scene(cfg.scene_seed, cfg.occupied_cells)
-            cfg.scene_seed = spec.seed
-            render, self._close_render = scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, seed=cfg.seed,
-                                                        spec=spec)
-            self.params.set("SIM_SCENE_SEED", spec.seed, force=True)
-            self.params.set("SIM_SCENE_CELLS", int(spec.occupancy_array().sum()), force=True)
-            self.params.set("SIM_SCENE_HASH", scene_hash(spec), force=True)
+                spec = load_scene(cfg.scene_file)
+                cfg.scene_seed = spec.seed
+            render, self._close_render = background_scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics,
+                                                                   self.run_dir, seed=cfg.seed, spec=spec)
+            self.params.set("SIM_SCENE_SEED", cfg.scene_seed, force=True)
+            self.params.set("SIM_SCENE_CELLS", cfg.occupied_cells if spec is None else int(spec.occupancy_array().sum()),
+                            force=True)
+            self.params.set("SIM_SCENE_HASH", 0 if spec is None else scene_hash(spec), force=True)
+        self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)  # the scene builds meanwhile
+        self.commander = Commander(self.params, self.vehicle, cfg.home, autopilot_hz=cfg.autopilot_hz)
         self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render,
                              home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m)
         links = []
