@@ -4,9 +4,9 @@
 
 Each mission is `uavsearch fly` in process (vehicle process start, take-off, T views, landing) on the
 next scene seed (cycling over --scenes). After each one: its wall time, the controller's RSS, its open
-file descriptors and threads, the child processes still alive (a vehicle or render worker left behind is
-a leftover), and whether it completed. At the end: the least-squares slope of wall time and RSS per
-mission (flat means no leak), and what is still running.
+file descriptors and threads, the child processes still alive (a vehicle or render worker still there
+10 s after its mission is a leftover), and whether it completed. At the end: the least-squares slope of
+wall time and RSS per mission (flat means no leak), and what is still running.
 """
 
 from __future__ import annotations
@@ -47,10 +47,15 @@ def children(pid: int | None = None) -> list[int]:
     return [k for k in kids if Path(f"/proc/{k}").exists() and _status(k).get("State", "Z")[0] != "Z"]
 
 
-def sample() -> dict:
+def sample(grace_s: float = 10.0) -> dict:
+    """The controller after a mission. A vehicle finishes its shutdown on its own after `fly` returns: children
+    still alive `grace_s` later are the leftovers (exit_s: how long the last one took to go)."""
+    t0 = time.monotonic()
+    while children() and time.monotonic() - t0 < grace_s:
+        time.sleep(0.05)
     st = _status()
     return dict(rss_mib=int(st["VmRSS"].split()[0]) / 1024, threads=int(st["Threads"]),
-                fds=len(os.listdir("/proc/self/fd")), children=children())
+                fds=len(os.listdir("/proc/self/fd")), children=children(), exit_s=time.monotonic() - t0)
 
 
 def _slope(y) -> float:
@@ -74,7 +79,7 @@ def main(argv=None) -> int:
     rows = []
     s0 = sample()
     print(f"start: RSS {s0['rss_mib']:.1f} MiB, {s0['fds']} fds, {s0['threads']} threads, children {s0['children']}")
-    print("| # | scene | status | wall s | RSS MiB | fds | threads | children left |")
+    print("| # | scene | status | wall s | RSS MiB | fds | threads | children left (after s) |")
     print("|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory(prefix="soak_") as tmp:
         for i in range(a.missions):
@@ -87,7 +92,7 @@ def main(argv=None) -> int:
             row = dict(i=i, scene=seed, status=r.status.split(":")[0], wall_s=wall, f1=r.f1, **s)
             rows.append(row)
             print(f"| {i} | {seed} | {row['status']} | {wall:.1f} | {s['rss_mib']:.1f} | {s['fds']} | {s['threads']} | "
-                  f"{len(s['children'])} |", flush=True)
+                  f"{len(s['children'])} ({s['exit_s']:.2f}) |", flush=True)
     walls = [r["wall_s"] for r in rows]
     rss = [r["rss_mib"] for r in rows]
     done = sum(r["status"] == "completed" for r in rows)
