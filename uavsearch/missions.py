@@ -78,6 +78,7 @@ class FlightSection(_Strict):
     settle_speed_m_s: float = Field(0.3, gt=0)
     settle_time_s: float = Field(0.5, ge=0)
     step_timeout_s: float = Field(60.0, gt=0)
+    connect_timeout_s: float = Field(30.0, gt=0)  # wall clock: the vehicle's heartbeat and health
     end_action: Literal["land", "rtl", "none"] = "land"
     vehicle_seed: int = Field(0, ge=0)  # sensor / estimator noise of the simulated vehicle
     # The controller drives the simulated vehicle's clock (sitl --lockstep), so the seeds fix the flight.
@@ -173,7 +174,7 @@ class Mission(_Strict):
         f = self.flight
         return FlightSettings(arrive_radius_m=f.arrive_radius_m, settle_speed_m_s=f.settle_speed_m_s,
                               settle_time_s=f.settle_time_s, step_timeout_s=f.step_timeout_s, end_action=f.end_action,
-                              lockstep=f.lockstep)
+                              lockstep=f.lockstep, connect_timeout_s=f.connect_timeout_s)
 
     def origin(self) -> GeodeticOrigin:
         return GeodeticOrigin(self.home.lat_deg, self.home.lon_deg, self.home.alt_m)

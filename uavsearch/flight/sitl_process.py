@@ -46,10 +46,12 @@ class SitlProcess:
 
     `args` are more `uavsearch sitl` options (scene, seed, home, params); `camera=False` skips building
     the scene (faster start; captures fail). A port of None is a free one, 0 turns the link off.
+    `progress(line)`, when given, hears every 2 s how long the start has taken and what the vehicle last said.
     """
 
     def __init__(self, run_dir: Path, *args: str, api_port: int | None = None, gcs_port: int | None = None,
-                 speed: str = "max", lockstep: bool = False, camera: bool = True, timeout_s: float = 120.0):
+                 speed: str = "max", lockstep: bool = False, camera: bool = True, timeout_s: float = 120.0,
+                 progress=None):
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         self.log_path = run_dir / "sitl.log"
@@ -67,9 +69,14 @@ class SitlProcess:
                                      env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
                                      start_new_session=True)  # Ctrl-C reaches the client only: it lands first
         self.banner: list[str] = []  # the lines up to "ready" (ports, signing, run directory)
-        end = time.monotonic() + timeout_s
+        start = time.monotonic()
+        end, next_note = start + timeout_s, start + 2.0
         while time.monotonic() < end:
             text = self.log_path.read_text()
+            if progress is not None and time.monotonic() >= next_note:
+                next_note += 2.0
+                said = [ln.strip() for ln in text.splitlines() if ln.strip()][-1:] or ["starting Python"]
+                progress(f"vehicle   starting ({said[0]})  {time.monotonic() - start:4.0f} s")
             if "\nready" in text or text.startswith("ready"):
                 end_of_banner = 0 if text.startswith("ready") else text.index("\nready") + 1
                 self.banner = text[:end_of_banner].splitlines(keepends=True) + ["ready\n"]

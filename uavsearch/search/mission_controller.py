@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -181,14 +182,14 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
 # Starting the simulated vehicle as its own process
 
 
-def _start_sitl(run_dir: Path, mission, api_port: int, gcs_port: int) -> SitlProcess:
+def _start_sitl(run_dir: Path, mission, api_port: int, gcs_port: int, progress=None) -> SitlProcess:
     """The simulated vehicle for `mission`: its scene, noise seed, home, pacing and lockstep."""
     s, h = mission.flight, mission.home
     scene = ["--scene-file", str(mission.spec_path)] if mission.spec_path is not None else \
         ["--scene", str(mission.scene.seed), "--cells", str(mission.scene.k)]
     return SitlProcess(run_dir, *scene, "--seed", str(s.vehicle_seed), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}",
                        speed="max" if s.speed == "max" else f"{float(s.speed):g}", lockstep=s.lockstep,
-                       api_port=api_port, gcs_port=gcs_port)
+                       api_port=api_port, gcs_port=gcs_port, progress=progress)
 
 
 def default_run_dir(mission) -> Path:
@@ -204,11 +205,16 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
     labels = np.asarray(spec.occupancy_array(), dtype=bool)
     loaded = mission.agent(config)
     run_dir = Path(out) if out else default_run_dir(mission)
+    made_run_dir = not run_dir.exists()
     log = FlightLogWriter(run_dir)
     (run_dir / "mission.json").write_text(mission.model_dump_json(indent=2) + "\n")
     url = connect or "udpin:127.0.0.1:0"
-    vehicle = MavlinkVehicle(url, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
-                             image_dir=run_dir / "images", progress=progress)
+    try:
+        vehicle = MavlinkVehicle(url, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
+                                 image_dir=run_dir / "images", progress=progress)
+    except FlightError:
+        _discard(log, run_dir, made_run_dir)
+        raise
     sitl = None
     rec, status, end, fwall0 = None, "not started", "", None
     try:
@@ -223,7 +229,7 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             port = vehicle.conn.port.getsockname()[1]
             progress(f"starting uavsearch sitl (scene {spec.seed}, {int(labels.sum())} occupied cells, speed "
                      f"{mission.flight.speed}) -> API link udp 127.0.0.1:{port}")
-            sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port)
+            sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port, progress=progress)
         fwall0 = time.monotonic()
         try:
             rec, status = fly_search(vehicle, loaded, config, labels, log, run_dir, mission.policy_seed, progress)
@@ -235,7 +241,8 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             log.failure(step=None, error=str(e), sim_time_s=vehicle.sim_time_s)
         try:
             end = vehicle.finish()
-            progress(f"{end}")
+            if end != "not flown":
+                progress(end)
         except (FlightError, KeyboardInterrupt) as e:
             end = f"end action failed: {e}"
             progress(end)
@@ -243,6 +250,13 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         vehicle.close()
         if sitl is not None:
             sitl.stop()
+    if connect is not None and vehicle.mode() is None and made_run_dir:
+        # Nothing answered: no flight happened, so no flight log is left behind to be mistaken for one.
+        _discard(log, run_dir, made_run_dir)
+        if status == "interrupted":
+            raise KeyboardInterrupt
+        raise FlightError(f"{status.removeprefix('failed: ')}; nothing flown, no flight log kept "
+                          f"(is a vehicle running and sending to {vehicle.link_text}?)")
     fused = None if rec is None or not rec.records else np.asarray(rec.records[-1]["fused"])
     acc = None if fused is None else float(map_accuracy(fused, labels))
     f1 = None if fused is None else float(map_f1(fused, labels))
@@ -260,6 +274,13 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
                      occupied_cells=int(labels.sum()), speed=mission.flight.speed))
     log.close()
     return result
+
+
+def _discard(log: FlightLogWriter, run_dir: Path, made: bool) -> None:
+    """Close the log and remove the run directory this flight created (only that one)."""
+    log.close()
+    if made:
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def format_maps(fused, labels, n: int) -> str:
