@@ -7,10 +7,14 @@ PY := $(VENV)/bin/python
 
 setup: $(VENV)/.installed
 
+# pip prints one line per package it collects and installs (a fresh setup takes about 90 s: torch's CPU wheel
+# alone is ~200 MB), so the first `make run` is never a silent wait.
 $(VENV)/.installed: pyproject.toml
+	@echo "setup: creating $(VENV) and installing uavsearch with its dependencies (about 90 s the first time)"
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q -e '.[test]'
-	touch $@
+	$(PY) -m pip install --progress-bar off --disable-pip-version-check -e '.[test]'
+	@touch $@
+	@echo "setup: done; the command is $(VENV)/bin/uavsearch (or: . $(VENV)/bin/activate)"
 
 # The main job: fly the default search mission (paper setting 2) with the shipped model.
 run: setup
