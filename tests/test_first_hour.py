@@ -69,3 +69,4 @@ def test_real_time_take_off_reports_progress(tmp_path):
     assert all(0.0 <= x < 6.5 for x in u) and u == sorted(u)
     assert all("flew" in ln and "(to 6 m)" in ln for ln in climb)
 
+

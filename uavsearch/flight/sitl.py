@@ -313,8 +313,8 @@ def config_from_args(args) -> SitlConfig:
 
 def run_sitl_command(args) -> int:
     cfg = config_from_args(args)
-    scene = "no scene" if cfg.scene_seed is None else f"scene {cfg.scene_file or cfg.scene_seed}"
-    print(f"uavsearch sitl: building the vehicle (JSBSim, estimator) and the camera's {scene} ...", flush=True)
+    scene = "no camera scene" if cfg.scene_seed is None else f"the camera's scene {cfg.scene_file or cfg.scene_seed}"
+    print(f"uavsearch sitl: building the vehicle (JSBSim, estimator) and {scene} ...", flush=True)
     try:
         sitl = Sitl(cfg)
     except ParamError as e:
