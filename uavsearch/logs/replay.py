@@ -40,7 +40,7 @@ from ..search.agents import FUSION_METHODS, check_names
 from ..search.fusion import fuse_prefixes
 from ..search.metrics import map_accuracy, map_f1
 from ..search.views import make_view
-from ..viz import draw_grid_overlay, pyplot, save_figure
+from ..viz import draw_grid_overlay, pyplot, save_figure, settle_tight_layout
 from ..world.render import SceneRenderer
 from ..world.scene import generate_scene
 from ..world.settings import resolve_k
@@ -343,17 +343,17 @@ def _draw_map(ax, d: ReplayData, t: int, title: str | None = None) -> None:
     ax.set_yticks([])
 
 
-def write_figures(d: ReplayData, out: Path) -> list[Path]:
-    plt = pyplot()
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    fig, ax = plt.subplots(figsize=(7, 7))
+def trajectory_figure(d: ReplayData):
+    fig, ax = pyplot().subplots(figsize=(7, 7), layout="constrained")
     _draw_track(ax, d)
-    ax.set_title(d.title, fontsize=9)
-    paths.append(save_figure(fig, out / "trajectory.png"))
+    ax.set_title(d.title, fontsize=9, wrap=True)
+    return fig
 
+
+def maps_figure(d: ReplayData):
+    """The fused map after each view beside the ground truth; one shared colour bar."""
     T = len(d.maps)
-    fig, axes = plt.subplots(1, T + 1, figsize=(2.6 * (T + 1), 2.9))
+    fig, axes = pyplot().subplots(1, T + 1, figsize=(max(2.6 * (T + 1), 6.0), 3.1), layout="constrained")
     axes = np.atleast_1d(axes)
     for t in range(T):
         _draw_map(axes[t], d, t)
@@ -364,9 +364,12 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
     axes[T].set_yticks([])
     fig.colorbar(im, ax=list(axes), fraction=0.012, pad=0.01, label="p(occupied)")  # all panels share 0..1
     fig.suptitle(f"{d.fusion} fusion: p(occupied) per cell (cyan: occupied cells)", fontsize=10)
-    paths.append(save_figure(fig, out / "maps.png"))
+    return fig
 
-    fig, ax = plt.subplots(figsize=(5, 3.4))
+
+def metrics_figure(d: ReplayData):
+    T = len(d.maps)
+    fig, ax = pyplot().subplots(figsize=(5, 3.4), layout="constrained")
     steps = np.arange(1, T + 1)
     ax.plot(steps, d.acc, "o-", label="accuracy (Eq. 16)")
     ax.plot(steps, d.f1, "s-", label="F1 (Eq. 17)")
@@ -380,13 +383,19 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     ax.set_title(f"metrics vs. step ({d.fusion} fusion)", fontsize=9)
-    paths.append(save_figure(fig, out / "metrics.png"))
-    return paths
+    return fig
 
 
-def _frame(d: ReplayData, t: int) -> np.ndarray:
-    plt = pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4.2))
+def write_figures(d: ReplayData, out: Path) -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    return [save_figure(trajectory_figure(d), out / "trajectory.png"), save_figure(maps_figure(d), out / "maps.png"),
+            save_figure(metrics_figure(d), out / "metrics.png")]
+
+
+def frame_figure(d: ReplayData, t: int):
+    """One video frame: the view with the grid, the fused map so far, the track so far (a fixed canvas, so
+    every frame has the same size; the layout keeps every title and label on it)."""
+    fig, axes = pyplot().subplots(1, 3, figsize=(12, 4.4))
     img = d.images[t] if t < len(d.images) else None
     if img is not None:
         axes[0].imshow(draw_grid_overlay(img, d.poses[t], d.grid, _intrinsics_of(img), d.labels, scale=2))
@@ -396,10 +405,15 @@ def _frame(d: ReplayData, t: int) -> np.ndarray:
     _draw_track(axes[2], d, upto=t)
     axes[2].set_title("track so far", fontsize=9)
     fig.suptitle(d.title, fontsize=9)
-    fig.tight_layout()
+    settle_tight_layout(fig)
+    return fig
+
+
+def _frame(d: ReplayData, t: int) -> np.ndarray:
+    fig = frame_figure(d, t)
     fig.canvas.draw()
     buf = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-    plt.close(fig)
+    pyplot().close(fig)
     return buf
 
 
