@@ -13,6 +13,9 @@ $(VENV)/.installed: pyproject.toml
 	@echo "setup: creating $(VENV) and installing uavsearch with its dependencies (about 90 s the first time)"
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --progress-bar off --disable-pip-version-check -e '.[test]'
+	# MAVProxy for the ground-station test, without its declared dependencies (opencv-python and vtk
+	# would clash with opencv-python-headless); what it imports is already here plus pyserial.
+	$(PY) -m pip install --progress-bar off --disable-pip-version-check --no-deps mavproxy==1.8.75 pyserial==3.5
 	@touch $@
 	@echo "setup: done; the command is $(VENV)/bin/uavsearch (or: . $(VENV)/bin/activate)"
 
