@@ -19,7 +19,7 @@ from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationI
                       model_validator)
 
 from .errors import MissionError, format_validation_error, read_user_file
-from .geometry import GeodeticOrigin
+from .geometry import CameraIntrinsics, GeodeticOrigin
 from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
 from .search.agents import FUSION_METHODS, POLICIES, LoadedAgent, build_agent, checkpoint_path, needs_confidence
 from .search.config import ACTIONS, SearchConfig
@@ -52,6 +52,9 @@ class SearchSection(_Strict):
     step_m: float = Field(10.0, gt=0)
     budget_T: int = Field(5, ge=1, le=25)
     actions: tuple[str, ...] = ("MoveAhead", "MoveRight", "MoveLeft", "MoveBack")
+    # Fly although the altitude or step differs from what the shipped models were trained on (their
+    # perception has never seen such views: the result says little about the method).
+    allow_untrained: bool = False
 
     @field_validator("actions")
     @classmethod
@@ -62,6 +65,28 @@ class SearchSection(_Strict):
         if not v:
             raise ValueError("at least one action")
         return tuple(v)
+
+
+# The camera the shipped models were trained with: every training and evaluation view set is rendered with
+# SearchConfig's default intrinsics (its manifest records them, search/dataset.py) and no training command
+# takes an option to change them.
+TRAINED_CAMERA = CameraIntrinsics()
+
+
+class CameraSection(_Strict):
+    """The simulated nadir pinhole camera: what the vehicle renders and what the search projects the grid with."""
+
+    hfov_deg: float = Field(TRAINED_CAMERA.hfov_deg, gt=1, lt=170)
+    width_px: int = Field(TRAINED_CAMERA.width_px, ge=16, le=4096)
+    height_px: int = Field(TRAINED_CAMERA.height_px, ge=16, le=4096)
+
+    def intrinsics(self) -> CameraIntrinsics:
+        return CameraIntrinsics(width_px=self.width_px, height_px=self.height_px, hfov_deg=self.hfov_deg)
+
+    def untrained(self) -> list[str]:
+        """What differs from TRAINED_CAMERA, as 'hfov_deg 90 (trained 60)'."""
+        return [f"{k} {getattr(self, k):g} (trained {getattr(TRAINED_CAMERA, k):g})" for k in type(self).model_fields
+                if not math.isclose(float(getattr(self, k)), float(getattr(TRAINED_CAMERA, k)), abs_tol=1e-6)]
 
 
 class Home(_Strict):
@@ -105,6 +130,7 @@ class Mission(_Strict):
     policy_seed: int = Field(0, ge=0)
     greedy_policy: bool = False  # the learned policy takes its most likely action instead of sampling
     home: Home = Home()
+    camera: CameraSection = CameraSection()
     flight: FlightSection = FlightSection()
     plan: str | None = None  # a QGroundControl .plan (relative to this file): `uavsearch mission upload` flies it
     source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
@@ -127,6 +153,15 @@ class Mission(_Strict):
             raise ValueError("scene: give setting OR occupied_cells, not both")
         if needs_confidence(self.fusion) and self.policy != "learned" and self.checkpoint is None and s.setting is None:
             raise ValueError(f"{self.fusion} fusion needs a checkpoint (no setting to pick a shipped one)")
+        return self
+
+    @model_validator(mode="after")
+    def _camera_trained_for(self):
+        off = self.camera.untrained()
+        if off and not self.search.allow_untrained:
+            raise ValueError(f"camera: {', '.join(off)}; the models were trained with a {TRAINED_CAMERA.width_px}x"
+                             f"{TRAINED_CAMERA.height_px} px, {TRAINED_CAMERA.hfov_deg:g} deg camera (set "
+                             "search.allow_untrained: true to fly it anyway)")
         return self
 
     # -- derived ---------------------------------------------------------------------------------
@@ -173,7 +208,8 @@ class Mission(_Strict):
 
     def search_config(self) -> SearchConfig:
         s = self.search
-        return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions))
+        return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions),
+                            intrinsics=self.camera.intrinsics())
 
     def flight_settings(self) -> FlightSettings:
         f = self.flight

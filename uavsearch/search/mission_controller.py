@@ -184,10 +184,11 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
 
 def _start_sitl(run_dir: Path, mission, api_port: int, gcs_port: int, progress=None) -> SitlProcess:
     """The simulated vehicle for `mission`: its scene, noise seed, home, pacing and lockstep."""
-    s, h = mission.flight, mission.home
+    s, h, c = mission.flight, mission.home, mission.camera
     scene = ["--scene-file", str(mission.spec_path)] if mission.spec_path is not None else \
         ["--scene", str(mission.scene.seed), "--cells", str(mission.scene.k)]
     return SitlProcess(run_dir, *scene, "--seed", str(s.vehicle_seed), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}",
+                       "--camera-hfov", f"{c.hfov_deg:g}", "--camera-size", f"{c.width_px}x{c.height_px}",
                        speed="max" if s.speed == "max" else f"{float(s.speed):g}", lockstep=s.lockstep,
                        api_port=api_port, gcs_port=gcs_port, progress=progress)
 
