@@ -94,6 +94,7 @@ def _add_scene_parser(sub) -> None:
 
 
 def _cmd_fly(args) -> int:
+    print(f"mission   loading {args.mission or 'missions/default.yaml'}, its scene and its models ...", flush=True)
     # lazy: torch (2-5 s)
     from .missions import load_mission
     from .search.mission_controller import fly, format_maps

@@ -476,6 +476,7 @@ def replay_command(args) -> int:
         raise LogError(f"{src}: no such run directory or telemetry log")
     for w in d.warnings:
         print(f"uavsearch: warning: {w}", file=sys.stderr)
+    print(f"writing the figures and a {args.video} of {len(d.maps)} view(s) to {args.out} ...", flush=True)
     res = write_replay(d, args.out, args.video)
     print(f"{'view':>4} {'east':>7} {'north':>7} {'up':>6} {'acc':>6} {'F1':>6}")
     for t, (pos, a, f) in enumerate(zip(d.positions_enu, res["acc"], res["f1"])):
