@@ -66,3 +66,23 @@ def test_bad_sitl_camera_options_are_one_line(args):
                        timeout=60)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("uavsearch sitl: error: argument --camera-")
+
+
+def test_replay_draws_the_grid_with_the_flights_camera(tmp_path):
+    """A run folder's replay projects its grid overlay with the camera the mission flew, not the default."""
+    import numpy as np
+
+    from uavsearch.logs.flight_log import FlightLogWriter
+    from uavsearch.logs.replay import replay_run_dir
+
+    mission = mission_from_dict({"camera": WIDE, "search": {"allow_untrained": True}, "fusion": "average",
+                                 "policy": "random"})
+    w = FlightLogWriter(tmp_path, tlog=False)
+    w.header(mission=mission.model_dump(mode="json"), labels=[0] * 100, grid={"n": 10, "cell_m": 5.0},
+             fusion="average", agent="average fusion + random policy")
+    p = np.full(100, 0.2)
+    w.step(t=0, waypoint_enu=[0.0, 0.0, 70.0], reported_position_enu=[0.0, 0.0, 70.0], reported_rpy_rad=[0, 0, 0],
+           image="images/img_0000.png", p_occ=p, valid=np.ones(100), cell_area_px=np.full(100, 100.0), scores=None,
+           fused=p, true_pose=None, sim_time_s=30.0)
+    w.close()
+    assert replay_run_dir(tmp_path).intrinsics == CameraIntrinsics(320, 240, 75.0)

@@ -166,6 +166,7 @@ class ReplayData:
     track_t: np.ndarray | None = None  # (K,) log time of each track point
     view_t: np.ndarray | None = None  # (T,) log time of each view (to cut the track "so far")
     warnings: list = field(default_factory=list)
+    intrinsics: CameraIntrinsics | None = None  # the flight's camera (the mission's), for the grid overlay
 
     @property
     def acc(self) -> np.ndarray:
@@ -222,11 +223,12 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
         img = cv2.imread(str(run_dir / s["image"]), cv2.IMREAD_COLOR)
         images.append(None if img is None else img[..., ::-1].copy())
         poses.append(camera_pose_from_vehicle(s["reported_position_enu"], *s["reported_rpy_rad"]))
-    spec = None
+    spec, intrinsics = None, None
     try:
         mission = mission_from_dict(h["mission"], h.get("mission_file"))
         spec = mission.scene_spec()
         origin = mission.origin()
+        intrinsics = mission.search_config().intrinsics
     except UavsearchError:
         origin = GeodeticOrigin()
     true_pos = [s["true_pose"]["position_enu"] if s.get("true_pose") else None for s in log.steps]
@@ -239,7 +241,7 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
         view_t=None if any(t is None for t in view_t) else np.asarray(view_t, float),
         images=images, poses=poses, spec=spec,
         true_positions_enu=None if any(t is None for t in true_pos) else np.asarray(true_pos, float),
-        logged_maps=log.array("fused"),
+        logged_maps=log.array("fused"), intrinsics=intrinsics,
         warnings=[str(w.message) for w in caught] + ([f"flight ended early: {log.failure.get('error')}"]
                                                     if log.failure else []),
     )
@@ -294,7 +296,7 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     p, valid, area = np.stack(p_list), np.stack(valid_list), np.stack(area_list)
     maps = _fuse_all(method, p, valid, area, scores, labels)
     track = origin.geodetic_to_enu(tr.lla) if len(tr.lla) else np.zeros((0, 3))
-    return ReplayData(track_t=tr.t_s, view_t=np.array([t for t, _, _ in shots]),title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
+    return ReplayData(intrinsics=config.intrinsics, track_t=tr.t_s, view_t=np.array([t for t, _, _ in shots]),title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
                       grid=config.grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,
                       positions_enu=np.asarray(positions), track_enu=track, images=images, poses=poses, spec=spec,
                       warnings=warns)
@@ -398,7 +400,8 @@ def frame_figure(d: ReplayData, t: int):
     fig, axes = pyplot().subplots(1, 3, figsize=(12, 4.4))
     img = d.images[t] if t < len(d.images) else None
     if img is not None:
-        axes[0].imshow(draw_grid_overlay(img, d.poses[t], d.grid, _intrinsics_of(img), d.labels, scale=2))
+        intr = d.intrinsics if d.intrinsics is not None else _intrinsics_of(img)
+        axes[0].imshow(draw_grid_overlay(img, d.poses[t], d.grid, intr, d.labels, scale=2))
     axes[0].set_title(f"view {t + 1} (grid at the reported pose)", fontsize=9)
     axes[0].axis("off")
     _draw_map(axes[1], d, t)
