@@ -296,10 +296,10 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     p, valid, area = np.stack(p_list), np.stack(valid_list), np.stack(area_list)
     maps = _fuse_all(method, p, valid, area, scores, labels)
     track = origin.geodetic_to_enu(tr.lla) if len(tr.lla) else np.zeros((0, 3))
-    return ReplayData(intrinsics=config.intrinsics, track_t=tr.t_s, view_t=np.array([t for t, _, _ in shots]),title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
+    return ReplayData(track_t=tr.t_s, view_t=np.array([t for t, _, _ in shots]),title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
                       grid=config.grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,
                       positions_enu=np.asarray(positions), track_enu=track, images=images, poses=poses, spec=spec,
-                      warnings=warns)
+                      warnings=warns, intrinsics=config.intrinsics)
 
 
 # --------------------------------------------------------------------------------------------------
