@@ -61,7 +61,8 @@ def test_quickstart_block_runs_as_written(block, tmp_path):
     script = block.replace("14540", str(api)).replace("14550", str(gcs))
     script = re.sub(r"\buavsearch sitl\b", f"uavsearch sitl --api-port {api} --gcs-port {gcs} --api-local-port 0 "
                     "--gcs-local-port 0", script)
-    script = "trap 'rc=$?; kill $(jobs -p) 2>/dev/null || true; exit $rc' EXIT\n" + script  # a failed block leaves nothing running
+    # a block that fails leaves nothing running in the background
+    script = "trap 'rc=$?; kill $(jobs -p) 2>/dev/null || true; exit $rc' EXIT\n" + script
     bin_dir = Path(sys.executable).parent
     env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
            "PYTHONPATH": os.pathsep.join(p for p in (str(REPO_ROOT), os.environ.get("PYTHONPATH", "")) if p)}

@@ -117,7 +117,8 @@ def main() -> int:
     if args.replay_out:
         if args.scene is None:
             raise SystemExit("--replay-out needs --scene SEED (the scene the sitl renders)")
-        cmd = ["replay", args.tlog, "--scene", str(args.scene), "--setting", str(args.setting), "--out", args.replay_out]
+        cmd = ["replay", args.tlog, "--scene", str(args.scene), "--setting", str(args.setting),
+               "--out", args.replay_out]
         cmd += ["--mission", args.mission] if args.mission else []
         cmd += ["--fusion", args.fusion] if args.fusion else []
         print("$ uavsearch " + " ".join(cmd), flush=True)

@@ -217,7 +217,8 @@ class Sitl:
                                                     else "required on GCS link; API link signs, accepts unsigned")
         lines.append(f"  signing   {sign}")
         cam = c.intrinsics
-        lines.append(f"  camera    {cam.width_px}x{cam.height_px} px, {cam.hfov_deg:g} deg horizontal FOV, nadir (compid 100)")
+        lines.append(f"  camera    {cam.width_px}x{cam.height_px} px, {cam.hfov_deg:g} deg horizontal FOV, nadir "
+                     "(compid 100)")
         lines.append(f"  run dir   {self.run_dir}")
         lines.append("ready; Ctrl-C to stop")
         return "\n".join(lines)
