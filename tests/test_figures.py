@@ -7,6 +7,8 @@ import pytest
 from uavsearch.geometry import CameraIntrinsics, Grid, camera_pose_from_vehicle
 from uavsearch.logs.replay import ReplayData, frame_figure, maps_figure, metrics_figure, trajectory_figure
 from uavsearch.search.eval_search import ROWS, fig6_figure
+from uavsearch.search.eval_single_view import fig4_figure
+from uavsearch.search.train_perception import curves_figure
 from uavsearch.viz import overflow_in, pyplot, scene_figure
 from uavsearch.world.scene import generate_scene
 
@@ -64,6 +66,22 @@ def test_scene_show_fits(spec):
     with TeleportVehicle(spec, config) as vehicle:
         view = vehicle.capture([0.0, 0.0, config.altitude_m])
     assert _fits(scene_figure(spec, view, config.grid, CameraIntrinsics())) <= TOLERANCE_IN
+
+
+def test_fig4_fits():
+    rng = np.random.default_rng(4)
+    n = 2000
+    fig = fig4_figure(rng.choice([12.0, 196.0], n), rng.random(n) < 0.9, rng.uniform(0, 45, n),
+                      rng.integers(0, 30, 300), rng.random(300) < 0.5)
+    assert _fits(fig) <= TOLERANCE_IN
+
+
+@pytest.mark.parametrize("evals", [0, 1, 8])
+def test_perception_learning_curves_fit(evals):
+    rows = [{"step": s, "losses/train_loss": 1.0 / (1 + s)} for s in range(1, 101)]
+    rows += [{"step": 10 * (i + 1), "eval/aacc": 0.9, "eval/af1": 0.4, "eval/start_aacc": 0.9, "eval/start_af1": 0.4}
+             for i in range(evals)]
+    assert _fits(curves_figure(rows)) <= TOLERANCE_IN
 
 
 def test_overflow_is_measured():

@@ -28,7 +28,7 @@ from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.world.settings import density_scenes
-from uavsearch.viz import pyplot
+from uavsearch.viz import pyplot, save_figure
 
 from .config import SearchConfig, lattice_positions
 
@@ -156,8 +156,11 @@ def _binned(x: np.ndarray, ok: np.ndarray, edges: np.ndarray):
 
 
 def _plot_fig4(area, correct, dist, person_px, correct_pos, path: Path) -> Path:
-    plt = pyplot()
-    fig, (a, c, b) = plt.subplots(1, 3, figsize=(15, 4))
+    return save_figure(fig4_figure(area, correct, dist, person_px, correct_pos), path)
+
+
+def fig4_figure(area, correct, dist, person_px, correct_pos):
+    fig, (a, c, b) = pyplot().subplots(1, 3, figsize=(15, 4), layout="constrained")
     acc, n = _binned(area, correct, AREA_BINS)
     centres = (AREA_BINS[:-1] + AREA_BINS[1:]) / 2
     a2 = a.twinx()
@@ -198,10 +201,7 @@ def _plot_fig4(area, correct, dist, person_px, correct_pos, path: Path) -> Path:
     b.set_ylabel("accuracy on occupied cells (recall)")
     b.set_title("recall vs visible person pixels")
     b.grid(alpha=0.3, axis="y")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return fig
 
 
 # --------------------------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ from tqdm import tqdm
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
-from uavsearch.viz import pyplot
+from uavsearch.viz import pyplot, save_figure
 
 from .config import SearchConfig, lattice_positions
 from .dataset import DATA_DIR, ViewSet, ViewSetSpec, generate_views, load_views, perception_scenes
@@ -149,8 +149,12 @@ def evaluate(net: PerceptionNet, views: ViewSet, centre_index: int) -> dict[str,
 
 
 def _plot_curves(rows: list[dict], path: Path) -> None:
-    plt = pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+    save_figure(curves_figure(rows), path)
+
+
+def curves_figure(rows: list[dict]):
+    """Stage 1's learning curves: training loss, validation metrics."""
+    fig, (a, b) = pyplot().subplots(1, 2, figsize=(10, 3.8), layout="constrained")
     tr = [r for r in rows if r.get("losses/train_loss") not in (None, "")]
     if tr:
         st = np.array([r["step"] for r in tr])
@@ -168,9 +172,7 @@ def _plot_curves(rows: list[dict], path: Path) -> None:
             b.plot(st, [r[key] for r in ev], marker="o", ms=3, label=lab)
         b.set_xlabel("step"), b.set_ylabel("validation"), b.set_ylim(0, 1), b.legend(), b.grid(alpha=0.3)
     fig.suptitle("Stage 1: one-view perception training")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
 def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
