@@ -102,6 +102,7 @@ class FlightSettings:
     yaw_deg: float = 0.0  # heading at every view (paper: fixed north)
     lockstep: bool = False  # drive the vehicle's clock (when it supports MAV_CMD_SIM_ADVANCE)
     lockstep_tick_s: float = 0.1  # simulation time per grant: conditions are judged at this spacing
+    land_tick_s: float = 1.0  # the same while landing: nothing but its end is judged, and grants cost wall time
 
 
 @dataclass
@@ -255,13 +256,14 @@ class MavlinkVehicle:
         return r
 
     def _wait(self, cond, wall_timeout_s: float, what: str, sim_timeout_s: float | None = None, moving: bool = True,
-              status=None):
+              tick_s: float | None = None, status=None):
         """Until cond() is truthy; FlightError (StepFailed for sim-time outs) naming `what` otherwise.
 
-        `moving`: the condition needs simulation time (lockstep grants it); otherwise it is an answer the
-        vehicle sends at once, and in lockstep no time may pass while waiting for it. `status(elapsed)`
-        (elapsed: simulation seconds when moving, else wall seconds) is a progress line said while the wait
-        lasts (PROGRESS_FIRST_S, then every PROGRESS_EVERY_S of wall clock)."""
+        `moving`: the condition needs simulation time (lockstep grants it, `tick_s` at a time, default
+        lockstep_tick_s); otherwise it is an answer the vehicle sends at once, and in lockstep no time may
+        pass while waiting for it. `status(elapsed)` (elapsed: simulation seconds when moving, else wall
+        seconds) is a progress line said while the wait lasts (PROGRESS_FIRST_S, then every
+        PROGRESS_EVERY_S of wall clock)."""
         wall0 = time.monotonic()
         wall_end = wall0 + wall_timeout_s
         next_note = wall0 + PROGRESS_FIRST_S
@@ -284,7 +286,7 @@ class MavlinkVehicle:
                     and self.sim_time_s - sim0 > sim_timeout_s:
                 raise StepFailed(f"{what}: not done after {sim_timeout_s:g} s of flight")
             if moving:
-                self._advance()
+                self._advance(tick_s if self.lockstep else None)
             else:
                 self.pump()
 
@@ -538,7 +540,8 @@ class MavlinkVehicle:
         self._say("landing" if st.end_action == "land" else "returning to launch")
         what = "landing" if st.end_action == "land" else "returning"
         self._wait(lambda: not self.armed, st.wall_timeout_s, f"{st.end_action} until disarmed",
-                   sim_timeout_s=300.0, status=lambda el: f"{what:<9} {self._where(el)}  (until landed and disarmed)")
+                   sim_timeout_s=300.0, tick_s=st.land_tick_s,
+                   status=lambda el: f"{what:<9} {self._where(el)}  (until landed and disarmed)")
         self.in_air = False
         return "landed" if st.end_action == "land" else "returned and landed"
 
