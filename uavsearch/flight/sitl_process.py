@@ -88,10 +88,6 @@ class SitlProcess:
         next_note = max(time.monotonic(), self._start + 2.0)
         while not self.banner:
             text = self.log_path.read_text()
-            if self.progress is not None and time.monotonic() >= next_note:
-                next_note += 2.0
-                said = [ln.strip() for ln in text.splitlines() if ln.strip()][-1:] or ["starting Python"]
-                self.progress(f"vehicle   starting ({said[0]})  {time.monotonic() - self._start:4.0f} s")
             if "\nready" in text or text.startswith("ready"):
                 end_of_banner = 0 if text.startswith("ready") else text.index("\nready") + 1
                 self.banner = text[:end_of_banner].splitlines(keepends=True) + ["ready\n"]
@@ -101,6 +97,10 @@ class SitlProcess:
                 raise self._failed(f"uavsearch sitl exited at start: {last[0]} (see {self.log_path})")
             if time.monotonic() > self._end:
                 raise self._failed(f"uavsearch sitl did not get ready in {self._timeout_s:.0f} s (see {self.log_path})")
+            if self.progress is not None and time.monotonic() >= next_note:  # not ready yet: say how far
+                next_note += 2.0
+                said = [ln.strip() for ln in text.splitlines() if ln.strip()][-1:] or ["starting Python"]
+                self.progress(f"vehicle   starting ({said[0]})  {time.monotonic() - self._start:4.0f} s")
             time.sleep(0.02)
 
     def wait_file(self, name: str) -> Path:

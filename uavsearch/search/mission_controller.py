@@ -265,6 +265,8 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             progress(f"starting uavsearch sitl ({desc}, speed {mission.flight.speed}) -> API link udp "
                      f"127.0.0.1:{port}")
             sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port, progress=progress)
+        progress(f"models    loading {mission.fusion} fusion + {mission.policy} policy (torch)"
+                 + (" while the vehicle starts ..." if sitl is not None else " ..."))
         import torch  # while the vehicle starts (see the note at the imports)
 
         torch.set_num_threads(int(torch_threads))
