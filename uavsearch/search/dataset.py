@@ -230,7 +230,8 @@ def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: boo
     for key in sorted(stored - set(shards)):  # written by a run that stopped before recording them
         shards[key] = manifest_entry(key, store.read_bytes(key), tag)
     manifest["shards"] = shards
-    store.write_json("manifest.json", manifest)
+    save = lambda: store.write_json("manifest.json", {**manifest, "shards": dict(sorted(shards.items()))})  # noqa: E731
+    save()
     todo = [(s, k) for s, k in spec.scenes if not finished(store, shards.get(shard_key(s, k)), tag)]
     if not todo:
         return _root_of(store)
@@ -239,7 +240,7 @@ def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: boo
     def record(_, entry):
         shards[entry["key"]] = {k: entry[k] for k in ("key", "sha256", "size", "tag")}
         if time.monotonic() - last[0] > 5.0:  # a killed run loses at most the last few seconds' entries
-            store.write_json("manifest.json", manifest)
+            save()
             last[0] = time.monotonic()
 
     jobs = [(spec.to_json(), store, int(s), int(k), tag) for s, k in todo]
@@ -247,7 +248,7 @@ def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: boo
         map_scenes(render_scene_shard, jobs, executor, desc=f"render {spec.name}", progress=progress,
                    on_result=record)
     finally:
-        store.write_json("manifest.json", manifest)
+        save()
     return _root_of(store)
 
 
