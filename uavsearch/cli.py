@@ -158,8 +158,10 @@ def _add_vehicle_option(p) -> None:
         from .search.mission_controller import eval_flight_vs_teleport
 
         setting = 2 if str(args.setting) == "all" else int(args.setting)
+        from .parallel import Executor
+
         res = eval_flight_vs_teleport(load_mission(args.mission), setting, args.split, args.speed, args.out,
-                                      args.scenes, progress=args.progress)
+                                      args.scenes, progress=args.progress, executor=Executor.from_args(args))
         print(res["table"].read_text())
         print(f"wrote {res['table']}")
         return 0
