@@ -95,6 +95,13 @@ def test_local_pool_and_one_process_write_the_same_bytes_and_resume_skips_finish
     assert len(load_views(a)) == 2 * len(SPEC.scenes)
 
 
+def test_ray_asked_for_without_the_extra_is_a_one_line_error(monkeypatch):
+    monkeypatch.setitem(__import__("sys").modules, "ray", None)  # `import ray` raises ImportError
+    with pytest.raises(UavsearchError, match=r"pip install 'uavsearch\[ray\]'"):
+        map_scenes(abs, [1], Executor("ray"), progress=False)
+    assert Executor.from_args(type("A", (), {"ray_address": "auto", "workers": 3})()) == Executor("ray", 3, "auto")
+
+
 def test_map_scenes_keeps_the_order_of_its_items():
     assert map_scenes(abs, [-3, 1, -2, 5], Executor("local", 2), progress=False) == [3, 1, 2, 5]
     assert map_scenes(abs, [], progress=False) == []

@@ -87,11 +87,15 @@ def _init_ray(executor: Executor):
     except ImportError:
         raise UavsearchError("--ray needs the ray extra: pip install 'uavsearch[ray]'") from None
     if not ray.is_initialized():
-        if executor.address:
-            ray.init(address=executor.address, log_to_driver=False, configure_logging=False)
-        else:
-            ray.init(num_cpus=int(executor.jobs), include_dashboard=False, log_to_driver=False,
-                     configure_logging=False)
+        try:
+            if executor.address:
+                ray.init(address=executor.address, log_to_driver=False, configure_logging=False)
+            else:
+                ray.init(num_cpus=int(executor.jobs), include_dashboard=False, log_to_driver=False,
+                         configure_logging=False)
+        except (ConnectionError, RuntimeError, ValueError) as e:
+            where = f"the Ray cluster at {executor.address}" if executor.address else "a local Ray"
+            raise UavsearchError(f"cannot start or join {where}: {str(e).splitlines()[0] if str(e) else e!r}") from None
     return ray
 
 
