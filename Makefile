@@ -10,6 +10,9 @@ setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q -e '.[test]'
+	# MAVProxy for the ground-station test, without its declared dependencies (opencv-python and vtk
+	# would clash with opencv-python-headless); what it imports is already here plus pyserial.
+	$(PY) -m pip install -q --no-deps mavproxy==1.8.75 pyserial==3.5
 	touch $@
 
 # The main job: fly the default search mission (paper setting 2) with the shipped model.

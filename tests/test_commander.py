@@ -239,3 +239,25 @@ def test_takeoff_in_air_never_descends_and_rtl_on_ground_is_denied():
     assert r.cmd(22) == Result.ACCEPTED  # NaN altitude: MIS_TAKEOFF_ALT (3 m) is below us
     r.run(5)
     assert r.alt == pytest.approx(8.0, abs=0.4)
+
+
+def test_do_land_start_jumps_to_the_landing_sequence_or_lands_here():
+    """MAVProxy's `land` is MAV_CMD_DO_LAND_START: with a DO_LAND_START marker the mission continues from it
+    (PX4); without one the vehicle lands where it is (PX4 only warns)."""
+    r = Rig(MIS_TAKEOFF_ALT=4.0)
+    r.takeoff()
+    lat, lon = latlon(6.0, 0.0)
+    items = [MissionItem(0, 6, 16, x=int(lat * 1e7), y=int(lon * 1e7), z=4.0),
+             MissionItem(1, 2, 189),  # DO_LAND_START
+             MissionItem(2, 6, 21, x=int(lat * 1e7), y=int(lon * 1e7), z=0.0)]
+    assert r.c.upload_mission(items)[0] == 0
+    assert r.cmd(189) == Result.ACCEPTED
+    assert r.c.mode == "MISSION" and r.c.mission.current_seq == 1
+    assert r.run(60, until=lambda: not r.c.armed)
+    assert np.hypot(r.v.p[0] - 6.0, r.v.p[1]) < 0.6  # landed at the sequence's NAV_LAND, not where it was
+    r2 = Rig(MIS_TAKEOFF_ALT=4.0)
+    r2.takeoff()
+    r2.texts()
+    assert r2.cmd(189) == Result.ACCEPTED and r2.c.mode == "LAND"
+    assert "No mission landing sequence: landing here" in r2.texts()
+    assert r2.cmd(189) == Result.ACCEPTED  # repeated: still landing

@@ -238,3 +238,88 @@ def test_a_step_that_does_not_settle_fails_cleanly_and_lands(tmp_path):
     assert "\nlanded\n" in r.stdout
     summary = json.loads((run / "summary.json").read_text())
     assert summary["status"].startswith("failed: goto") and summary["end"] == "landed" and summary["steps"] == 0
+
+
+def test_flown_search_opens_as_a_plan(flown):
+    """Every flight leaves flown.plan: take off, each view with a photo, then the end action, in QGC's format."""
+    from uavsearch.plan_files import load_plan, mission_items
+
+    _, run, _ = flown
+    steps = [json.loads(x) for x in (run / "search.jsonl").read_text().splitlines()[1:]]
+    items = mission_items(load_plan(run / "flown.plan"))
+    assert [i.command for i in items] == [22] + [16, 2000] * T + [21]
+    home = json.loads((run / "mission.json").read_text())["home"]
+    from uavsearch.geometry import GeodeticOrigin
+
+    origin = GeodeticOrigin(home["lat_deg"], home["lon_deg"], home["alt_m"])
+    for wp, step in zip([i for i in items if i.command == 16], steps):
+        enu = origin.geodetic_to_enu([wp.lat_deg, wp.lon_deg, home["alt_m"] + wp.z])
+        np.testing.assert_allclose(enu, step["waypoint_enu"], atol=0.02)
+
+
+def test_flight_review_page_renders_in_chromium(flown, tmp_path):
+    """`replay RUN --html` writes one self-contained page; headless Chromium renders it without console
+    errors, and its plots hold what the telemetry log holds (read here independently with pymavlink)."""
+    import os
+    import shutil
+
+    from headless_chromium import chromium_or_skip, close, open_page
+
+    _, run, _ = flown
+    page, shot = tmp_path / "review.html", tmp_path / "review.png"
+    rr = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(run), "--html", str(page)],
+                        capture_output=True, text=True, timeout=120)
+    assert rr.returncode == 0, rr.stderr
+    # the log, independently
+    home = json.loads((run / "mission.json").read_text())["home"]
+    log = mavutil.mavlink_connection(str(run / "telemetry.tlog"), dialect="common")
+    pos, att, texts, modes, truth = [], 0, [], [], 0
+    while (m := log.recv_match()) is not None:
+        if m.get_srcSystem() != 1:
+            continue
+        if m.get_type() == "GLOBAL_POSITION_INT":
+            pos.append((m.time_boot_ms * 1e-3, m.alt * 1e-3 - home["alt_m"]))
+        elif m.get_type() == "ATTITUDE":
+            att += 1
+        elif m.get_type() == "SIM_STATE":
+            truth += 1
+        elif m.get_type() == "STATUSTEXT":
+            texts.append(m.text)
+        elif m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 1:
+            modes.append(((m.custom_mode >> 16) & 0xFF, (m.custom_mode >> 24) & 0xFF))
+    log.close()
+    drv = chromium_or_skip()
+    try:
+        severe, plots = open_page(drv, page, shot)
+        # self-contained: plotly.js inlined, images as data URIs, nothing loaded from elsewhere
+        external = drv.execute_script("return document.querySelectorAll('script[src], link[href], img[src]').length")
+        # a bare .tlog gets the same page without the per-view panels
+        tlog_page = tmp_path / "tlog.html"
+        rr = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(run / "telemetry.tlog"), "--html",
+                             str(tlog_page)], capture_output=True, text=True, timeout=120)
+        assert rr.returncode == 0, rr.stderr
+        tlog_severe, tlog_plots = open_page(drv, tlog_page, tmp_path / "tlog.png")
+    finally:
+        close(drv)
+    assert external == 0
+    assert tlog_severe == [] and len(tlog_plots) == 2
+    assert {t["name"]: len(t["x"]) for t in tlog_plots[1]["traces"]}["altitude (estimate)"] == len(pos)
+    if os.environ.get("UAVSEARCH_SCREENSHOT_DIR"):
+        shutil.copy(shot, Path(os.environ["UAVSEARCH_SCREENSHOT_DIR"]) / "flight_review.png")
+    assert severe == [], severe
+    assert len(plots) == 4 and all(p["svg_paths"] > 0 for p in plots)
+    series = {t["name"]: t for t in plots[1]["traces"]}
+    alt = series["altitude (estimate)"]
+    np.testing.assert_allclose(alt["x"], [p[0] for p in pos], atol=1e-6)
+    np.testing.assert_allclose(alt["y"], [p[1] for p in pos], atol=0.02)  # ENU up vs AMSL - home over < 100 m
+    assert len(series["roll"]["y"]) == att and len(series["N velocity"]["y"]) == len(pos)
+    assert len(series["STATUSTEXT"]["x"]) == len(texts) > 0
+    assert len(series["horizontal, estimate - truth"]["y"]) == truth > 0  # the client asked for SIM_STATE
+    assert max(series["horizontal, estimate - truth"]["y"][10:]) < 3.0  # the EKF stays within metres of the truth
+    assert {"TAKEOFF", "LAND"} <= set(plots[1]["annotations"]) and (4, 2) in modes and (4, 6) in modes
+    steps = plots[2]
+    assert steps["sliders"] == [T] and sum(t["type"] == "image" and t["source"] > 1000 for t in steps["traces"]) == T
+    summary = json.loads((run / "summary.json").read_text())
+    fused_last = [t for t in steps["traces"] if t["name"] == f"fused {T}"][0]["z"]
+    np.testing.assert_allclose(np.array(fused_last).ravel(), summary["fused"], atol=1e-5)
+    assert shot.stat().st_size > 50_000

@@ -172,13 +172,24 @@ def _add_vehicle_option(p) -> None:
 def _cmd_replay(args) -> int:
     from .logs.replay import replay_command  # lazy: torch (2-5 s)
 
+    if args.html is not None:
+        from .logs.flight_review import write_flight_review
+
+        print(f"wrote {write_flight_review(args.log, args.html or None, mission_file=args.mission)}")
+        if args.out is None:
+            return 0
+    if args.out is None:
+        raise UavsearchError("replay: give --out DIR (plots, video) and/or --html [FILE] (flight review page)")
     return replay_command(args)
 
 
 def _add_replay_parser(sub) -> None:
     p = sub.add_parser("replay", help="replay a flight log (run directory) or any MAVLink .tlog into plots and a video")
     p.add_argument("log", type=Path, metavar="RUN_DIR|FILE.tlog", help="a flight log directory, or a telemetry log")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder (PNGs, video, summary)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR", help="output folder (PNGs, video, summary)")
+    p.add_argument("--html", nargs="?", const="", default=None, metavar="FILE",
+                   help="write the flight review page (one self-contained HTML; default RUN_DIR/flight_review.html "
+                        "or FILE.tlog's name with .html)")
     p.add_argument("--fusion", default=None, help="re-fuse the logged per-view outputs with another method")
     p.add_argument("--scene", type=int, default=None, metavar="SEED", help="(.tlog) scene to re-render the camera in")
     p.add_argument("--setting", type=int, default=2, help="(.tlog) paper setting of the scene (default 2)")
@@ -243,6 +254,9 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(name, help=text)
     _add_fly_parser(sub)
     _add_replay_parser(sub)
+    from .mission_upload import add_mission_parser
+
+    add_mission_parser(sub)
     return parser
 
 

@@ -1,6 +1,7 @@
 """User-facing errors: the CLI prints these as one line, never a traceback."""
 
 import sys
+from pathlib import Path
 
 
 class UavsearchError(Exception):
@@ -17,6 +18,31 @@ class MissionError(UavsearchError):
 
 class LogError(UavsearchError):
     """A flight log that cannot be read."""
+
+
+def format_validation_error(e, source: str, kind: str = "mission") -> str:
+    """pydantic's first error as one line: '<kind> <source>: <field>: <problem> (got <value>)'."""
+    err = e.errors()[0]
+    loc = ".".join(str(x) for x in err.get("loc", ()) if not str(x).startswith("function-after"))
+    msg = err.get("msg", "invalid")
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, "):]
+    got = err.get("input")
+    where = f"{loc}: " if loc else ""
+    tail = f" (got {got!r})" if err.get("type") not in ("missing", "extra_forbidden", "value_error") and \
+        not isinstance(got, (dict, list)) else ""
+    if err.get("type") == "extra_forbidden":
+        msg = "unknown field"
+    more = f" [+{len(e.errors()) - 1} more]" if len(e.errors()) > 1 else ""
+    return f"{kind} {source}: {where}{msg}{tail}{more}"
+
+
+def read_user_file(path: Path, kind: str = "mission") -> str:
+    """A file the user named, or the one-line error saying why it cannot be read."""
+    try:
+        return path.read_text()
+    except OSError as e:
+        raise MissionError(f"{kind} {path}: cannot read ({e.strerror or e})") from None
 
 
 def run_command(func, args, prog: str = "uavsearch") -> int:

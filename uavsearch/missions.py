@@ -18,7 +18,7 @@ import yaml
 from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator,
                       model_validator)
 
-from .errors import MissionError
+from .errors import MissionError, format_validation_error, read_user_file
 from .geometry import GeodeticOrigin
 from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
 from .search.agents import FUSION_METHODS, POLICIES, LoadedAgent, build_agent, checkpoint_path, needs_confidence
@@ -105,6 +105,7 @@ class Mission(_Strict):
     greedy_policy: bool = False  # the learned policy takes its most likely action instead of sampling
     home: Home = Home()
     flight: FlightSection = FlightSection()
+    plan: str | None = None  # a QGroundControl .plan (relative to this file): `uavsearch mission upload` flies it
     source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
 
     @field_validator("fusion", "policy")
@@ -162,6 +163,10 @@ class Mission(_Strict):
         return self._resolve(self.perception) if self.perception else MODELS_DIR / "perception.pt"
 
     @property
+    def plan_path(self) -> Path | None:
+        return self._resolve(self.plan) if self.plan else None
+
+    @property
     def spec_path(self) -> Path | None:
         return self._resolve(self.scene.spec) if self.scene.spec else None
 
@@ -210,22 +215,6 @@ class Mission(_Strict):
         return mission_from_dict(data, self.source)
 
 
-def _format_error(e: ValidationError, source: str) -> str:
-    err = e.errors()[0]
-    loc = ".".join(str(x) for x in err.get("loc", ()) if not str(x).startswith("function-after"))
-    msg = err.get("msg", "invalid")
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, "):]
-    got = err.get("input")
-    where = f"{loc}: " if loc else ""
-    tail = f" (got {got!r})" if err.get("type") not in ("missing", "extra_forbidden", "value_error") and \
-        not isinstance(got, (dict, list)) else ""
-    if err.get("type") == "extra_forbidden":
-        msg = "unknown field"
-    more = f" [+{len(e.errors()) - 1} more]" if len(e.errors()) > 1 else ""
-    return f"mission {source}: {where}{msg}{tail}{more}"
-
-
 def mission_from_dict(data, source: str | None = None) -> Mission:
     src = source or "<dict>"
     if data is None:
@@ -235,17 +224,14 @@ def mission_from_dict(data, source: str | None = None) -> Mission:
     try:
         m = Mission.model_validate(data)
     except ValidationError as e:
-        raise MissionError(_format_error(e, src)) from None
+        raise MissionError(format_validation_error(e, src)) from None
     return m.model_copy(update={"source": source})
 
 
 def load_mission(path=None) -> Mission:
     """Read and validate a mission file (default: missions/default.yaml)."""
     path = Path(path) if path else DEFAULT_MISSION
-    try:
-        text = path.read_text()
-    except OSError as e:
-        raise MissionError(f"mission {path}: cannot read ({e.strerror or e})") from None
+    text = read_user_file(path)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:

@@ -46,6 +46,7 @@ CMD_DO_SET_MODE = 176
 CMD_DO_CHANGE_SPEED = 178
 CMD_DO_SET_HOME = 179
 CMD_DO_REPOSITION = 192
+CMD_DO_LAND_START = 189
 CMD_DO_PAUSE_CONTINUE = 193
 CMD_DO_SET_MISSION_CURRENT = 224
 CMD_MISSION_START = 300
@@ -306,6 +307,7 @@ class Commander:
             CMD_DO_SET_MISSION_CURRENT: self._cmd_mission_current,
             CMD_DO_PAUSE_CONTINUE: self._cmd_pause_continue,
             CMD_DO_SET_HOME: self._cmd_set_home,
+            CMD_DO_LAND_START: self._cmd_land_start,
         }.get(cmd.command)
         if handler is None:
             return Result.UNSUPPORTED
@@ -379,6 +381,17 @@ class Commander:
             return Result.ACCEPTED if self.vehicle.land_detected.landed else Result.DENIED
         self._set_mode("LAND")
         return Result.ACCEPTED
+
+    def _cmd_land_start(self, cmd: VehicleCommand) -> Result:
+        """DO_LAND_START (MAVProxy's `land`): fly the mission's landing sequence, as PX4 does. Without one PX4
+        only warns; a ground station that says `land` means land, so this vehicle lands where it is."""
+        seq = self.mission.land_start_index()
+        if seq is not None and self.armed:
+            self.mission.set_current(seq)
+            return self.request_mode("MISSION")
+        if self.armed and not self.vehicle.land_detected.landed:
+            self.text(SEV_INFO, "No mission landing sequence: landing here")
+        return self._cmd_land(cmd)
 
     def _cmd_rtl(self, cmd: VehicleCommand) -> Result:
         if not self.armed or self.vehicle.land_detected.landed:

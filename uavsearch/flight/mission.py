@@ -22,10 +22,11 @@ NAV_LAND = 21
 NAV_TAKEOFF = 22
 DO_CHANGE_SPEED = 178
 DO_SET_HOME = 179
+DO_LAND_START = 189  # marks where the landing sequence starts (MAVProxy's `land` jumps there)
 IMAGE_START_CAPTURE = 2000
 
 NAV_COMMANDS = {NAV_WAYPOINT, NAV_LOITER_UNLIM, NAV_LOITER_TIME, NAV_RETURN_TO_LAUNCH, NAV_LAND, NAV_TAKEOFF}
-DO_COMMANDS = {DO_CHANGE_SPEED, IMAGE_START_CAPTURE}
+DO_COMMANDS = {DO_CHANGE_SPEED, IMAGE_START_CAPTURE, DO_LAND_START}
 SUPPORTED_COMMANDS = NAV_COMMANDS | DO_COMMANDS
 POSITIONED_COMMANDS = {NAV_WAYPOINT, NAV_LOITER_UNLIM, NAV_LOITER_TIME, NAV_LAND, NAV_TAKEOFF}
 
@@ -143,6 +144,10 @@ class Mission:
         self.current_seq = seq
         self.finished = False
         return True
+
+    def land_start_index(self) -> int | None:
+        """Where the landing sequence starts: the first DO_LAND_START marker, or None."""
+        return next((i for i, it in enumerate(self.items) if it.command == DO_LAND_START), None)
 
     def positions_ned(self, origin: GeodeticOrigin, home_ned: np.ndarray) -> list[np.ndarray]:
         out = []

@@ -17,6 +17,7 @@ from ..geometry import GeodeticOrigin, wrap_pi
 from .messages import TrajectorySetpoint, VehicleLandDetected, VehicleLocalPosition
 from .mission import (
     DO_CHANGE_SPEED,
+    DO_LAND_START,
     IMAGE_START_CAPTURE,
     NAV_LAND,
     NAV_LOITER_TIME,
@@ -308,6 +309,9 @@ class MissionMode(Mode):
                 continue
             if it.command == IMAGE_START_CAPTURE:
                 nav.emit("capture", it)
+                self._advance(s)
+                continue
+            if it.command == DO_LAND_START:  # a marker only
                 self._advance(s)
                 continue
             if it.command == NAV_RETURN_TO_LAUNCH:

@@ -68,6 +68,7 @@ STREAM_RATES_HZ = {
     M.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
     M.MAVLINK_MSG_ID_VFR_HUD: 0.0,
     M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 0.0,
+    M.MAVLINK_MSG_ID_SIM_STATE: 5.0,  # the simulator's truth, only for the log (flight review); others say UNSUPPORTED
 }
 
 

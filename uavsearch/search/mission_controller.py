@@ -259,6 +259,9 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
                      flight_wall_s=result.flight_wall_s, agent=loaded.description, scene_seed=spec.seed,
                      occupied_cells=int(labels.sum()), speed=mission.flight.speed))
     log.close()
+    from ..plan_files import write_flown_plan
+
+    write_flown_plan(run_dir)  # the flown search as a QGroundControl plan
     return result
 
 

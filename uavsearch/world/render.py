@@ -1,10 +1,14 @@
 """PyBullet camera for a scene spec: RGB, person segmentation, supersampling, optional sensor randomisation.
 
 How the world is built (fast: a scene takes well under a second):
-- the ground is ONE textured quad: roads, markings, sidewalks, grass and plazas are painted into a
-  texture (topdown.paint_ground), so the ground costs one layer of fill and no overdraw;
+- the ground is painted into ONE texture: roads, markings, sidewalks, grass and plazas
+  (topdown.paint_ground). By default (RenderOptions.ground = "composite") TinyRenderer never draws it:
+  the texture, shaded once exactly as TinyRenderer shades it, is warped to the camera with the ground
+  homography and laid under the bodies where no body is nearer (GroundCompositor), which halves the
+  per-pixel work; ground = "mesh" draws it as a textured quad, the reference;
 - every other static object is merged into a few large meshes textured with a colour palette
-  (one texel per colour, uvs at texel centres), so thousands of objects are a handful of bodies;
+  (one texel per colour, uvs at texel centres), so thousands of objects are a handful of bodies; with
+  the composite ground they are grouped in square tiles, and each view hides the tiles it cannot see;
 - every person is its own small body, so the segmentation mask gives exact person pixels and ids.
 The camera matches uavsearch.geometry exactly: the view and projection matrices are built from
 CameraPose and CameraIntrinsics (pinhole, principal point at the centre, OpenCV axes), not from
@@ -26,7 +30,7 @@ import pickle
 import subprocess
 import sys
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -70,6 +74,9 @@ NEAR_M = 1.0
 FAR_M = 1000.0
 PALETTE_SIDE = 64  # texels per side of the palette texture: up to 4096 distinct colours
 MAX_VERTICES = 90_000  # PyBullet refuses meshes of about 131k vertices and more
+GROUND_MODES = ("composite", "mesh")
+CULL_TILE_M = 20.0  # side of the square tiles the static objects are grouped into (composite ground)
+CULL_MARGIN_PX = 2.0  # a body counts as in view this far (supersampled pixels) outside the image
 
 
 @dataclass(frozen=True)
@@ -86,6 +93,12 @@ class RenderOptions:
     ambient: float = 0.62
     diffuse: float = 0.42
     isolate: bool = True  # build the PyBullet world in a recycled worker process (PyBullet leaks memory)
+    # "composite": TinyRenderer draws the bodies, the ground is the shaded texture warped to the camera (a
+    # homography) under them: the same pixels (tools/compare_render.py: 96 of 100 views identical, the
+    # rest >= 58 dB PSNR, person masks identical) in about half the time. "mesh": the ground is a textured
+    # quad drawn by TinyRenderer, the reference. Left out of repr, so view sets, caches and the world tag
+    # made with either stay valid for the other.
+    ground: str = field(default="composite", repr=False)
 
     @staticmethod
     def randomised(supersample: int = 2, isolate: bool = True) -> "RenderOptions":
@@ -368,6 +381,83 @@ def _write_texture(img_rgb: np.ndarray, client: int) -> int:
     return tex
 
 
+def ground_shading(options: RenderOptions, light_dir) -> np.ndarray:
+    """TinyRenderer's shading of a texel on the level ground as a 256-entry table: colour * (ambient +
+    diffuse * max(0, n . light)) in float32, truncated to an integer (specular is off). Measured: it
+    reproduces every ground pixel of the textured quad bit for bit."""
+    k = np.float32(options.ambient) + np.float32(options.diffuse) * np.float32(max(0.0, float(light_dir[2])))
+    return np.minimum((np.arange(256, dtype=np.float32) * k).astype(np.int32), 255).astype(np.uint8)
+
+
+def ground_homography(intr: CameraIntrinsics, pose: CameraPose) -> np.ndarray:
+    """Ground plane z = 0, (x, y, 1) in ENU metres -> homogeneous pixel coordinates (centres at +0.5)."""
+    r_cam_from_enu = pose.R_enu_from_cam.T
+    t = -r_cam_from_enu @ np.asarray(pose.position_enu, float)
+    return intr.K @ np.column_stack([r_cam_from_enu[:, 0], r_cam_from_enu[:, 1], t])
+
+
+class GroundCompositor:
+    """The ground without TinyRenderer: the painted texture, shaded once, warped to the camera by the
+    ground homography (nearest texel, as TinyRenderer samples it) and laid under the bodies wherever
+    no body is nearer than the ground (depth test against the ground plane's depth, so parts of a body
+    below z = 0 stay hidden as the ground quad hid them). Beyond the texture the ground is the base
+    colour out to the base's edge; beyond that, and above the horizon, the background stays."""
+
+    def __init__(self, texture: np.ndarray, tex_half_m: float, base_half_m: float, base_colour, shading: np.ndarray):
+        n = texture.shape[0]
+        self.texture = np.dstack([shading[texture], np.full(texture.shape[:2], 255, np.uint8)])  # RGBA, as pybullet's
+        self.border = (*(int(v) for v in shading[np.asarray(base_colour, int)]), 255)
+        # ENU (x, y) -> texel (col, row) of the north-up texture, minus half a texel: warpPerspective's
+        # nearest neighbour rounds, TinyRenderer's texture lookup truncates
+        self.texel_from_enu = np.array([[n / (2 * tex_half_m), 0.0, n / 2 - 0.5],
+                                        [0.0, -n / (2 * tex_half_m), n / 2 - 0.5], [0.0, 0.0, 1.0]])  # fmt: skip
+        self.base_half_m = base_half_m
+
+    def composite(self, rgba: np.ndarray, depth: np.ndarray, pidx: np.ndarray, pose: CameraPose,
+                  intr: CameraIntrinsics) -> None:  # fmt: skip
+        """Lay the ground under the bodies of a TinyRenderer frame, in place: rgba (h, w, 4) uint8, its
+        window depth (h, w) float32, person index (h, w) (cleared where the ground wins)."""
+        h, w = depth.shape
+        if float(pose.position_enu[2]) <= 0.0:
+            return  # at or below the ground: the quad's back face, which TinyRenderer culls
+        pixel_from_index = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+        # ENU z of the camera ray through index (x, y) scaled to z_cam = 1, as a row over (x, y, 1)
+        ray_z = pose.R_enu_from_cam[2] @ np.linalg.inv(intr.K) @ pixel_from_index
+        inv_depth = ray_z / -float(pose.position_enu[2])  # 1 / eye depth of the ground, affine in (x, y)
+        # OpenGL window depth of the ground, 0.5 * (c1 - c2 / d) + 0.5, in float32 as TinyRenderer's buffer
+        c1, c2 = (FAR_M + NEAR_M) / (FAR_M - NEAR_M), 2.0 * FAR_M * NEAR_M / (FAR_M - NEAR_M)
+        xs = (-0.5 * c2 * (inv_depth[0] * np.arange(w) + inv_depth[2]) + 0.5 * c1 + 0.5).astype(np.float32)
+        ys = (-0.5 * c2 * inv_depth[1] * np.arange(h)).astype(np.float32)[:, None]
+        ground = depth >= xs + ys  # ties go to the ground, as when the quad was drawn last
+        enu_from_index = np.linalg.inv(ground_homography(intr, pose)) @ pixel_from_index
+        if not self._all_inside(enu_from_index, inv_depth, w, h):
+            xf, yf = np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)[:, None]
+            ground &= self._inside(enu_from_index, inv_depth[0] * xf + inv_depth[1] * yf + inv_depth[2], w, h)
+        img = cv2.warpPerspective(self.texture, self.texel_from_enu @ enu_from_index, (w, h),
+                                  flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT,
+                                  borderValue=self.border)  # fmt: skip
+        mask = ground.view(np.uint8)
+        cv2.copyTo(img, mask, rgba)
+        pidx[ground] = -1
+
+    def _all_inside(self, enu_from_index: np.ndarray, inv_depth: np.ndarray, w: int, h: int) -> bool:
+        """Whether every pixel sees the base in front of the far plane (true unless near the horizon or
+        the base's edge): the view's ground footprint is the quad of its corner pixels, the base is convex."""
+        corners = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [w - 1.0, h - 1.0, 1.0], [0.0, h - 1.0, 1.0]])
+        if (corners @ inv_depth <= 1.0 / FAR_M).any():
+            return False
+        q = corners @ enu_from_index.T
+        return bool((np.abs(q[:, :2] / q[:, 2:]) < self.base_half_m).all())
+
+    def _inside(self, enu_from_index: np.ndarray, inv_d: np.ndarray, w: int, h: int) -> np.ndarray:
+        """Per pixel: the ground point is in front of the far plane and on the base."""
+        xs, ys = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        q = np.stack([xs, ys, np.ones_like(xs)], -1) @ enu_from_index.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x, y = q[..., 0] / q[..., 2], q[..., 1] / q[..., 2]
+        return (inv_d > 1.0 / FAR_M) & (np.abs(x) < self.base_half_m) & (np.abs(y) < self.base_half_m)
+
+
 class _World:
     """The PyBullet world of one scene in THIS process: one DIRECT client, built once, rendered often."""
 
@@ -396,6 +486,7 @@ class _World:
             body = pb.createMultiBody(0, -1, vs, physicsClientId=self._client)
             pb.changeVisualShape(body, -1, textureUniqueId=tex, rgbaColor=[1, 1, 1, 1], physicsClientId=self._client)
             bodies.append(body)
+            self._bounds.append((pos[sl].min(0), pos[sl].max(0)))
         return bodies
 
     def _build(self) -> None:
@@ -406,58 +497,101 @@ class _World:
             mb = MeshBuilder(palette)
             add_person_parts(mb, o)
             person_meshes.append(mb)
-        static = MeshBuilder(palette)
+        composite = self.options.ground == "composite"
+        # Composite: static objects go into square tiles, each its own bodies, so that a view hides the
+        # tiles it cannot see (TinyRenderer skips a body whose alpha is 0; it has no culling of its own).
+        tiles: dict[tuple[int, int], MeshBuilder] = {}
         for o in spec.objects:  # drawn before the ground: the z-test then skips ground under roofs
             if o.kind in ("building", "roof_unit", "tree", "car", "clutter"):
-                static.add_object(o)
-        # Plain ground beyond the painted texture: four quads around it (no overlap, no overdraw).
+                key = (math.floor(o.x_m / CULL_TILE_M), math.floor(o.y_m / CULL_TILE_M)) if composite else (0, 0)
+                tiles.setdefault(key, MeshBuilder(palette)).add_object(o)
+        static = tiles.setdefault((0, 0), MeshBuilder(palette))
         gr = ground_raster(spec)
         base = next(o for o in spec.objects if o.kind == "base")
         g, t = base.sx_m / 2, gr.half_m
-        for x0, y0, x1, y1 in ((-g, t, g, g), (-g, -g, g, -t), (-g, -t, -t, t), (t, -t, g, t)):
-            static.add(BOX, ((x0 + x1) / 2, (y0 + y1) / 2, -0.02), (x1 - x0, y1 - y0, 0.02), np.eye(3),
-                       [base.color, base.color])  # fmt: skip
+        if not composite:  # plain ground beyond the painted texture: four quads around it (no overdraw)
+            for x0, y0, x1, y1 in ((-g, t, g, g), (-g, -g, g, -t), (-g, -t, -t, t), (t, -t, g, t)):
+                static.add(BOX, ((x0 + x1) / 2, (y0 + y1) / 2, -0.02), (x1 - x0, y1 - y0, 0.02), np.eye(3),
+                           [base.color, base.color])  # fmt: skip
         pal_img = np.zeros((PALETTE_SIDE, PALETTE_SIDE, 3), np.uint8)
         for rgb, i in palette.items():
             pal_img[i // PALETTE_SIDE, i % PALETTE_SIDE] = rgb
         pal_tex = _write_texture(pal_img, c)
-        person_bodies = []
+        self._bounds: list[tuple[np.ndarray, np.ndarray]] = []
+        person_bodies, static_bodies = [], []
         for mb in person_meshes:
             person_bodies += self._mesh_body(mb, pal_tex)
-        static_bodies = self._mesh_body(static, pal_tex)
-        ground_tex = _write_texture(paint_ground(spec, gr), c)
-        vs = pb.createVisualShape(pb.GEOM_MESH, vertices=[[-t, -t, 0], [t, -t, 0], [t, t, 0], [-t, t, 0]],
-                                  indices=[0, 1, 2, 0, 2, 3], normals=[[0, 0, 1]] * 4,
-                                  uvs=[[0, 0], [1, 0], [1, 1], [0, 1]], physicsClientId=c)  # fmt: skip
-        ground = pb.createMultiBody(0, -1, vs, physicsClientId=c)
-        pb.changeVisualShape(ground, -1, textureUniqueId=ground_tex, rgbaColor=[1, 1, 1, 1], physicsClientId=c)
+        for mb in tiles.values():
+            static_bodies += self._mesh_body(mb, pal_tex)
+        self._bodies = np.array([*person_bodies, *static_bodies], np.int64)
+        lo, hi = (np.array([b[k] for b in self._bounds]).reshape(-1, 3) for k in (0, 1))
+        self._box_corners = np.stack([np.where(np.array(m, bool), hi, lo) for m in np.ndindex(2, 2, 2)], 1)
+        self._shown = np.ones(len(self._bodies), bool)
+        az, el = math.radians(spec.sun_azimuth_deg), math.radians(spec.sun_elevation_deg)
+        self._light = [math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)]
+        if composite:
+            self._ground = GroundCompositor(paint_ground(spec, gr), t, g, base.color,
+                                            ground_shading(self.options, self._light))  # fmt: skip
+            ground = -1
+        else:
+            self._ground = None
+            ground_tex = _write_texture(paint_ground(spec, gr), c)
+            vs = pb.createVisualShape(pb.GEOM_MESH, vertices=[[-t, -t, 0], [t, -t, 0], [t, t, 0], [-t, t, 0]],
+                                      indices=[0, 1, 2, 0, 2, 3], normals=[[0, 0, 1]] * 4,
+                                      uvs=[[0, 0], [1, 0], [1, 1], [0, 1]], physicsClientId=c)  # fmt: skip
+            ground = pb.createMultiBody(0, -1, vs, physicsClientId=c)
+            pb.changeVisualShape(ground, -1, textureUniqueId=ground_tex, rgbaColor=[1, 1, 1, 1], physicsClientId=c)
         # segmentation id -> person index (-1 for everything else, including background -1 = last entry)
         ids = np.array(person_bodies, dtype=np.int64)
         self._seg_lut = np.full(int(max([ground, *static_bodies, *person_bodies]) + 2), -1, np.int16)
         self._seg_lut[ids] = np.arange(len(ids), dtype=np.int16)
-        az, el = math.radians(spec.sun_azimuth_deg), math.radians(spec.sun_elevation_deg)
-        self._light = [math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)]
         self._proj = projection_matrix(self.intrinsics.scaled(int(self.options.supersample)))
+
+    def capture(self, pose: CameraPose) -> tuple[np.ndarray, np.ndarray]:
+        """The supersampled frame: RGB (sH, sW, 3) uint8 and person index (sH, sW) int16."""
+        s = int(self.options.supersample)
+        w, h = self.intrinsics.width_px * s, self.intrinsics.height_px * s
+        if self._ground is not None:
+            self._cull(pose, self.intrinsics.scaled(s))
+        _, _, rgba, depth, seg = pb.getCameraImage(
+            w, h, view_matrix(pose), self._proj, renderer=pb.ER_TINY_RENDERER, shadow=0,
+            lightDirection=self._light, lightAmbientCoeff=self.options.ambient,
+            lightDiffuseCoeff=self.options.diffuse, lightSpecularCoeff=0.0, physicsClientId=self._client,
+        )  # fmt: skip
+        rgba = np.ascontiguousarray(rgba, dtype=np.uint8).reshape(h, w, 4)
+        seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
+        pidx = self._seg_lut[np.clip(seg, -1, len(self._seg_lut) - 2)]
+        if self._ground is not None:
+            self._ground.composite(rgba, np.asarray(depth, np.float32).reshape(h, w), pidx, pose,
+                                   self.intrinsics.scaled(s))  # fmt: skip
+        return rgba[:, :, :3], pidx
+
+    def _cull(self, pose: CameraPose, intr: CameraIntrinsics) -> None:
+        """Hide the bodies whose bounding box lies wholly outside the view frustum (beyond one side plane,
+        with a margin of CULL_MARGIN_PX, or before the near plane) and show the others: the image is the
+        same, TinyRenderer just skips their vertices and triangles."""
+        pc = pose.world_to_camera(self._box_corners)  # (B, 8, 3)
+        x, y, z = pc[..., 0], pc[..., 1], pc[..., 2]
+        m = CULL_MARGIN_PX
+        out = ((x < -(intr.cx + m) / intr.fx * z).all(1) | (x > (intr.width_px - intr.cx + m) / intr.fx * z).all(1)
+               | (y < -(intr.cy + m) / intr.fy * z).all(1) | (y > (intr.height_px - intr.cy + m) / intr.fy * z).all(1)
+               | (z < NEAR_M).all(1))  # fmt: skip
+        show = ~out
+        for i in np.flatnonzero(show != self._shown):
+            pb.changeVisualShape(int(self._bodies[i]), -1, rgbaColor=[1, 1, 1, float(show[i])],
+                                 physicsClientId=self._client)  # fmt: skip
+        self._shown = show
 
     def render(self, position_enu, r_enu_from_cam) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Clean float image (H, W, 3), person fraction (H, W) and person index (H, W)."""
         pose = CameraPose(np.asarray(position_enu, float), np.asarray(r_enu_from_cam, float))
         s = int(self.options.supersample)
         intr = self.intrinsics
-        w, h = intr.width_px * s, intr.height_px * s
-        _, _, rgba, _, seg = pb.getCameraImage(
-            w, h, view_matrix(pose), self._proj, renderer=pb.ER_TINY_RENDERER, shadow=0,
-            lightDirection=self._light, lightAmbientCoeff=self.options.ambient,
-            lightDiffuseCoeff=self.options.diffuse, lightSpecularCoeff=0.0, physicsClientId=self._client,
-        )  # fmt: skip
-        rgb = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[:, :, :3]
-        seg = np.asarray(seg, dtype=np.int64).reshape(h, w)
-        pidx = self._seg_lut[np.clip(seg, -1, len(self._seg_lut) - 2)]
+        rgb, pidx = self.capture(pose)
         H, W = intr.height_px, intr.width_px
         if s > 1:
-            img = rgb.reshape(H, s, W, s, 3).astype(np.float32).mean(axis=(1, 3))
-            blocks = pidx.reshape(H, s, W, s).transpose(0, 2, 1, 3).reshape(H, W, s * s)
-            return img, (blocks >= 0).mean(axis=-1).astype(np.float32), _majority(blocks)
+            frac = _block_share(pidx >= 0, s)
+            return area_downsample(rgb, s), frac, _majority(pidx, s, frac > 0)
         return rgb.astype(np.float32), (pidx >= 0).astype(np.float32), pidx.astype(np.int16)
 
     def close(self) -> None:
@@ -562,6 +696,8 @@ class SceneRenderer:
     def __init__(self, spec: SceneSpec, intrinsics: CameraIntrinsics, options: RenderOptions = RenderOptions()):
         if int(options.supersample) < 1:
             raise ValueError("supersample must be >= 1")
+        if options.ground not in GROUND_MODES:
+            raise ValueError(f"ground must be one of {', '.join(GROUND_MODES)}, not {options.ground!r}")
         self.spec = spec
         self.intrinsics = intrinsics
         self.options = options
@@ -633,21 +769,45 @@ class SceneRenderer:
             pass
 
 
-def _majority(blocks: np.ndarray) -> np.ndarray:
-    """Per pixel, the person index covering most subpixels (ties: lowest index); -1 where none."""
-    out = np.full(blocks.shape[:2], -1, np.int16)
-    has = (blocks >= 0).any(-1)
-    if not has.any():
+def area_downsample(img: np.ndarray, s: int) -> np.ndarray:
+    """Mean of each s x s block of a uint8 (h, w, c) image as float32: integer sums of s*s strided views,
+    one division. Bit-identical to img.reshape(H, s, W, s, c).astype(float32).mean((1, 3)), about 8x
+    faster (no float copy of the big image, no pairwise float reduction)."""
+    acc = np.zeros((img.shape[0] // s, img.shape[1] // s) + img.shape[2:], np.uint16 if s <= 16 else np.uint32)
+    for a in range(s):
+        for b in range(s):
+            acc += img[a::s, b::s]
+    out = acc.astype(np.float32)
+    out /= s * s
+    return out
+
+
+def _block_share(flags: np.ndarray, s: int) -> np.ndarray:
+    """Share of True in each s x s block of a bool (h, w) array, float32 (as bool mean: float64 then cast)."""
+    n = np.zeros((flags.shape[0] // s, flags.shape[1] // s), np.uint16)
+    for a in range(s):
+        for b in range(s):
+            n += flags[a::s, b::s]
+    return (n / (s * s)).astype(np.float32)
+
+
+def _majority(pidx: np.ndarray, s: int, has: np.ndarray) -> np.ndarray:
+    """Per output pixel, the person index covering most of its s x s subpixels (ties: lowest index);
+    -1 where none (`has`: the pixels with any person subpixel, the only ones looked at)."""
+    out = np.full(has.shape, -1, np.int16)
+    rows, cols = np.nonzero(has)
+    if not len(rows):
         return out
-    sub = blocks[has]
+    sub = np.stack([pidx[rows * s + a, cols * s + b] for a in range(s) for b in range(s)], -1)
     best = np.full(len(sub), -1, np.int16)
     best_n = np.zeros(len(sub), np.int32)
     for v in np.unique(sub[sub >= 0]):
         n = (sub == v).sum(-1)
         better = n > best_n
         best[better], best_n[better] = v, n[better]
-    out[has] = best
+    out[rows, cols] = best
     return out
 
 
-__all__ = ["RenderOptions", "Render", "SceneRenderer", "view_matrix", "projection_matrix"]
+__all__ = ["RenderOptions", "Render", "SceneRenderer", "GroundCompositor", "GROUND_MODES", "area_downsample",
+           "ground_homography", "ground_shading", "view_matrix", "projection_matrix"]

@@ -2,7 +2,7 @@
 
 The runner calls `poll()` and `send_streams()` at a fixed simulation-time rate, never per physics step:
 the endpoint never blocks and never advances time itself, and telemetry timestamps are simulation time.
-Each capability (streams, commands, params, mission, camera, offboard) is its own module, as MAVSDK
+Each capability (streams, commands, params, mission, camera, offboard, ftp) is its own module, as MAVSDK
 splits plugins; this class owns what they share: the links, routing incoming messages to the module that
 serves them, the commander's events (texts, mission progress, captures) and the lockstep hold. Malformed
 or badly signed packets are dropped and counted (SYS_STATUS.errors_comm), never raised.
@@ -22,6 +22,7 @@ from ..lockstep import HOLD_HEARTBEAT_WALL_S, LockstepGate
 from ..params import ParamStore
 from .camera import CameraProtocol
 from .commands import Commands
+from .ftp import FtpProtocol
 from .links import AUTOPILOT_COMPID, Link, LinkConfig
 from .mission import MissionProtocol
 from .offboard import Offboard
@@ -53,7 +54,8 @@ class MavlinkEndpoint:
         self.mission = MissionProtocol(self)
         commands = Commands(self, self.streams.commands, self.camera_protocol)
         self._handlers = {"HEARTBEAT": self._on_heartbeat, "TIMESYNC": self._on_timesync, **commands.messages,
-                          **ParamProtocol(self, params).messages, **self.mission.messages, **Offboard(self).messages}
+                          **ParamProtocol(self, params).messages, **self.mission.messages, **Offboard(self).messages,
+                          **FtpProtocol(self).messages}
 
     # ------------------------------------------------------------------ plumbing
     def fileno_list(self) -> list[int]:

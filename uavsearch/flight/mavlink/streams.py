@@ -34,6 +34,9 @@ DEFAULT_RATES_HZ = {
     M.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     M.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
     M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 2.0,
+    # The simulator's ground truth (as ArduPilot SITL sends it; PX4 SITL does not): off unless a client asks
+    # with SET_MESSAGE_INTERVAL, e.g. to log estimator error against truth.
+    M.MAVLINK_MSG_ID_SIM_STATE: 0.0,
 }
 # Ground stations get PX4's lighter "normal" profile: half the position/attitude rates.
 GCS_RATES_HZ = {
@@ -75,6 +78,9 @@ class Streams:
         build_safe = self.ep.telemetry.build_safe
         built: dict = {}  # one message object per id and tick, packed per link (own sequence, signing)
         for link in self.links:
+            if self.extra_heartbeat is not None and now >= link.next_due_us.get(EXTRA_HEARTBEAT, 0):
+                link.next_due_us[EXTRA_HEARTBEAT] = now + 1_000_000
+                self._extra_then_autopilot_heartbeat(link, now, built)
             for mid, interval in link.intervals_us.items():
                 if interval <= 0 or now < link.next_due_us.get(mid, 0):
                     continue
@@ -86,12 +92,25 @@ class Streams:
                     except (struct.error, OverflowError, ValueError):  # a field out of its wire range
                         log.warning("cannot pack %s", msg.get_type(), exc_info=True)
                         built[mid] = None
-            if self.extra_heartbeat is not None and now >= link.next_due_us.get(EXTRA_HEARTBEAT, 0):
-                link.next_due_us[EXTRA_HEARTBEAT] = now + 1_000_000
-                self.extra_heartbeat(link)
         due = [t for link in self.links for mid, t in link.next_due_us.items()
                if mid == EXTRA_HEARTBEAT or link.intervals_us.get(mid, 0) > 0]
         self._next_due_any = min(due) if due else now + 1_000_000
+
+    def _extra_then_autopilot_heartbeat(self, link: Link, now: int, built: dict) -> None:
+        """The camera's heartbeat, followed by the autopilot's in the same datagram.
+
+        pymavlink (so MAVProxy and pymavlink scripts) routes `set_mode(name)` by the autopilot type of the LAST
+        heartbeat from the system, whichever component sent it: after the camera's (MAV_AUTOPILOT_INVALID) it
+        takes the ArduPilot path and fails ("required argument is not a float"). A client parses a datagram at
+        once, so it never acts between the two."""
+        hb = M.MAVLINK_MSG_ID_HEARTBEAT
+        link.flush()
+        self.extra_heartbeat(link)
+        msg = built[hb] if hb in built else built.setdefault(hb, self.ep.telemetry.build_safe(hb))
+        if msg is not None:
+            link.send(msg)
+        if link.intervals_us.get(hb, 0) > 0:
+            link.next_due_us[hb] = now + link.intervals_us[hb]
 
     # ------------------------------------------------------------------ commands
     def _on_set_message_interval(self, link: Link, m, command: int, p: list) -> None:

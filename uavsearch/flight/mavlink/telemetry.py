@@ -12,6 +12,8 @@ import math
 import numpy as np
 from pymavlink.dialects.v20 import common as M
 
+from ...geometry import quaternion_from_euler
+
 log = logging.getLogger(__name__)
 
 HEALTH_BITS = {
@@ -58,6 +60,7 @@ class Telemetry:
             M.MAVLINK_MSG_ID_MISSION_CURRENT: self.mission_current,
             M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: self.position_target,
             M.MAVLINK_MSG_ID_AUTOPILOT_VERSION: self.autopilot_version,
+            M.MAVLINK_MSG_ID_SIM_STATE: self.sim_state,
         }
 
     def new_tick(self) -> None:
@@ -154,6 +157,18 @@ class Telemetry:
             int(round((gp.alt_amsl_m - self.cmd.home_alt_amsl_m) * 1000)), int(round(v[0] * 100)), int(round(v[1] * 100)),
             int(round(v[2] * 100)), hdg,
         )
+
+    def sim_state(self):
+        """The simulator's true state (JSBSim), for logs that compare the estimate with the truth."""
+        t = self.v("true_state")
+        lat, lon, alt = self.cmd.origin.enu_to_geodetic(t.position_enu_m)
+        q = quaternion_from_euler(t.roll_rad, t.pitch_rad, t.yaw_rad)
+        ve, vn, vu = (float(x) for x in t.velocity_enu_m_s)
+        w = t.angular_velocity_frd_rad_s
+        return M.MAVLink_sim_state_message(
+            *(float(x) for x in q), t.roll_rad, t.pitch_rad, t.yaw_rad, 0.0, 0.0, 0.0, float(w[0]), float(w[1]),
+            float(w[2]), float(lat), float(lon), float(alt), 0.0, 0.0, vn, ve, -vu,
+            int(round(lat * 1e7)), int(round(lon * 1e7)))
 
     def gps_raw(self):
         """The raw GPS solution (not the estimate), as a GPS receiver reports it."""
