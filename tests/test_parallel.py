@@ -17,6 +17,7 @@ from uavsearch.search.dataset import (
     generate_views,
     load_views,
     perception_scenes,
+    render_scene_shard,
     render_tag,
     shard_key,
     shard_path,
@@ -95,6 +96,19 @@ def test_local_pool_and_one_process_write_the_same_bytes_and_resume_skips_finish
     assert len(load_views(a)) == 2 * len(SPEC.scenes)
 
 
+def test_a_url_store_holds_the_same_bytes_as_a_folder(tmp_path):
+    """Any fsspec URL works as the store (memory:// here: the s3:// code path without a network)."""
+    spec = ViewSetSpec("url", SPEC.scenes[:1], views_per_scene=2, seed=7)
+    url = f"memory://uavsearch-test-{os.getpid()}/views"
+    generate_views(spec, url, workers=1, progress=False)
+    generate_views(spec, tmp_path / "v", workers=1, progress=False)
+    store = Store(url)
+    assert not store.local and store.keys("shards") == [shard_key(*spec.scenes[0])]
+    assert store.read_bytes(shard_key(*spec.scenes[0])) == shard_path(tmp_path / "v", *spec.scenes[0]).read_bytes()
+    assert store.read_bytes("manifest.json") == (tmp_path / "v" / "manifest.json").read_bytes()
+    assert np.array_equal(load_views(url).images, load_views(tmp_path / "v").images)
+
+
 def test_ray_asked_for_without_the_extra_is_a_one_line_error(monkeypatch):
     monkeypatch.setitem(__import__("sys").modules, "ray", None)  # `import ray` raises ImportError
     with pytest.raises(UavsearchError, match=r"pip install 'uavsearch\[ray\]'"):
@@ -150,6 +164,11 @@ def test_a_ray_cluster_and_the_local_pool_build_the_same_view_cache_and_table2(t
     assert len(ray_files) == len(scenes) + 2  # a shard per scene, the view set's manifest, the perception cache
     assert ray_files == local_files
     assert path_ray.read_bytes() == path_local.read_bytes()
+    # A task's bad input comes back as its one-line error, not a remote traceback.
+    bad = [(SPEC.to_json(), Store(tmp_path / "bad"), 1, 999, render_tag())]
+    with pytest.raises(UavsearchError, match="out of range") as err:
+        map_scenes(render_scene_shard, bad, on_ray, progress=False)
+    assert "\n" not in str(err.value)
 
     models = tmp_path / "models"
     torch.manual_seed(0)

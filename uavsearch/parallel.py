@@ -133,6 +133,9 @@ def map_scenes(task: Callable[[Any], Any], items: Sequence, executor: Executor |
             except ray.exceptions.RayTaskError as e:
                 for r in pending:
                     ray.cancel(r)
+                cause = getattr(e, "cause", None)
+                if isinstance(cause, UavsearchError):  # the task's own one-line error, as a local run gives it
+                    raise cause from None
                 raise e.as_instanceof_cause() from None
         elif int(executor.jobs) == 1 or len(items) == 1:
             for i, item in enumerate(items):
@@ -219,12 +222,18 @@ class Store:
     def path(self, key: str) -> str:
         return f"{self.root}/{key}"
 
+    def _fresh(self, path: str) -> str:
+        """Object-store filesystems cache listings; other machines write here, so never trust them."""
+        if not self.local:
+            self.fs.invalidate_cache(path)
+        return path
+
     def exists(self, key: str) -> bool:
-        return self.fs.exists(self.path(key))
+        return self.fs.exists(self._fresh(self.path(key)))
 
     def size(self, key: str) -> int | None:
         try:
-            return int(self.fs.size(self.path(key)))
+            return int(self.fs.size(self._fresh(self.path(key))))
         except (FileNotFoundError, OSError):
             return None
 
@@ -260,7 +269,7 @@ class Store:
     def keys(self, prefix: str) -> list[str]:
         """Keys of the files directly under `prefix` (a folder key), temporary files left out, sorted."""
         try:
-            names = self.fs.ls(self.path(prefix), detail=False)
+            names = self.fs.ls(self._fresh(self.path(prefix)), detail=False)
         except FileNotFoundError:
             return []
         out = [f"{prefix}/{n.rstrip('/').rsplit('/', 1)[-1]}" for n in names]
