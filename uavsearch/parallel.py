@@ -36,8 +36,8 @@ from .cli_args import opt
 from .errors import UavsearchError
 
 EXECUTORS = ("local", "ray")
-# What a Ray started or joined here must not do: phone home, serve a dashboard, or pick a
-# non-loopback address on a machine that is not part of a cluster.
+# A Ray started or joined here never phones home (usage statistics); one started here also serves no
+# dashboard and listens on loopback only (_init_ray).
 RAY_QUIET_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
 
 
