@@ -37,7 +37,7 @@ from tqdm import tqdm
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.parallel import Executor, ScaleOutArgs
-from uavsearch.paths import MODELS_DIR
+from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.world.settings import SETTINGS
 from uavsearch.viz import pyplot
 
@@ -261,7 +261,7 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
     rows = summarise(results, args.episodes)
     out = Path(args.out)
     meta = {"T": SearchConfig().budget_T, "split": args.split, "episodes": args.episodes, "seeds": args.seeds,
-            "perception": args.perception, "tag": caches[settings[0]].perception_tag, "models_dir": args.models_dir,
+            "perception": display_path(args.perception), "tag": caches[settings[0]].perception_tag, "models_dir": display_path(args.models_dir),
             "argmax": args.argmax, "seconds": time.perf_counter() - t0}
     md, csv_path = write_table(rows, settings, out, meta)
     fig = plot_fig6(results, out / "fig6.png")

@@ -27,7 +27,7 @@ import torch
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs, Store
-from uavsearch.paths import MODELS_DIR
+from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.world.settings import density_scenes
 from uavsearch.viz import pyplot
 
@@ -113,8 +113,9 @@ def evaluate_single_view(args: EvalArgs) -> dict:
     lines = [
         "# Table I: single-view performance vs pedestrian density (start view, 70 m)",
         "",
-        f"checkpoint `{args.checkpoint}`; {int(start.sum())} test scenes of the density set "
-        f"({args.scenes_per_pair} per row); threshold 0.5 (Eq. 16-19).",
+        f"checkpoint `{display_path(args.checkpoint)}`; {int(start.sum())} test scenes of the density set "
+        f"({args.scenes_per_pair} per row, seed {args.seed} for the extra Fig. 4 views); threshold 0.5 (Eq. 16-19).",
+        *_validation_line(extra),
         "",
         "| occupied cells | scenes | Aacc | AF1 | paper Aacc | paper AF1 |",
         "|---|---|---|---|---|---|",
@@ -130,10 +131,19 @@ def evaluate_single_view(args: EvalArgs) -> dict:
     dist = np.linalg.norm(views.position_enu[:, None, :2] - grid.centers_enu[None, :, :2], axis=-1)
     fig = _plot_fig4(views.cell_area_px[seen], correct[seen], dist[seen], views.person_px[seen & (y == 1)],
                      correct[seen & (y == 1)], out / "fig4.png")
-    print("\n".join(lines[4:]))
+    print("\n".join(lines))
     print(f"wrote {out / 'table1.md'}, {out / 'table1.csv'}, {fig}")
     print(f"({len(views)} views: {t_data:.0f} s to render/load, {t_pred:.1f} s to predict)")
     return {"rows": rows, "all": (all_acc, all_f1), "views": len(views), "data_s": t_data, "predict_s": t_pred}
+
+
+def _validation_line(extra: dict) -> list[str]:
+    """The checkpoint's own validation precision / recall (stage 1 training), which README quotes."""
+    val = (extra or {}).get("val") or {}
+    if "eval/precision" not in val:
+        return []
+    return ["", f"Stage 1 validation at step {extra.get('step')}: precision {val['eval/precision']:.3f}, "
+                f"recall {val['eval/recall']:.3f}, AF1 {val['eval/af1']:.3f}."]
 
 
 def _binned(x: np.ndarray, ok: np.ndarray, edges: np.ndarray):

@@ -1,0 +1,174 @@
+#!/usr/bin/env bash
+# Regenerate every table, number and figure README.md quotes, into results/ under the names it cites.
+#
+#   tools/reproduce.sh [--quick] [--ship] [--jobs N] [--only STEP[,STEP...]] [--dry-run] [--help]
+#
+# Modes
+#   (default) full: retrain stage 1 and stage 2 into runs/reproduce/ (never into models/), then evaluate.
+#     results/single_view, results/search, results/search_large and results/flight always describe the
+#     checkpoints in models/ (what `uavsearch fly` uses): without --ship those are the shipped ones, so a
+#     full run re-checks the shipped numbers and adds what only new runs give; results/training_seeds/
+#     is about the new runs (stage 2 retrained with training seeds 0, 1, 2 on the new stage 1) and
+#     evaluates runs/reproduce/.
+#   --ship: after training, copy runs/reproduce/perception.pt and runs/reproduce/seed0/search_s*_*.pt
+#     into models/, then evaluate those (results/ then describes the new shipped models).
+#   --quick: no training and no large-split render; evaluates the shipped models/ only: Table I + Fig. 4,
+#     Table II + Fig. 6 on the paper split's test scenes. It prints what it skipped.
+#   --jobs N: stage-2 trainings in parallel (default 1; 2 on a 2-core machine).
+#   --only STEP,...: run only these steps (names as listed by --dry-run); --dry-run: print the commands.
+#
+# Steps, their seeds and their cost. "measured": on the 2-core machine shared with other jobs (load average
+# 3-7.6 while measuring); "estimate": from the README's figures, not measured by this script.
+#   quick (all from the shipped models): measured 26 min the first time (762 CPU-s, almost all of it
+#   rendering; ~7 min on an idle 2-core machine by that count), 45 s after.
+#     single_view     Table I + Fig. 4: start view of 80 density-set scenes per row (seed 0 for the extra
+#                     Fig. 4 views). measured: 1353 s the first time (renders 1440 views into
+#                     data/views/density_v3_s0/), 38 s after.
+#     search          Table II + Fig. 6, paper split, 10 test scenes per setting, evaluation seeds 0-4 x 10
+#                     episodes. measured: 229 s the first time (renders 750 views into cache/), 7 s after.
+#   full only:
+#     train_perception  stage 1, seed 1, 800 steps, occupied weight 4. estimate: ~30 min (README: 1594 s
+#                     on one thread) + ~3 min rendering 1320 views.
+#     view_caches     perception outputs of the 25 lattice views of every paper- and large-split scene for
+#                     the new stage 1. estimate: ~45 min (README: 1650 large-split scenes).
+#     train_policy    stage 2, 5 fusions x 3 settings x training seeds 0, 1, 2 = 45 runs, 1200 iterations,
+#                     large split. estimate: 3 x (3 x 150 s + 12 x 60 s) = ~60 min serial, ~35 min --jobs 2.
+#     ship            (--ship only) copy into models/. seconds.
+#     search_large    Table II + Fig. 6 on the large split's 100 test scenes per setting (seeds 0-4).
+#                     estimate: ~8 min rendering 7500 views the first time (shipped perception), 35 s after.
+#     flight          flight vs teleport, settings 1-3, the 10 paper test scenes each, missions/default.yaml
+#                     (vehicle seed 0, policy acting greedily), lockstep at speed max. measured: 652 s
+#                     (load 6-7; ~5 min idle at ~10 s per flown mission). Every Aacc, F1 and route is the
+#                     same on every run; the wall-time columns are the machine's.
+#     training_seeds  Table II on the large split for the runs of each training seed, then the spread of the
+#                     paper's method over seeds 0-2. estimate: ~2 min (after view_caches).
+#
+# Python: $PY (default .venv/bin/python, else python3), run from the repository root.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+usage() { sed -n '2,/^set -euo/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'; }
+
+QUICK=0 SHIP=0 JOBS=1 DRY=0 ONLY=""
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --quick) QUICK=1 ;;
+    --ship) SHIP=1 ;;
+    --jobs) JOBS=${2:?--jobs needs a number}; shift ;;
+    --jobs=*) JOBS=${1#--jobs=} ;;
+    --only) ONLY=${2:?--only needs step names}; shift ;;
+    --only=*) ONLY=${1#--only=} ;;
+    --dry-run) DRY=1 ;;
+    -h|--help) usage; exit 0 ;;
+    *) echo "reproduce.sh: unknown option '$1' (see --help)" >&2; exit 2 ;;
+  esac
+  shift
+done
+case "$JOBS" in ''|*[!0-9]*|0) echo "reproduce.sh: --jobs must be a positive integer, not '$JOBS'" >&2; exit 2 ;; esac
+if [ "$QUICK" = 1 ] && [ "$SHIP" = 1 ]; then
+  echo "reproduce.sh: --ship needs the full mode (--quick trains nothing)" >&2; exit 2
+fi
+if [ -z "${PY:-}" ]; then
+  if [ -x .venv/bin/python ]; then PY=.venv/bin/python; else PY=python3; fi
+fi
+
+RUN=runs/reproduce          # every trained checkpoint and every flight log of this script
+SEEDS="0 1 2"               # training seeds of stage 2 (seed 0 is the one shipped)
+SETTINGS="1 2 3"
+FUSIONS="learned average bayes size oracle"
+EVAL="--episodes 10 --seeds 5 --no-progress"   # evaluation: 10 episodes per test scene x seeds 0-4
+UAV="$PY -m uavsearch"
+
+# The perception stage 2 trains on and is evaluated with: the new one in full mode.
+NEWPERC=$RUN/perception.pt
+
+# ---------------------------------------------------------------------------------------------------
+# Steps: name | mode (quick = also in --quick, full = full mode only, ship = --ship only) | what | command
+STEPS=()
+add() { STEPS+=("$1|$2|$3|$4"); }
+
+add train_perception full "stage 1 (seed 1, 800 steps, occupied weight 4) -> $NEWPERC" \
+  "$UAV train perception --seed 1 --steps 800 --pos-weight 4 --runs-dir $RUN --out $NEWPERC --no-progress"
+add view_caches full "perception outputs of every paper- and large-split lattice view for $NEWPERC" \
+  "$PY -c \"from uavsearch.search.perception import load_perception; from uavsearch.search.view_cache import get_view_cache
+net, _ = load_perception('$NEWPERC')
+[get_view_cache(net, s, split, part, progress=False) for s in (1, 2, 3) for split in ('paper', 'large') for part in ('train', 'val', 'test')]\""
+TRAIN_CMDS=""
+for seed in $SEEDS; do for s in $SETTINGS; do for f in $FUSIONS; do
+  TRAIN_CMDS+="$UAV train policy --setting $s --fusion $f --split large --seed $seed --perception $NEWPERC --runs-dir $RUN/policy_runs --progress false --out $RUN/seed$seed/search_s${s}_${f}.pt
+"
+done; done; done
+add train_policy full "stage 2: 5 fusions x settings 1-3 x training seeds 0-2 -> $RUN/seed<S>/ ($JOBS in parallel)" \
+  "printf '%s' \"\$TRAIN_CMDS\" | xargs -P $JOBS -I{} sh -c '{}'"
+add ship ship "copy $NEWPERC and $RUN/seed0/search_s*_*.pt into models/" \
+  "cp $NEWPERC models/perception.pt && cp $RUN/seed0/search_s*_*.pt models/"
+add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \
+  "$UAV eval single-view --checkpoint models/perception.pt --scenes-per-pair 80 --views-per-scene 3 --seed 0 --out results/single_view --no-progress"
+add search quick "Table II + Fig. 6, paper split, models/ -> results/search/" \
+  "$UAV eval search --setting all --split paper --perception models/perception.pt --models-dir models $EVAL --out results/search"
+add search_large full "Table II + Fig. 6, large split (100 test scenes), models/ -> results/search_large/" \
+  "$UAV eval search --setting all --split large --perception models/perception.pt --models-dir models $EVAL --out results/search_large"
+FLIGHT_CMD=""
+for s in $SETTINGS; do
+  FLIGHT_CMD+="rm -rf $RUN/flight_s$s && $UAV eval search --vehicle mavlink --setting $s --split paper --speed max --no-progress --out $RUN/flight_s$s && mkdir -p results/flight && cp $RUN/flight_s$s/flight_vs_teleport.md results/flight/flight_vs_teleport_s$s.md && "
+done
+add flight full "flight vs teleport, settings 1-3, models/ (flight logs in $RUN/flight_s<K>/) -> results/flight/" "${FLIGHT_CMD}true"
+SEED_CMD=""
+for seed in $SEEDS; do
+  SEED_CMD+="$UAV eval search --setting all --split large --perception $NEWPERC --models-dir $RUN/seed$seed $EVAL --out results/training_seeds/seed$seed && "
+done
+add training_seeds full "Table II (large split) of the runs of training seeds 0-2 and their spread -> results/training_seeds/" \
+  "${SEED_CMD}$PY tools/seed_spread.py results/training_seeds/seed0 results/training_seeds/seed1 results/training_seeds/seed2 --out results/training_seeds/spread.md"
+
+# ---------------------------------------------------------------------------------------------------
+selected=() skipped=()
+for st in "${STEPS[@]}"; do
+  IFS='|' read -r name mode _ _ <<<"$st"
+  if [ -n "$ONLY" ]; then
+    case ",$ONLY," in *",$name,"*) selected+=("$st") ;; *) skipped+=("$name (not in --only)") ;; esac
+    continue
+  fi
+  case "$mode" in
+    quick) selected+=("$st") ;;
+    full) if [ "$QUICK" = 1 ]; then skipped+=("$name (full mode only)"); else selected+=("$st"); fi ;;
+    ship) if [ "$SHIP" = 1 ]; then selected+=("$st"); else skipped+=("$name (without --ship models/ is left alone)"); fi ;;
+  esac
+done
+if [ -n "$ONLY" ]; then
+  for n in ${ONLY//,/ }; do
+    printf '%s\n' "${STEPS[@]}" | grep -q "^$n|" || { echo "reproduce.sh: unknown step '$n'" >&2; exit 2; }
+  done
+fi
+
+n=${#selected[@]}
+mode_name=$([ -n "$ONLY" ] && echo "only $ONLY" || { [ "$QUICK" = 1 ] && echo quick || echo full; })$([ "$SHIP" = 1 ] && echo " + ship" || true)
+echo "reproduce.sh: $mode_name mode, $n step(s), python $PY"
+if [ "$DRY" = 1 ]; then
+  i=0
+  for st in "${selected[@]}"; do
+    i=$((i + 1)); IFS='|' read -r name _ what cmd <<<"$st"
+    echo "[$i/$n] $name: $what"
+    if [ "$name" = train_policy ]; then printf '  %s' "$TRAIN_CMDS" | sed 's/^/  /' | sed '1s/^  //'; else echo "  $cmd"; fi
+  done
+  for s in "${skipped[@]}"; do echo "skip: $s"; done
+  exit 0
+fi
+
+START=$(date +%s)
+stamp=$(mktemp); trap 'rm -f "$stamp"' EXIT
+mkdir -p results "$RUN"
+elapsed() { local t=$(( $(date +%s) - START )); printf '%02d:%02d' $((t / 60)) $((t % 60)); }
+i=0
+for st in "${selected[@]}"; do
+  i=$((i + 1)); IFS='|' read -r name _ what cmd <<<"$st"
+  echo "[$i/$n] $name: $what (elapsed $(elapsed))"
+  t0=$(date +%s)
+  TRAIN_CMDS="$TRAIN_CMDS" bash -c "set -euo pipefail; $cmd" || { echo "reproduce.sh: step $name failed (elapsed $(elapsed))" >&2; exit 1; }
+  echo "[$i/$n] $name done in $(( $(date +%s) - t0 )) s (elapsed $(elapsed))"
+done
+
+echo
+echo "Done in $(elapsed) ($mode_name mode). Files written under results/:"
+printf '%-48s %10s\n' file bytes
+find results -type f -newer "$stamp" | sort | while read -r f; do printf '%-48s %10s\n' "$f" "$(wc -c <"$f")"; done
+for s in "${skipped[@]}"; do echo "skipped: $s"; done
