@@ -2,8 +2,10 @@
 process, and on a 2-node Ray cluster on loopback; shard manifests make a resumed run skip finished work."""
 
 import csv
+import io
 import json
 import os
+import sys
 import zipfile
 
 import numpy as np
@@ -44,7 +46,7 @@ def test_npz_bytes_are_a_pure_function_of_the_arrays(tmp_path):
     arrays = {"a": np.arange(6, dtype=np.int16).reshape(2, 3), "b": np.float32(2.5), "c": np.array("x")}
     data = npz_bytes(arrays)
     assert data == npz_bytes(dict(arrays))
-    with zipfile.ZipFile(__import__("io").BytesIO(data)) as z:
+    with zipfile.ZipFile(io.BytesIO(data)) as z:
         assert {i.date_time for i in z.infolist()} == {(1980, 1, 1, 0, 0, 0)}
     (tmp_path / "x.npz").write_bytes(data)
     with np.load(tmp_path / "x.npz") as z:
@@ -110,7 +112,7 @@ def test_a_url_store_holds_the_same_bytes_as_a_folder(tmp_path):
 
 
 def test_ray_asked_for_without_the_extra_is_a_one_line_error(monkeypatch):
-    monkeypatch.setitem(__import__("sys").modules, "ray", None)  # `import ray` raises ImportError
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
     with pytest.raises(UavsearchError, match=r"pip install 'uavsearch\[ray\]'"):
         map_scenes(abs, [1], Executor("ray"), progress=False)
     assert Executor.from_args(type("A", (), {"ray_address": "auto", "workers": 3})()) == Executor("ray", 3, "auto")
