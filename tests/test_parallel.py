@@ -184,3 +184,20 @@ def test_a_ray_cluster_and_the_local_pool_build_the_same_view_cache_and_table2(t
                     caches={2: load_view_cache(path)})
         tables.append((out / "table2.csv").read_bytes())
     assert tables[0] == tables[1] and len(list(csv.DictReader(tables[0].decode().splitlines()))) > 5
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_flight_vs_teleport_rows_are_the_same_on_ray_and_here(tmp_path, ray_cluster):
+    """Two real SITL flights per executor (each a `uavsearch sitl` process over UDP on 127.0.0.1)."""
+    from uavsearch.missions import load_mission
+    from uavsearch.search.mission_controller import eval_flight_vs_teleport
+
+    timing = ("wall_s", "flight_wall_s")
+    rows = []
+    for name, executor in (("here", Executor("local", 1)), ("ray", Executor("ray", address=ray_cluster.address))):
+        res = eval_flight_vs_teleport(load_mission(None), 2, scenes=[0, 1], out=tmp_path / name, progress=False,
+                                      executor=executor)
+        assert res["summary"]["completed"] == 2
+        rows.append([{k: v for k, v in r.items() if k not in timing} for r in res["rows"]])
+    assert rows[0] == rows[1] and [r["scene"] for r in rows[0]] == [0, 1]
