@@ -5,6 +5,7 @@ import csv
 import io
 import json
 import os
+import socket
 import sys
 import zipfile
 
@@ -116,6 +117,16 @@ def test_ray_asked_for_without_the_extra_is_a_one_line_error(monkeypatch):
     with pytest.raises(UavsearchError, match=r"pip install 'uavsearch\[ray\]'"):
         map_scenes(abs, [1], Executor("ray"), progress=False)
     assert Executor.from_args(type("A", (), {"ray_address": "auto", "workers": 3})()) == Executor("ray", 3, "auto")
+
+
+def test_an_unreachable_ray_address_is_a_one_line_error_not_a_wait():
+    pytest.importorskip("ray", reason="needs the ray extra")
+    with socket.socket() as s:  # a port that was free a moment ago: nothing listens there
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    for address, match in ((f"127.0.0.1:{port}", "cannot reach the Ray cluster"), ("nohost", "HOST:PORT")):
+        with pytest.raises(UavsearchError, match=match):
+            map_scenes(abs, [1], Executor("ray", address=address), progress=False)
 
 
 def test_map_scenes_keeps_the_order_of_its_items():

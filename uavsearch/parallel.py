@@ -24,6 +24,7 @@ import io
 import json
 import multiprocessing as mp
 import os
+import socket
 import uuid
 import zipfile
 from dataclasses import dataclass
@@ -76,6 +77,20 @@ def _indexed(job):
     return i, task(item)
 
 
+def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
+    """ray.init retries an unreachable address for many minutes, silently; a mistyped address gets its
+    one-line error now."""
+    if address in ("auto", "local"):
+        return
+    host, sep, port = address.split("://", 1)[-1].rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise UavsearchError(f"--ray-address must be auto, HOST:PORT or ray://HOST:PORT, not {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as e:
+        raise UavsearchError(f"cannot reach the Ray cluster at {address}: {e.strerror or e}") from None
+
+
 def _init_ray(executor: Executor):
     """Import Ray (the optional extra) and connect, once per process."""
     for k, v in RAY_QUIET_ENV.items():
@@ -87,6 +102,8 @@ def _init_ray(executor: Executor):
     except ImportError:
         raise UavsearchError("--ray needs the ray extra: pip install 'uavsearch[ray]'") from None
     if not ray.is_initialized():
+        if executor.address:
+            _check_reachable(executor.address)
         try:
             if executor.address:
                 ray.init(address=executor.address, log_to_driver=False, configure_logging=False)
@@ -107,6 +124,7 @@ def map_scenes(task: Callable[[Any], Any], items: Sequence, executor: Executor |
     executor = executor or Executor()
     items = list(items)
     out: list = [None] * len(items)
+    ray = _init_ray(executor) if executor.kind == "ray" and items else None  # its errors before any bar
     bar = tqdm(total=len(items), desc=desc, unit=unit, disable=not progress or not items, smoothing=0.1)
 
     def done(i, value):
@@ -118,8 +136,7 @@ def map_scenes(task: Callable[[Any], Any], items: Sequence, executor: Executor |
     try:
         if not items:
             return out
-        if executor.kind == "ray":
-            ray = _init_ray(executor)
+        if ray is not None:
             # SPREAD: a scene per node before two on one, so a cluster's nodes all render from the start.
             remote = ray.remote(num_cpus=1, scheduling_strategy="SPREAD", max_retries=2)(task)
             refs = [remote.remote(item) for item in items]
