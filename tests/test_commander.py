@@ -241,6 +241,31 @@ def test_takeoff_in_air_never_descends_and_rtl_on_ground_is_denied():
     assert r.alt == pytest.approx(8.0, abs=0.4)
 
 
+def test_land_slows_gradually_from_land_alt1_to_land_alt2_as_px4_does():
+    """LAND descends at MPC_Z_V_AUTO_DN above MPC_LAND_ALT1 (10 m), at MPC_LAND_SPEED (0.7 m/s) below
+    MPC_LAND_ALT2 (5 m), and at a speed linear in altitude in between."""
+    r = Rig(MIS_TAKEOFF_ALT=15.0)
+    r.takeoff()
+    assert r.cmd(21) == Result.ACCEPTED and r.c.mode == "LAND"
+    seen = []
+
+    def record():
+        if r.v.sp is not None and r.c.mode == "LAND":
+            seen.append((r.alt, float(r.v.sp.velocity_ned_m_s[2])))
+        return not r.c.armed
+
+    assert r.run(80, until=record)
+    fast = max(vz for _, vz in seen)
+    assert fast > 1.0 and sum(5.2 < alt < 9.8 for alt, _ in seen) > 50
+    for alt, vz in seen:
+        if alt > 10.2:
+            assert vz == pytest.approx(fast)
+        elif 5.2 < alt < 9.8:
+            assert vz == pytest.approx(0.7 + (fast - 0.7) * (alt - 5.0) / 5.0, abs=0.05)
+        elif 0.5 < alt < 4.8:
+            assert vz == pytest.approx(0.7)
+
+
 def test_do_land_start_jumps_to_the_landing_sequence_or_lands_here():
     """MAVProxy's `land` is MAV_CMD_DO_LAND_START: with a DO_LAND_START marker the mission continues from it
     (PX4); without one the vehicle lands where it is (PX4 only warns)."""

@@ -80,3 +80,23 @@ def test_cli_bad_mission_prints_one_line_and_exits_2(tmp_path, capsys):
     assert main(["fly", "--mission", str(bad)]) == 2
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert lines == [f"uavsearch: error: mission {bad}: search.budget_T: Input should be greater than or equal to 1 (got -3)"]
+
+
+def test_read_without_the_registry_imports_no_torch_and_checks_names_later(tmp_path):
+    """`uavsearch fly` reads its mission before torch is imported (its vehicle starts meanwhile); the names
+    are checked against the agent registry afterwards, with the same one-line error."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from uavsearch.missions import load_mission; "
+            "from uavsearch.search.mission_controller import fly; "
+            "m = load_mission(check_registry=False).with_overrides(check_registry=False, **{'scene.seed': 4}); "
+            "print(m.scene.seed, 'torch' in sys.modules, 'scipy' in sys.modules, 'gymnasium' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["4", "False", "False", "False"]
+    (tmp_path / "m.yaml").write_text("fusion: nope\n")
+    m = load_mission(tmp_path / "m.yaml", check_registry=False)
+    with pytest.raises(MissionError, match=r"^mission .*m\.yaml: fusion: unknown fusion method 'nope'"):
+        m.check_registry()
+    with pytest.raises(MissionError, match="unknown fusion method 'nope'"):
+        load_mission(tmp_path / "m.yaml")

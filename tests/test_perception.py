@@ -124,3 +124,38 @@ def test_bad_inputs_are_clear_errors(tmp_path):
         net(np.zeros((1, 224, 224, 3), np.uint8), _labels((0.0, 0.0), (0.0, 0.0)))
     with pytest.raises(UavsearchError, match="multiple of the feature stride"):
         cell_pooling(torch.zeros(1, 225, 224, dtype=torch.int16), 4)
+
+
+def test_bits_dropout_keeps_one_minus_p_scales_by_its_inverse_and_is_identity_in_eval():
+    from uavsearch.search.perception import BitsDropout
+
+    torch.manual_seed(0)
+    d = BitsDropout(0.3)
+    x = torch.ones(400_000)
+    y = d(x)
+    kept = y != 0
+    assert abs(kept.float().mean().item() - 0.7) < 0.003  # 0.7 +- 5 sigma at n = 4e5
+    assert torch.allclose(y[kept], torch.full_like(y[kept], 1 / 0.7))
+    torch.manual_seed(0)
+    assert torch.equal(d(x), y)  # the global torch seed decides the mask
+    x2 = torch.randn(3, 5, 7, requires_grad=True)  # odd sizes: the bit words do not divide the tensor
+    out = d(x2)
+    out.sum().backward()
+    assert torch.equal(x2.grad != 0, out != 0)
+    assert torch.equal(d.eval()(x2), x2) and torch.equal(BitsDropout(0.0)(x2), x2)
+    assert torch.equal(BitsDropout(1.0)(x2), torch.zeros_like(x2))
+
+
+def test_confidence_forward_rows_equals_the_net_on_the_gathered_rows_with_a_mask_per_copy():
+    from uavsearch.search.perception import ConfidenceNet
+
+    torch.manual_seed(0)
+    conf = ConfidenceNet(7, dropout=0.5)
+    feats = torch.randn(3, 10, 7)
+    rows = torch.tensor([[0, 2, 2], [1, 0, 0]])
+    conf.eval()
+    assert torch.allclose(conf.forward_rows(feats, rows), conf(feats[rows]), atol=1e-6)
+    conf.train()
+    out = conf.forward_rows(feats, rows)
+    assert out.shape == (2, 3, 10)
+    assert not torch.equal(out[0, 1], out[0, 2])  # the same view in two places: two dropout draws

@@ -191,3 +191,10 @@ def test_composite_ground_matches_mesh_ground(city):
 def test_unknown_ground_mode_is_a_clear_error(city):
     with pytest.raises(ValueError, match="ground must be one of"):
         SceneRenderer(city, CameraIntrinsics(32, 32, 60.0), RenderOptions(ground="flat"))
+
+
+def test_a_scene_generated_in_the_render_worker_is_the_scene_generated_here():
+    from uavsearch.world.render import generate_in_worker
+    from uavsearch.world.scene import generate_scene, scene_to_json
+
+    assert scene_to_json(generate_in_worker(3, 5)) == scene_to_json(generate_scene(3, 5))

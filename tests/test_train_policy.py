@@ -86,3 +86,49 @@ def test_cli_parser_maps_flags_to_args():
                             "--state-extras", "false"])
     assert (ns.setting, ns.fusion, ns.out, ns.r_re, ns.state_extras) == (3, "bayes", "x.pt", -2.0, False)
     assert callable(ns.func)
+
+
+def _per_episode_confidence_loss(conf, cache, rows, lattice_idx, pos_weight):
+    """Eq. 11 the direct way: the net on every episode's every view (the reference for the shared form)."""
+    from uavsearch.search.fusion import fuse
+
+    r = rows[:, None]
+    p = cache.log_probs[r, lattice_idx][..., 1].exp()
+    fused = fuse("learned", p, cache.valid[r, lattice_idx], scores=conf(cache.cell_features[r, lattice_idx]))
+    fused = fused.clamp(1e-6, 1 - 1e-6)
+    y = cache.occupancy[rows]
+    w = torch.where(y, torch.full_like(fused, pos_weight), torch.ones_like(fused))
+    return -(w * torch.where(y, fused.log(), (1 - fused).log())).sum() / w.sum()
+
+
+def test_confidence_loss_shared_per_scene_and_position_equals_the_per_episode_loss():
+    from uavsearch.search.perception import ConfidenceNet
+    from uavsearch.search.train_policy import confidence_loss
+
+    cache = synthetic_cache(3, seed=2)
+    conf = ConfidenceNet(int(cache.cell_features.shape[-1])).eval()  # no dropout: both forms are exact
+    rows = torch.tensor([0, 0, 1, 2, 2, 2])
+    g = torch.Generator().manual_seed(0)
+    idx = torch.randint(cache.num_positions, (6, 5), generator=g)
+    idx[:, 0] = 12  # every episode starts at the centre: shared views
+    a = confidence_loss(conf, cache, rows, idx, 3.0)
+    ga = torch.autograd.grad(a, list(conf.parameters()))
+    b = _per_episode_confidence_loss(conf, cache, rows, idx, 3.0)
+    gb = torch.autograd.grad(b, list(conf.parameters()))
+    assert torch.allclose(a, b, atol=1e-6)
+    assert all(torch.allclose(x, y, atol=1e-6) for x, y in zip(ga, gb))
+
+
+def test_rollout_scores_computed_on_first_sight_equal_scores_of_every_view():
+    from uavsearch.search.config import SearchConfig
+    from uavsearch.search.perception import ConfidenceNet
+    from uavsearch.search.search_loop import CachedViews
+
+    cache = synthetic_cache(3, seed=3)
+    conf = ConfidenceNet(int(cache.cell_features.shape[-1])).eval()
+    rows = torch.tensor([2, 0, 2, 1])
+    src = CachedViews(cache, rows, SearchConfig(), conf)
+    for p in (torch.tensor([12, 12, 12, 12]), torch.tensor([7, 12, 13, 24]), torch.tensor([7, 7, 0, 24])):
+        with torch.no_grad():
+            want = conf(cache.cell_features[rows, p])
+        assert torch.allclose(src.observe(p).scores, want, atol=1e-6)

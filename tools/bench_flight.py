@@ -6,11 +6,15 @@ Sections: `bench_fdm()` (JSBSim alone; the whole Multicopter: sensors, EKF, cont
 10 m moves + landing flown on the Multicopter without MAVLink) and `bench_mavlink()` from bench_mavlink.py
 (the whole vehicle with MAVLink streams, command latency). Each returns rows (name, value, unit).
 CPU time is reported beside wall time because the machine is shared: the CPU figure is the cost.
+Every real-time factor is also printed as a fraction of bare JSBSim's, measured in the same run (wall
+against wall, CPU against CPU): the limit a flight stack on this FDM cannot pass. The load average is
+printed with the table.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 import numpy as np
@@ -92,11 +96,25 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     sections = [("JSBSim / Multicopter", lambda: bench_fdm(args.seconds)),
                 ("MAVLink vehicle", lambda: bench_mavlink(args.seconds))]
+    load0 = os.getloadavg()[0]
     rows = []
     for _name, fn in tqdm(sections, desc="bench", unit="section"):
         rows += fn()
-    print_table(rows)
+    print(f"load average {load0:.2f} at start, {os.getloadavg()[0]:.2f} at end ({os.cpu_count()} CPUs)")
+    print_table(against_bare_jsbsim(rows))
     return 0
+
+
+def against_bare_jsbsim(rows):
+    """Each real-time factor with its fraction of bare JSBSim's (the first 'JSBSim alone' rows)."""
+    bare = {kind: v for name, v, unit in rows if name.startswith("JSBSim alone") and unit == "x"
+            for kind in ("CPU", "wall") if name.endswith(f"({kind})")}
+    out = []
+    for name, v, unit in rows:
+        kind = "CPU" if name.endswith("(CPU)") else "wall"
+        ratio = v / bare[kind] if unit == "x" and kind in bare and not name.startswith("JSBSim alone") else None
+        out.append((name, v, unit, ratio, f"of bare JSBSim ({kind})"))
+    return out
 
 
 if __name__ == "__main__":

@@ -1,26 +1,70 @@
-"""Wall time of flown search missions: `uavsearch fly` end to end (vehicle process start, take-off, T views,
-landing) at a speed factor, over a few scenes. Prints one row per flight and the mean.
+"""Wall time of flown search missions: `uavsearch fly` end to end, as a user runs it, stage by stage,
+beside the time `import torch` takes in the same run (the floor of any command that runs perception).
 
     python tools/bench_fly.py [--mission missions/default.yaml] [--scenes 3 4 5] [--speed max] [--T 5]
 
-Columns: start = `uavsearch sitl` process start until ready (scene build included); flight = link up ->
-landed and disarmed (wall); sim = the vehicle's clock over the same span; views = captures taken; the
-search's own per-step wall time (goto + settle + photo + perception + fusion + policy) is in `per view`.
+Each flight is `python -m uavsearch fly` in a fresh process. Stages (wall seconds, each from the end of
+the one before): imports = process start until the mission controller runs (Python, torch, the
+controller's modules, reading the mission); agent = loading the checkpoints (the vehicle process starts
+meanwhile); scene = waiting for the vehicle's scene.json (the labels); vehicle = waiting for the vehicle
+to be ready; take-off = link up, arm, climb to the search altitude; search = the T views (goto, settle,
+photo, perception, fusion, policy); landing = down and disarmed; exit = printing and leaving. `sim` is
+the vehicle's clock over the flight. CPU = the controller's own CPU seconds (the vehicle's are in its
+sitl.log). The load average beside them says how shared the machine was.
 """
 
 import argparse
+import json
+import os
+import resource
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import yaml
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from uavsearch.missions import load_mission  # noqa: E402
-from uavsearch.search.mission_controller import fly  # noqa: E402
+
+STAGES = ("imports", "agent", "scene", "vehicle", "take-off", "search", "landing", "exit")
+_MARKS = ("agent_s", "scene_s", "vehicle_ready_s", "took_off_s", "searched_s", "landed_s")
+
+
+def _child_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def import_torch_s() -> tuple[float, float]:
+    """(wall, CPU) of `python -c "import torch"` in a fresh process."""
+    c0, t0 = _child_cpu(), time.monotonic()
+    subprocess.run([sys.executable, "-c", "import torch"], check=True)
+    return time.monotonic() - t0, _child_cpu() - c0
+
+
+def fly_once(mission_file: Path, out: Path) -> dict:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    c0 = _child_cpu()
+    start_unix = time.time()
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(mission_file), "--out", str(out),
+                        "--gcs-port", "0"], capture_output=True, text=True, env=env)
+    total = time.monotonic() - t0
+    cpu = _child_cpu() - c0
+    if r.returncode != 0:
+        raise SystemExit(f"uavsearch fly failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}")
+    s = json.loads((out / "summary.json").read_text())
+    ph = s["wall_phases_s"]
+    fly_start = ph["start_unix"] - start_unix
+    marks = [fly_start] + [fly_start + ph[k] for k in _MARKS] + [total]
+    stages = dict(zip(STAGES, [marks[0]] + [b - a for a, b in zip(marks, marks[1:])]))
+    return dict(stages=stages, total=total, cpu=cpu, sim=s["sim_time_s"], status=s["status"], views=s["steps"])
 
 
 def main() -> int:
@@ -29,7 +73,6 @@ def main() -> int:
     ap.add_argument("--scenes", type=int, nargs="+", default=[3, 4, 5], help="scene seeds (default 3 4 5)")
     ap.add_argument("--speed", default="max", help="speed factor: max (default) or N")
     ap.add_argument("--T", type=int, default=None, help="override the mission's budget T")
-    ap.add_argument("--perception", default=None, help="override the mission's perception checkpoint")
     ap.add_argument("--fusion", default=None, help="override the mission's fusion")
     ap.add_argument("--policy", default=None, help="override the mission's policy")
     ap.add_argument("--free-running", action="store_true",
@@ -37,42 +80,40 @@ def main() -> int:
     args = ap.parse_args()
     base = load_mission(args.mission).with_overrides(**{
         "flight.speed": args.speed if args.speed == "max" else float(args.speed), "search.budget_T": args.T,
-        "perception": args.perception, "fusion": args.fusion, "policy": args.policy,
-        "flight.lockstep": False if args.free_running else None})
+        "fusion": args.fusion, "policy": args.policy, "flight.lockstep": False if args.free_running else None})
+    load0 = os.getloadavg()[0]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
+        torch_wall, torch_cpu = import_torch_s()
         for seed in tqdm(args.scenes, desc="flying", file=sys.stderr):
             m = base.with_overrides(**{"scene.seed": seed})
-            t0 = time.monotonic()
-            r = fly(m, out=Path(tmp) / f"run{seed}", progress=lambda s: None, gcs_port=0)
-            total = time.monotonic() - t0
-            per_view = [s for s in _step_walls(Path(tmp) / f"run{seed}")]
-            rows.append(dict(scene=seed, status=r.status.split(":")[0], views=r.steps, start=r.wall_s - r.flight_wall_s,
-                             flight=r.flight_wall_s, sim=r.sim_time_s or float("nan"), total=total,
-                             per_view=statistics.mean(per_view) if per_view else float("nan"),
-                             acc=r.acc if r.acc is not None else float("nan"), f1=r.f1 if r.f1 is not None else float("nan")))
+            path = Path(tmp) / f"mission{seed}.yaml"
+            data = m.model_dump(mode="json")
+            for key in ("checkpoint", "perception"):  # absolute: the file sits in a temporary folder
+                if data.get(key):
+                    data[key] = str(m.checkpoint_path if key == "checkpoint" else m.perception_path)
+            path.write_text(yaml.safe_dump(data))
+            rows.append(dict(scene=seed, **fly_once(path, Path(tmp) / f"run{seed}")))
+        torch_wall2, _ = import_torch_s()
+    torch_wall = (torch_wall + torch_wall2) / 2
     print(f"\nflown missions: {base.name}, T = {base.search.budget_T}, speed {base.flight.speed}, "
-          f"{base.fusion} fusion + {base.policy} policy")
-    hdr = f"{'scene':>5} {'status':>9} {'views':>5} {'start s':>8} {'flight s':>9} {'sim s':>7} {'total s':>8} " \
-          f"{'per view s':>10} {'acc':>6} {'F1':>6}"
+          f"{base.fusion} fusion + {base.policy} policy; load average {load0:.2f} at start, "
+          f"{os.getloadavg()[0]:.2f} at end ({os.cpu_count()} CPUs)")
+    print(f"limit: `import torch` in a fresh process {torch_wall:.2f} s wall (mean of one before and one after the "
+          f"flights), {torch_cpu:.2f} s CPU")
+    hdr = f"{'scene':>5} " + " ".join(f"{s:>8}" for s in STAGES) + f" {'total s':>8} {'CPU s':>6} {'sim s':>6} " \
+          f"{'x torch':>7}"
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
-        print(f"{r['scene']:>5} {r['status']:>9} {r['views']:>5} {r['start']:8.1f} {r['flight']:9.1f} {r['sim']:7.1f} "
-              f"{r['total']:8.1f} {r['per_view']:10.2f} {r['acc']:6.3f} {r['f1']:6.3f}")
-    mean = {k: statistics.mean(r[k] for r in rows) for k in ("start", "flight", "sim", "total", "per_view")}
-    print(f"{'mean':>5} {'':>9} {'':>5} {mean['start']:8.1f} {mean['flight']:9.1f} {mean['sim']:7.1f} "
-          f"{mean['total']:8.1f} {mean['per_view']:10.2f}")
+        print(f"{r['scene']:>5} " + " ".join(f"{r['stages'][s]:8.2f}" for s in STAGES) +
+              f" {r['total']:8.2f} {r['cpu']:6.2f} {r['sim']:6.1f} {r['total'] / torch_wall:7.2f}")
+    mean = {s: statistics.mean(r["stages"][s] for r in rows) for s in STAGES}
+    tot = statistics.mean(r["total"] for r in rows)
+    print(f"{'mean':>5} " + " ".join(f"{mean[s]:8.2f}" for s in STAGES) +
+          f" {tot:8.2f} {statistics.mean(r['cpu'] for r in rows):6.2f} "
+          f"{statistics.mean(r['sim'] for r in rows):6.1f} {tot / torch_wall:7.2f}")
     return 0
-
-
-def _step_walls(run_dir: Path):
-    import json
-
-    for line in (run_dir / "search.jsonl").read_text().splitlines():
-        rec = json.loads(line)
-        if rec.get("type") == "step":
-            yield rec["wall_s"]
 
 
 if __name__ == "__main__":

@@ -14,8 +14,10 @@ def timed(fn) -> tuple[float, float]:
 
 
 def print_table(rows) -> None:
+    """Rows (name, value, unit) or (name, value, unit, ratio): a ratio is printed as 'x.xx of <limit>'."""
     w = max(len(r[0]) for r in rows)
     print()
-    for name, value, unit in rows:
+    for name, value, unit, *ratio in rows:
         val = "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:10.2f}"
-        print(f"{name:{w}}  {val} {unit}")
+        tail = f"   {ratio[0]:6.3f} {ratio[1]}" if ratio and ratio[0] is not None else ""
+        print(f"{name:{w}}  {val} {unit:4}{tail}")

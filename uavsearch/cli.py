@@ -2,14 +2,16 @@
 
 Imports of the subcommands' modules are lazy (inside the handlers) on purpose, measured on a shared
 2-core machine: `uavsearch --help` takes ~1.4 s; the scene modules (pydantic + OpenCV: world.scene, and
-search.config / search.views / viz, which import it) would add 0.3-0.45 s, and torch (missions, the
-mission controller, replay, the train / eval groups) 2-5 s more. Nothing a subcommand imports ever
+search.config / search.views / viz, which import it) would add 0.3-0.45 s, and torch (replay, the train /
+eval groups; `fly` imports it once its vehicle process is starting) 2-5 s more. Nothing a subcommand imports ever
 imports this module back.
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
+import os
 import sys
 from pathlib import Path
 
@@ -94,12 +96,13 @@ def _add_scene_parser(sub) -> None:
 
 
 def _cmd_fly(args) -> int:
-    # lazy: torch (2-5 s)
+    # lazy: pydantic, pymavlink, OpenCV; torch (2-5 s) is imported by fly() once the vehicle is starting, so
+    # the mission is read without the agent registry (fly checks it then)
     from .missions import load_mission
     from .search.mission_controller import fly, format_maps
 
-    mission = load_mission(args.mission)
-    mission = mission.with_overrides(**{"scene.seed": args.scene, "flight.speed": args.speed})
+    mission = load_mission(args.mission, check_registry=False)
+    mission = mission.with_overrides(check_registry=False, **{"scene.seed": args.scene, "flight.speed": args.speed})
     r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
             progress=lambda line: print(line, flush=True))
     print()
@@ -138,7 +141,7 @@ def _add_fly_parser(sub) -> None:
                    help="fly an already running vehicle instead, e.g. udpin:127.0.0.1:14540")
     p.add_argument("--gcs-port", type=int, default=14550,
                    help="the started vehicle's ground-station link sends here (QGroundControl; 0: off)")
-    p.set_defaults(func=_cmd_fly)
+    p.set_defaults(func=_cmd_fly, exit_at_once=True)
 
 
 def _add_vehicle_option(p) -> None:
@@ -155,11 +158,10 @@ def _add_vehicle_option(p) -> None:
         if args.vehicle == "teleport":
             return teleport(args)
         from .missions import load_mission  # lazy: torch (2-5 s)
+        from .parallel import Executor
         from .search.mission_controller import eval_flight_vs_teleport
 
         setting = 2 if str(args.setting) == "all" else int(args.setting)
-        from .parallel import Executor
-
         res = eval_flight_vs_teleport(load_mission(args.mission), setting, args.split, args.speed, args.out,
                                       args.scenes, progress=args.progress, executor=Executor.from_args(args))
         print(res["table"].read_text())
@@ -261,10 +263,20 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    as_program = argv is None
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser(command=next((a for a in argv if not a.startswith("-")), ""))
     args = parser.parse_args(argv)
-    return run_command(args.func, args)
+    code = run_command(args.func, args)
+    if as_program:  # a program about to exit: its last garbage collection would walk torch's object graph
+        gc.freeze()  # for nothing (0.25-0.3 s CPU after `import torch`, measured)
+        if getattr(args, "exit_at_once", False):
+            # `fly` has closed its logs and leaves no child to wait for (its vehicle exits on its own): skip
+            # the interpreter's teardown of torch (another 0.15 s CPU, 1-3 s wall on a busy 2-core machine)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+    return code
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import yaml
 from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator,
@@ -21,13 +21,29 @@ from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationI
 from .errors import MissionError, format_validation_error, read_user_file
 from .geometry import GeodeticOrigin
 from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
-from .search.agents import FUSION_METHODS, POLICIES, LoadedAgent, build_agent, checkpoint_path, needs_confidence
 from .search.config import ACTIONS, SearchConfig
 from .search.mavlink_vehicle import FlightSettings
 from .world.scene import generate_scene, load_scene
 from .world.settings import SETTINGS
 
+if TYPE_CHECKING:
+    from .search.agents import LoadedAgent
+
 DEFAULT_MISSION = MISSIONS_DIR / "default.yaml"
+# The agent registry (search/agents.py) imports torch (1-4 s). Validating with the context {REGISTRY: False}
+# leaves the fusion / policy names unchecked, so `uavsearch fly` can start its vehicle first and check
+# them (Mission.check_registry) while the vehicle starts.
+REGISTRY = "check_registry"
+
+
+def _registry():
+    from .search import agents  # lazy: torch, see REGISTRY
+
+    return agents
+
+
+def _checks_registry(info: ValidationInfo) -> bool:
+    return not (info.context and info.context.get(REGISTRY) is False)
 
 
 class _Strict(BaseModel):
@@ -111,20 +127,23 @@ class Mission(_Strict):
     @field_validator("fusion", "policy")
     @classmethod
     def _registered(cls, v, info: ValidationInfo):
-        known = {"fusion": FUSION_METHODS, "policy": POLICIES}[info.field_name]  # the agent registry
+        if not _checks_registry(info):
+            return v
+        agents = _registry()
+        known = {"fusion": agents.FUSION_METHODS, "policy": agents.POLICIES}[info.field_name]
         if v not in known:
             kind = "fusion method" if info.field_name == "fusion" else "policy"
             raise ValueError(f"unknown {kind} {v!r}; valid: {', '.join(map(repr, known))}")
         return v
 
     @model_validator(mode="after")
-    def _consistent(self):
+    def _consistent(self, info: ValidationInfo):
         s = self.scene
         if s.spec is None and s.seed is None:
             raise ValueError("scene: give a seed or a spec file")
         if s.occupied_cells is not None and s.setting is not None and "setting" in s.model_fields_set:
             raise ValueError("scene: give setting OR occupied_cells, not both")
-        if needs_confidence(self.fusion) and self.policy != "learned" and self.checkpoint is None and s.setting is None:
+        if _checks_registry(info) and _registry().needs_confidence(self.fusion) and self.policy != "learned" and self.checkpoint is None and s.setting is None:
             raise ValueError(f"{self.fusion} fusion needs a checkpoint (no setting to pick a shipped one)")
         return self
 
@@ -156,7 +175,7 @@ class Mission(_Strict):
     def checkpoint_path(self) -> Path:
         if self.checkpoint:
             return self._resolve(self.checkpoint)
-        return checkpoint_path(self.setting_for_models, self.fusion)
+        return _registry().checkpoint_path(self.setting_for_models, self.fusion)
 
     @property
     def perception_path(self) -> Path:
@@ -192,15 +211,21 @@ class Mission(_Strict):
     def agent(self, config: SearchConfig | None = None) -> LoadedAgent:
         """Perception + fusion + policy of the mission, from its checkpoints (agents.build_agent); the
         confidence net of learned fusion comes along for logging scores whatever the fusion."""
-        learned_ck = self.checkpoint_path if needs_confidence(self.fusion) and self.checkpoint else \
-            checkpoint_path(self.setting_for_models, "learned")
-        return build_agent(self.fusion, self.policy, config or self.search_config(), checkpoint=self.checkpoint_path,
+        agents = _registry()
+        learned_ck = self.checkpoint_path if agents.needs_confidence(self.fusion) and self.checkpoint else \
+            agents.checkpoint_path(self.setting_for_models, "learned")
+        return agents.build_agent(self.fusion, self.policy, config or self.search_config(), checkpoint=self.checkpoint_path,
                            confidence_checkpoint=learned_ck, greedy=self.greedy_policy,
                            perception=self.perception_path, scores_net=True, error=MissionError,
                            where=f"mission {self.source}: ")
 
-    def with_overrides(self, **changes) -> "Mission":
-        """A copy with dotted-path overrides ({'scene.seed': 4, 'flight.speed': 'max'}), re-validated."""
+    def check_registry(self) -> "Mission":
+        """The mission validated with its fusion / policy names checked against the agent registry."""
+        return mission_from_dict(self.model_dump(mode="json"), self.source)
+
+    def with_overrides(self, check_registry: bool = True, **changes) -> "Mission":
+        """A copy with dotted-path overrides ({'scene.seed': 4, 'flight.speed': 'max'}), re-validated
+        (`check_registry`: see REGISTRY)."""
         data = self.model_dump(mode="json")
         for key, value in changes.items():
             if value is None:
@@ -212,24 +237,24 @@ class Mission(_Strict):
             d[leaf] = value
             if key == "scene.seed":
                 data["scene"]["spec"] = None
-        return mission_from_dict(data, self.source)
+        return mission_from_dict(data, self.source, check_registry)
 
 
-def mission_from_dict(data, source: str | None = None) -> Mission:
+def mission_from_dict(data, source: str | None = None, check_registry: bool = True) -> Mission:
     src = source or "<dict>"
     if data is None:
         data = {}
     if not isinstance(data, dict):
         raise MissionError(f"mission {src}: the file must be a YAML mapping of fields, got {type(data).__name__}")
     try:
-        m = Mission.model_validate(data)
+        m = Mission.model_validate(data, context={REGISTRY: bool(check_registry)})
     except ValidationError as e:
         raise MissionError(format_validation_error(e, src)) from None
     return m.model_copy(update={"source": source})
 
 
-def load_mission(path=None) -> Mission:
-    """Read and validate a mission file (default: missions/default.yaml)."""
+def load_mission(path=None, check_registry: bool = True) -> Mission:
+    """Read and validate a mission file (default: missions/default.yaml; `check_registry`: see REGISTRY)."""
     path = Path(path) if path else DEFAULT_MISSION
     text = read_user_file(path)
     try:
@@ -239,7 +264,7 @@ def load_mission(path=None) -> Mission:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(e, "problem", None) or str(e).splitlines()[0]
         raise MissionError(f"mission {path}: not valid YAML{where}: {problem}") from None
-    return mission_from_dict(data, str(path))
+    return mission_from_dict(data, str(path), check_registry)
 
 
 __all__ = ["DEFAULT_MISSION", "Mission", "load_mission", "mission_from_dict"]

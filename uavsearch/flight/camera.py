@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..errors import UavsearchError
 from ..geometry import CameraIntrinsics, CameraPose, camera_pose_from_vehicle
 
 CAMERA_COMPID = 100
@@ -128,6 +129,51 @@ class Camera:
         with open(self.run_dir / "captures.jsonl", "a") as f:
             f.write(json.dumps({**asdict(rec), "file_url": rec.file_url if ok else ""}) + "\n")
         return rec
+
+
+SCENE_FILE = "scene.json"  # the vehicle's ground truth, beside its images (evaluation reads it, never the search)
+
+
+def background_scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntrinsics, run_dir: Path,
+                              seed: int = 0, spec=None):
+    """scene_renderer's (render, close), built in a thread: the scene is generated (or `spec` taken), written
+    to run_dir/scene.json, and its world built in the render worker while the vehicle starts up and takes
+    off; the first capture waits for it. The images are the same as scene_renderer's."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def build():
+        nonlocal spec
+        from ..world.render import generate_in_worker  # lazy: see scene_renderer
+        from ..world.scene import save_scene
+
+        if spec is None:  # in the render worker that then builds its world: beside this process's start-up
+            spec = generate_in_worker(scene_seed, occupied_cells)
+
+        tmp = Path(run_dir) / f".{SCENE_FILE}.tmp"
+        save_scene(spec, tmp)
+        tmp.replace(Path(run_dir) / SCENE_FILE)  # whole or not at all: a client may be waiting for it
+        return scene_renderer(scene_seed, occupied_cells, intrinsics, seed=seed, spec=spec)
+
+    pool = ThreadPoolExecutor(1, thread_name_prefix="scene-world")
+    world = pool.submit(build)
+    pool.shutdown(wait=False)
+
+    def ready():
+        try:
+            return world.result()
+        except UavsearchError:
+            raise
+        except Exception as e:  # noqa: BLE001 - one line from the sitl, not a thread's traceback
+            raise UavsearchError(f"the camera's scene could not be built: {type(e).__name__}: {e}") from None
+
+    def render(pose: CameraPose) -> np.ndarray:
+        return ready()[0](pose)
+
+    def close() -> None:
+        if world.exception() is None:
+            world.result()[1]()
+
+    return render, close
 
 
 def scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntrinsics, options=None, seed: int = 0,

@@ -40,6 +40,8 @@ CONTROL_PARAMS: list[ParamDef] = [
     ParamDef("MPC_THR_MIN", 0.12, 0.05, 0.5, "", description="minimum collective thrust in flight"),
     ParamDef("MPC_THR_MAX", 1.0, 0.1, 1.0, "", description="maximum collective thrust"),
     ParamDef("MPC_LAND_SPEED", 0.7, 0.2, 2.0, "m/s", description="final landing descent speed"),
+    ParamDef("MPC_LAND_ALT1", 10.0, 0.0, 122.0, "m", description="below: landing descent slows toward MPC_LAND_SPEED"),
+    ParamDef("MPC_LAND_ALT2", 5.0, 0.0, 122.0, "m", description="below: landing descent at MPC_LAND_SPEED"),
     # attitude (mc_att_control)
     ParamDef("MC_ROLL_P", 6.5, 0.0, 12.0, "1/s", description="roll angle gain"),
     ParamDef("MC_PITCH_P", 6.5, 0.0, 12.0, "1/s", description="pitch angle gain"),

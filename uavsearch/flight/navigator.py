@@ -51,6 +51,7 @@ _FALLBACKS = {
     "MPC_ACC_DOWN_MAX": 3.0,
     "MPC_LAND_SPEED": 0.7,
     "MPC_LAND_ALT1": 10.0,
+    "MPC_LAND_ALT2": 5.0,
 }
 
 
@@ -488,11 +489,17 @@ class Navigator:
         return sp
 
     def descend(self, s: NavState, xy, yaw_rad: float) -> TrajectorySetpoint:
-        """x/y held, z velocity-controlled: fast high up, MPC_LAND_SPEED below MPC_LAND_ALT1."""
+        """x/y held, z velocity-controlled: MPC_Z_V_AUTO_DN above MPC_LAND_ALT1, MPC_LAND_SPEED below
+        MPC_LAND_ALT2 and linearly between the two in between (PX4's gradual landing speed)."""
         alt = self.home_ned[2] - s.local.position_ned_m[2]
-        vz = param(self.params, "MPC_LAND_SPEED")
-        if alt > param(self.params, "MPC_LAND_ALT1"):
-            vz = param(self.params, "MPC_Z_V_AUTO_DN")
+        slow, fast = param(self.params, "MPC_LAND_SPEED"), param(self.params, "MPC_Z_V_AUTO_DN")
+        alt1, alt2 = param(self.params, "MPC_LAND_ALT1"), param(self.params, "MPC_LAND_ALT2")
+        if alt >= alt1:
+            vz = fast
+        elif alt <= alt2 or alt1 <= alt2:
+            vz = slow
+        else:
+            vz = slow + (fast - slow) * (alt - alt2) / (alt1 - alt2)
         self.carrot.reset([xy[0], xy[1], s.local.position_ned_m[2]])
         return TrajectorySetpoint(
             s.now_us,

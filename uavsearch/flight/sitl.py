@@ -24,7 +24,7 @@ from pathlib import Path
 from ..errors import UavsearchError, run_command
 from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import RUNS_DIR
-from .camera import Camera, scene_renderer
+from .camera import Camera, background_scene_renderer
 from .commander import Commander, autopilot_params
 from .lockstep import LockstepGate
 from .mavlink.endpoint import MavlinkEndpoint
@@ -88,8 +88,6 @@ class Sitl:
         self.params = ParamStore(mc_params, autopilot_params(mc_params))
         for name, value in cfg.params.items():
             self.params.set(name, value)
-        self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)
-        self.commander = Commander(self.params, self.vehicle, cfg.home, autopilot_hz=cfg.autopilot_hz)
         stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
         self.run_dir = Path(cfg.run_dir) if cfg.run_dir else RUNS_DIR / f"sitl__{cfg.seed}__{stamp}"
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -101,8 +99,10 @@ class Sitl:
 
                 spec = load_scene(cfg.scene_file)
                 cfg.scene_seed = spec.seed
-            render, self._close_render = scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, seed=cfg.seed,
-                                                        spec=spec)
+            render, self._close_render = background_scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics,
+                                                                   self.run_dir, seed=cfg.seed, spec=spec)
+        self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)  # the scene builds meanwhile
+        self.commander = Commander(self.params, self.vehicle, cfg.home, autopilot_hz=cfg.autopilot_hz)
         self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render,
                              home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m)
         links = []

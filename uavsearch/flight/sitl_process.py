@@ -46,12 +46,16 @@ class SitlProcess:
 
     `args` are more `uavsearch sitl` options (scene, seed, home, params); `camera=False` skips building
     the scene (faster start; captures fail). A port of None is a free one, 0 turns the link off.
+    `wait=False` returns as soon as the process is started, so its start-up (imports, physics) runs
+    while the caller does its own; `wait_ready()` then waits for the ready line.
     """
 
     def __init__(self, run_dir: Path, *args: str, api_port: int | None = None, gcs_port: int | None = None,
-                 speed: str = "max", lockstep: bool = False, camera: bool = True, timeout_s: float = 120.0):
+                 speed: str = "max", lockstep: bool = False, camera: bool = True, timeout_s: float = 120.0,
+                 wait: bool = True):
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
+        self.run_dir = run_dir
         self.log_path = run_dir / "sitl.log"
         self.api_port = free_udp_port() if api_port is None else api_port
         self.gcs_port = free_udp_port() if gcs_port is None else gcs_port
@@ -67,25 +71,53 @@ class SitlProcess:
                                      env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
                                      start_new_session=True)  # Ctrl-C reaches the client only: it lands first
         self.banner: list[str] = []  # the lines up to "ready" (ports, signing, run directory)
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
+        self._end = time.monotonic() + timeout_s
+        self._timeout_s = timeout_s
+        if wait:
+            self.wait_ready()
+
+    def _failed(self, why: str) -> SitlStartError:
+        self.stop()
+        return SitlStartError(why)
+
+    def wait_ready(self) -> None:
+        """Until the vehicle printed its ready line; SitlStartError if it exited or the start timed out."""
+        while not self.banner:
             text = self.log_path.read_text()
             if "\nready" in text or text.startswith("ready"):
                 end_of_banner = 0 if text.startswith("ready") else text.index("\nready") + 1
                 self.banner = text[:end_of_banner].splitlines(keepends=True) + ["ready\n"]
                 return
             if self.proc.poll() is not None:
-                self.stop()
                 last = [ln for ln in text.strip().splitlines() if ln.strip()][-1:] or ["no output"]
-                raise SitlStartError(f"uavsearch sitl exited at start: {last[0]} (see {self.log_path})")
-            time.sleep(0.1)
-        self.stop()
-        raise SitlStartError(f"uavsearch sitl did not get ready in {timeout_s:.0f} s (see {self.log_path})")
+                raise self._failed(f"uavsearch sitl exited at start: {last[0]} (see {self.log_path})")
+            if time.monotonic() > self._end:
+                raise self._failed(f"uavsearch sitl did not get ready in {self._timeout_s:.0f} s (see {self.log_path})")
+            time.sleep(0.02)
 
-    def stop(self) -> tuple[int | None, str]:
-        """Ctrl-C (SIGINT), then the exit code and everything it printed."""
+    def wait_file(self, name: str) -> Path:
+        """A file the vehicle writes into its run directory at start (written whole, by rename)."""
+        path = self.run_dir / name
+        while not path.is_file():
+            if self.proc.poll() is not None:
+                self.wait_ready()  # raises with the vehicle's last words
+                raise self._failed(f"uavsearch sitl did not write {name} (see {self.log_path})")
+            if time.monotonic() > self._end:
+                raise self._failed(f"uavsearch sitl did not write {name} in {self._timeout_s:.0f} s "
+                                   f"(see {self.log_path})")
+            time.sleep(0.02)
+        return path
+
+    def stop(self, wait: bool = True) -> tuple[int | None, str]:
+        """Ctrl-C (SIGINT), then the exit code and everything it printed. `wait=False` only asks it to stop:
+        it closes its links and exits on its own (its last lines still reach the log), and nobody waits
+        (exit code None)."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
+            if not wait:
+                if not self._out.closed:
+                    self._out.close()
+                return None, ""
             try:
                 self.proc.wait(timeout=20)
             except subprocess.TimeoutExpired:

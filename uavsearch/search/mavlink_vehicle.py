@@ -96,6 +96,7 @@ class FlightSettings:
     yaw_deg: float = 0.0  # heading at every view (paper: fixed north)
     lockstep: bool = False  # drive the vehicle's clock (when it supports MAV_CMD_SIM_ADVANCE)
     lockstep_tick_s: float = 0.1  # simulation time per grant: conditions are judged at this spacing
+    land_tick_s: float = 1.0  # the same while landing: nothing but its end is judged, and grants cost wall time
 
 
 @dataclass
@@ -246,11 +247,13 @@ class MavlinkVehicle:
             self._clock_ms = int(self._last_ack.result_param2)
         return r
 
-    def _wait(self, cond, wall_timeout_s: float, what: str, sim_timeout_s: float | None = None, moving: bool = True):
+    def _wait(self, cond, wall_timeout_s: float, what: str, sim_timeout_s: float | None = None, moving: bool = True,
+              tick_s: float | None = None):
         """Until cond() is truthy; FlightError (StepFailed for sim-time outs) naming `what` otherwise.
 
-        `moving`: the condition needs simulation time (lockstep grants it); otherwise it is an answer the
-        vehicle sends at once, and in lockstep no time may pass while waiting for it."""
+        `moving`: the condition needs simulation time (lockstep grants it, `tick_s` at a time, default
+        lockstep_tick_s); otherwise it is an answer the vehicle sends at once, and in lockstep no time may
+        pass while waiting for it."""
         wall_end = time.monotonic() + wall_timeout_s
         if self.lockstep and moving:
             self._grant(self._clock_ms)  # a barrier: what the vehicle sent so far has arrived
@@ -265,7 +268,7 @@ class MavlinkVehicle:
                     and self.sim_time_s - sim0 > sim_timeout_s:
                 raise StepFailed(f"{what}: not done after {sim_timeout_s:g} s of flight")
             if moving:
-                self._advance()
+                self._advance(tick_s if self.lockstep else None)
             else:
                 self.pump()
 
@@ -471,7 +474,7 @@ class MavlinkVehicle:
             raise FlightError(f"{st.end_action} refused (MAV_RESULT {r})")
         self._say("landing" if st.end_action == "land" else "returning to launch")
         self._wait(lambda: not self.armed, st.wall_timeout_s, f"{st.end_action} until disarmed",
-                   sim_timeout_s=300.0)
+                   sim_timeout_s=300.0, tick_s=st.land_tick_s)
         self.in_air = False
         return "landed" if st.end_action == "land" else "returned and landed"
 

@@ -25,20 +25,27 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 
-import numpy as np
-import torch
+from typing import TYPE_CHECKING
 
+import numpy as np
+
+from ..flight.camera import SCENE_FILE
 from ..flight.sitl_process import SitlProcess
 from ..logs.flight_log import FlightLogWriter
 from ..parallel import Executor, map_scenes
 from ..paths import RUNS_DIR
+from ..world.scene import load_scene
 from ..world.settings import scene_seeds
-from .agents import LoadedAgent
 from .config import lattice_positions
 from .mavlink_vehicle import FlightError, MavlinkVehicle, StepFailed
 from .metrics import map_accuracy, map_f1
-from .search_loop import R_RE, Agent, LiveViews, classification_reward, run_search
 from .views import TeleportVehicle
+
+if TYPE_CHECKING:
+    from .agents import LoadedAgent
+
+# This module imports no torch (nor the search loop, which does) at import time: `fly` starts the vehicle
+# process first and imports them while it starts (1-4 s, the longest part of a mission's start-up).
 
 # --------------------------------------------------------------------------------------------------
 # Recording wrappers (no loop of their own)
@@ -57,12 +64,16 @@ class _RecordingPolicy:
         return a, lp, ent
 
 
-class _RecordingViews(LiveViews):
-    """LiveViews that keeps the last Observation and lattice index for the step record."""
+class _RecordingViews:
+    """A LiveViews that keeps the last Observation and lattice index for the step record."""
+
+    def __init__(self, live):
+        self.live = live
+        self.config, self.batch_size, self.labels = live.config, live.batch_size, live.labels
 
     def observe(self, lattice_idx):
         self.last_idx = int(lattice_idx.reshape(-1)[0])
-        self.last_obs = super().observe(lattice_idx)
+        self.last_obs = self.live.observe(lattice_idx)
         return self.last_obs
 
 
@@ -97,6 +108,7 @@ class MissionResult:
     wall_s: float = 0.0  # whole command (incl. starting the vehicle)
     flight_wall_s: float = 0.0  # connection to the end action done
     end: str = ""
+    phases: dict = field(default_factory=dict)  # wall seconds since the start at which each stage ended
 
 
 class SearchRecorder:
@@ -112,6 +124,10 @@ class SearchRecorder:
         self.lattice = lattice_positions(config)
 
     def step(self, t: int, fused, action: int | None) -> None:
+        import torch
+
+        from .search_loop import R_RE, classification_reward
+
         o, cap = self.views.last_obs, self.vehicle.last_capture
         idx = self.views.last_idx
         revisit = idx in self.visited
@@ -149,10 +165,17 @@ class SearchRecorder:
 
 
 def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log, run_dir: Path,
-               policy_seed: int = 0, progress=print) -> tuple[SearchRecorder, str]:
-    """Take off, run the search loop on the vehicle, record every step. Returns (recorder, status)."""
+               policy_seed: int = 0, progress=print, phases: dict | None = None,
+               wall0: float = 0.0) -> tuple[SearchRecorder, str]:
+    """Take off, run the search loop on the vehicle, record every step. Returns (recorder, status).
+    `phases` gets the wall time (since `wall0`) at which the take-off and the search ended."""
+    import torch
+
+    from .search_loop import Agent, LiveViews, run_search
+
+    phases = {} if phases is None else phases
     T = config.budget_T
-    views = _RecordingViews(vehicle, loaded.perception, labels)
+    views = _RecordingViews(LiveViews(vehicle, loaded.perception, labels))
     rec = SearchRecorder(log, views, vehicle, loaded, labels, config, run_dir, progress, T)
     agent = Agent(loaded.agent.fusion, _RecordingPolicy(loaded.agent.policy, rec.step), loaded.agent.confidence)
     gen = torch.Generator().manual_seed(int(policy_seed))
@@ -160,9 +183,11 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
     try:
         vehicle.connect()
         vehicle.take_off()
+        phases["took_off_s"] = time.monotonic() - wall0
         with torch.no_grad():
             ep = run_search(views, agent, T, generator=gen)
         rec.step(T - 1, ep.maps[0, -1], None)
+        phases["searched_s"] = time.monotonic() - wall0
     except StepFailed as e:
         status = f"failed: {e}"
         log.failure(step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
@@ -181,14 +206,22 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
 # Starting the simulated vehicle as its own process
 
 
+# The vehicle this controller starts descends at this speed above MPC_LAND_ALT1 (PX4's MPC_Z_VEL_MAX_DN,
+# default 1.5 m/s here, PX4 allows 0.5-4): a 70 m landing takes 29 instead of 59 simulated seconds. The
+# search never descends, so its views are the same.
+LAND_DESCENT_M_S = 3.0
+
+
 def _start_sitl(run_dir: Path, mission, api_port: int, gcs_port: int) -> SitlProcess:
-    """The simulated vehicle for `mission`: its scene, noise seed, home, pacing and lockstep."""
+    """The simulated vehicle for `mission`: its scene, noise seed, home, pacing and lockstep. Returns at once:
+    the vehicle starts while the controller loads its agent (`wait_ready()` before flying)."""
     s, h = mission.flight, mission.home
     scene = ["--scene-file", str(mission.spec_path)] if mission.spec_path is not None else \
         ["--scene", str(mission.scene.seed), "--cells", str(mission.scene.k)]
     return SitlProcess(run_dir, *scene, "--seed", str(s.vehicle_seed), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}",
+                       "--param", f"MPC_Z_VEL_MAX_DN={LAND_DESCENT_M_S:g}",
                        speed="max" if s.speed == "max" else f"{float(s.speed):g}", lockstep=s.lockstep,
-                       api_port=api_port, gcs_port=gcs_port)
+                       api_port=api_port, gcs_port=gcs_port, wait=False)
 
 
 def default_run_dir(mission) -> Path:
@@ -196,13 +229,19 @@ def default_run_dir(mission) -> Path:
     return RUNS_DIR / f"fly__{mission.name}__{stamp}"
 
 
-def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port: int = 14550) -> MissionResult:
-    """Fly `mission`: start the simulated vehicle (unless `connect` names one), search, land, log."""
+def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port: int = 14550,
+        torch_threads: int = 1) -> MissionResult:
+    """Fly `mission`: start the simulated vehicle (unless `connect` names one), search, land, log.
+
+    The vehicle process starts first, so its start-up (imports, physics; its camera's scene is generated
+    and built during take-off) runs while this process loads the agent. The scene's ground truth (the
+    log's labels) is the one the vehicle generated (its scene.json); with `connect`, generated here.
+    `torch_threads`: perception on one 224 px image gains nothing from more, and on a 2-core machine two
+    threads fight the vehicle process for the cores.
+    """
     wall0 = time.monotonic()
+    phases = {"start_unix": time.time()}  # then: wall seconds since the start at which each stage ended
     config = mission.search_config()
-    spec = mission.scene_spec()
-    labels = np.asarray(spec.occupancy_array(), dtype=bool)
-    loaded = mission.agent(config)
     run_dir = Path(out) if out else default_run_dir(mission)
     log = FlightLogWriter(run_dir)
     (run_dir / "mission.json").write_text(mission.model_dump_json(indent=2) + "\n")
@@ -212,6 +251,22 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
     sitl = None
     rec, status, end, fwall0 = None, "not started", "", None
     try:
+        if connect is None:
+            port = vehicle.conn.port.getsockname()[1]
+            desc = f"scene {mission.scene.seed}, {mission.scene.k} occupied cells" if mission.spec_path is None \
+                else f"scene {mission.spec_path}"
+            progress(f"starting uavsearch sitl ({desc}, speed {mission.flight.speed}) -> API link udp "
+                     f"127.0.0.1:{port}")
+            sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port)
+        import torch  # while the vehicle starts (see the note at the imports)
+
+        torch.set_num_threads(int(torch_threads))
+        mission = mission.check_registry()  # its names, if it was read without the registry (REGISTRY)
+        loaded = mission.agent(config)
+        phases["agent_s"] = time.monotonic() - wall0
+        spec = mission.scene_spec() if sitl is None else load_scene(sitl.wait_file(SCENE_FILE))
+        labels = np.asarray(spec.occupancy_array(), dtype=bool)
+        phases["scene_s"] = time.monotonic() - wall0
         log.header(mission=mission.model_dump(mode="json"), mission_file=mission.source, connect=connect,
                    scene={"seed": spec.seed, "occupied_cells": int(labels.sum())}, labels=labels.astype(int),
                    grid={"n": config.grid.n, "cell_m": config.grid.cell_m},
@@ -219,14 +274,13 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
                            "actions": list(config.actions)},
                    agent=loaded.description, fusion=mission.fusion, policy=mission.policy,
                    home=mission.home.model_dump(), started_utc=datetime.now(timezone.utc).isoformat())
-        if connect is None:
-            port = vehicle.conn.port.getsockname()[1]
-            progress(f"starting uavsearch sitl (scene {spec.seed}, {int(labels.sum())} occupied cells, speed "
-                     f"{mission.flight.speed}) -> API link udp 127.0.0.1:{port}")
-            sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port)
+        if sitl is not None:
+            sitl.wait_ready()
+        phases["vehicle_ready_s"] = time.monotonic() - wall0
         fwall0 = time.monotonic()
         try:
-            rec, status = fly_search(vehicle, loaded, config, labels, log, run_dir, mission.policy_seed, progress)
+            rec, status = fly_search(vehicle, loaded, config, labels, log, run_dir, mission.policy_seed, progress,
+                                     phases=phases, wall0=wall0)
         except KeyboardInterrupt:
             status = "interrupted"
             log.failure(step=None, error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
@@ -239,10 +293,11 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         except (FlightError, KeyboardInterrupt) as e:
             end = f"end action failed: {e}"
             progress(end)
+        phases["landed_s"] = time.monotonic() - wall0
     finally:
         vehicle.close()
         if sitl is not None:
-            sitl.stop()
+            sitl.stop(wait=False)  # it closes its links and exits on its own; nothing here needs its exit
     fused = None if rec is None or not rec.records else np.asarray(rec.records[-1]["fused"])
     acc = None if fused is None else float(map_accuracy(fused, labels))
     f1 = None if fused is None else float(map_f1(fused, labels))
@@ -252,11 +307,12 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         steps=len(rec.records) if rec else 0, positions=[r["waypoint_enu"] for r in rec.records] if rec else [],
         sim_time_s=None if vehicle.sim_time_s is None or vehicle.connected_sim_s is None
         else vehicle.sim_time_s - vehicle.connected_sim_s, wall_s=time.monotonic() - wall0,
-        flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end)
+        flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end, phases=phases)
     log.summary(dict(status=status, end=end, steps=result.steps, budget_T=config.budget_T, acc=acc, f1=f1,
                      fused=fused, labels=labels.astype(int), positions=result.positions,
                      sim_time_s=result.sim_time_s, first_view_sim_time_s=t_first, wall_s=result.wall_s,
-                     flight_wall_s=result.flight_wall_s, agent=loaded.description, scene_seed=spec.seed,
+                     flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
+                     agent=loaded.description, scene_seed=spec.seed,
                      occupied_cells=int(labels.sum()), speed=mission.flight.speed))
     log.close()
     from ..plan_files import write_flown_plan
@@ -291,6 +347,10 @@ __all__ = ["LoadedAgent", "MissionResult", "SitlProcess", "fly", "fly_search", "
 
 def teleport_episode(mission, loaded: LoadedAgent | None = None):
     """The same mission's search with the teleport vehicle (exact poses, no dynamics): (fused map, positions)."""
+    import torch
+
+    from .search_loop import LiveViews, run_search
+
     config = mission.search_config()
     loaded = loaded or mission.agent(config)
     spec = mission.scene_spec()

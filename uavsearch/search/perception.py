@@ -181,13 +181,34 @@ def images_to_tensor(images) -> torch.Tensor:
     return (x.permute(0, 3, 1, 2).to(torch.float32) / 255.0 - IMAGE_MEAN) / IMAGE_STD
 
 
+class BitsDropout(nn.Dropout):
+    """nn.Dropout whose keep mask compares 16 random bits per element with round(p * 2^16): the same
+    Bernoulli(1 - p) mask (p to within 2^-16) from torch's global RNG, drawn 64 bits per RNG call.
+
+    Why: on CPU torch's dropout draws one Bernoulli sample per element, which measured 11.6 ms for a
+    (16000, 64) activation on one core (more than the linear layer around it, 1 ms); this draws the same
+    mask in about 2.6 ms. Checkpoints are unchanged (no parameters, same place in the Sequential).
+    """
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.training or self.p == 0.0:
+            return x
+        if self.p >= 1.0:
+            return x * 0.0
+        n = x.numel()
+        words = torch.empty((n + 3) // 4, dtype=torch.int64, device=x.device).random_(-2**63, 2**63 - 1)
+        bits = words.view(torch.int16)[:n].view(x.shape)  # uniform on [-2^15, 2^15)
+        scale = (bits >= int(round(self.p * 65536)) - 32768).to(x.dtype).mul_(1.0 / (1.0 - self.p))
+        return x * scale  # one product to differentiate
+
+
 def _mlp(dims: list[int], dropout: float) -> nn.Sequential:
     """FC layers with ReLU + dropout after every layer but the last."""
     mods: list[nn.Module] = []
     for i in range(len(dims) - 1):
         mods.append(nn.Linear(dims[i], dims[i + 1]))
         if i < len(dims) - 2:
-            mods += [nn.ReLU(inplace=True), nn.Dropout(dropout)]
+            mods += [nn.ReLU(inplace=True), BitsDropout(dropout)]
     return nn.Sequential(*mods)
 
 
@@ -217,6 +238,16 @@ class ConfidenceNet(nn.Module):
 
     def forward(self, cell_features: torch.Tensor) -> torch.Tensor:
         return self.mlp(cell_features).squeeze(-1)
+
+    def forward_rows(self, cell_features: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        """self(cell_features[rows]) with the first layer run once per row of cell_features: training's
+        Eq. 11 reads each (scene, position) in many episodes. Dropout still draws its own mask for every
+        episode's copy, so the result has the distribution of the direct form (and the same values in
+        eval mode)."""
+        h = self.mlp[0](cell_features)[rows]
+        for layer in self.mlp[1:]:
+            h = layer(h)
+        return h.squeeze(-1)
 
 
 class ImageEmbedding(nn.Module):

@@ -116,8 +116,9 @@ class ViewSource(Protocol):
 class CachedViews:
     """B episodes over cached scenes: `scene_rows[b]` is episode b's row in the view cache.
 
-    With `confidence` (a net whose scores need no gradient: evaluation, rollouts) the scores of every
-    (scene, position) in the batch are computed once up front instead of once per episode and step.
+    With `confidence` (a net whose scores need no gradient: evaluation, rollouts) the scores of each
+    (scene, position) are computed once, when an episode of the batch first sees it, instead of once per
+    episode and step (and never for positions no episode visits).
     """
 
     def __init__(self, cache, scene_rows, config: SearchConfig | None = None, confidence=None):
@@ -129,18 +130,29 @@ class CachedViews:
         if cache.num_positions != self.config.lattice_size ** 2:
             raise UavsearchError(f"view cache has {cache.num_positions} positions, the config's lattice "
                                  f"{self.config.lattice_size ** 2}")
-        self._scores = self._inv = None
+        self.confidence = confidence
         if confidence is not None:
-            uniq, self._inv = torch.unique(self.rows, return_inverse=True)
+            uniq, inv = torch.unique(self.rows, return_inverse=True)
+            self._rows_u, self._key0 = uniq, inv * cache.num_positions  # score table row of (episode, position 0)
+            self._scores = torch.empty(len(uniq) * cache.num_positions, cache.occupancy.shape[-1])
+            self._have = torch.zeros(len(self._scores), dtype=torch.bool)
+
+    def _scores_at(self, lattice_idx: torch.Tensor) -> torch.Tensor:
+        key = self._key0 + lattice_idx
+        new = torch.unique(key[~self._have[key]])
+        if len(new):
+            P = self.cache.num_positions
             with torch.no_grad():
-                self._scores = confidence(cache.cell_features[uniq])  # (U, P, N)
+                self._scores[new] = self.confidence(self.cache.cell_features[self._rows_u[new // P], new % P])
+            self._have[new] = True
+        return self._scores[key]
 
     def observe(self, lattice_idx: torch.Tensor) -> Observation:
         r, p = self.rows, lattice_idx
         c = self.cache
-        if self._scores is not None:
+        if self.confidence is not None:
             return Observation(c.log_probs[r, p], None, c.global_feature[r, p], c.cell_area_px[r, p], c.valid[r, p],
-                               self._scores[self._inv, p])
+                               self._scores_at(p))
         return Observation(c.log_probs[r, p], c.cell_features[r, p], c.global_feature[r, p], c.cell_area_px[r, p],
                            c.valid[r, p])
 

@@ -99,6 +99,7 @@ class TrainResult(NamedTuple):
     best: dict  # validation metrics of the saved checkpoint
     seconds: float
     steps_per_s: float  # policy steps (episodes x moves) per second of training
+    cpu_steps_per_s: float = 0.0  # the same per second of this process's CPU time (steadier on a shared machine)
 
 
 def check_args(args: Args) -> None:
@@ -142,11 +143,20 @@ class _EvalScores(torch.nn.Module):
 
 
 def confidence_loss(conf: ConfidenceNet, cache, rows, lattice_idx, pos_weight: float) -> torch.Tensor:
-    """Eq. 11: binary NLL of the learned-fusion map at T, re-fused with the net in train mode (dropout)."""
-    r = rows[:, None]
+    """Eq. 11: binary NLL of the learned-fusion map at T, re-fused with the net in train mode (dropout).
+
+    The net's first (largest) layer runs once per distinct (scene, position) of the batch (episodes of one
+    scene share the start view and often more); dropout and the rest run per episode and view, so every
+    term of the loss draws its own dropout masks, as if the net ran on each episode's views.
+    """
+    r = rows[:, None].expand_as(lattice_idx)
+    P = cache.num_positions
+    uniq, inv = torch.unique(r * P + lattice_idx, return_inverse=True)
+    feats = cache.cell_features.reshape(-1, *cache.cell_features.shape[2:])[uniq]  # (U, N, D)
+    scores = conf.forward_rows(feats, inv)  # (B, T, N)
     p = cache.log_probs[r, lattice_idx][..., 1].exp()  # (B, T, N)
     valid = cache.valid[r, lattice_idx]
-    fused = fuse("learned", p, valid, scores=conf(cache.cell_features[r, lattice_idx])).clamp(1e-6, 1 - 1e-6)
+    fused = fuse("learned", p, valid, scores=scores).clamp(1e-6, 1 - 1e-6)
     y = cache.occupancy[rows]
     w = torch.where(y, torch.full_like(fused, pos_weight), torch.ones_like(fused))
     return -(w * torch.where(y, fused.log(), (1 - fused).log())).sum() / w.sum()
@@ -210,13 +220,13 @@ def train(args: Args, caches=None) -> TrainResult:
     ckpt = run_dir / "model.pt"
     csv_f = (run_dir / "metrics.csv").open("w", newline="")
     writer = None
-    steps, roll_s = 0, 0.0
+    steps, roll_s, roll_cpu = 0, 0.0, 0.0
     bar = tqdm(range(1, args.iterations + 1), desc=name, disable=not args.progress, unit="it")
     for it in bar:
         policy.train()
         if conf is not None:
             conf.train()
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         scenes = torch.randint(S, (args.scenes_per_batch,), generator=gen)
         rows_b = scenes.repeat_interleave(args.episodes_per_scene)
         ep = run_search(CachedViews(train_cache, rows_b, config, rollout_conf), rollout_agent, generator=gen)
@@ -242,9 +252,9 @@ def train(args: Args, caches=None) -> TrainResult:
         opt.zero_grad()
         loss.backward()
         opt.step()
-        dt = time.perf_counter() - t0
+        roll_s += time.perf_counter() - t0
+        roll_cpu += time.process_time() - c0
         steps += ep.actions.numel()
-        roll_s += dt
         with torch.no_grad():
             pred = final > 0.5
             tp, fp, fn = (pred & y).sum(1), (pred & ~y).sum(1), (~pred & y).sum(1)
@@ -277,9 +287,10 @@ def train(args: Args, caches=None) -> TrainResult:
     out = copy_checkpoint(ckpt, args.out, args.ship, checkpoint_path(args.setting, args.fusion))
     seconds = time.perf_counter() - t_start
     summary = {"best": best, "seconds": seconds, "train_steps_per_s": steps / max(roll_s, 1e-9),
+               "train_steps_per_cpu_s": steps / max(roll_cpu, 1e-9),
                "checkpoint": str(out or ckpt)}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
-    return TrainResult(run_dir, out or ckpt, best, seconds, steps / max(roll_s, 1e-9))
+    return TrainResult(run_dir, out or ckpt, best, seconds, steps / max(roll_s, 1e-9), steps / max(roll_cpu, 1e-9))
 
 
 # --------------------------------------------------------------------------------------------------

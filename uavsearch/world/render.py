@@ -662,6 +662,10 @@ def _worker_main(out_fd: int) -> None:
                     world.close()
                 world = _World(scene_from_json(msg[1]), msg[2], msg[3])
                 reply = ("ok", None)
+            elif msg[0] == "generate":  # ('generate', seed, occupied_cells): see generate_in_worker
+                from .scene import generate_scene
+
+                reply = ("ok", scene_to_json(generate_scene(msg[1], msg[2])))
             elif msg[0] == "render":
                 reply = ("ok", world.render(msg[1], msg[2]))
             elif msg[0] == "unload":
@@ -683,6 +687,21 @@ def _stop_idle_workers() -> None:
         w = _IDLE.pop()
         if w.owner_pid == os.getpid():
             w.kill()
+
+
+def generate_in_worker(seed: int, occupied_cells: int) -> SceneSpec:
+    """generate_scene(seed, occupied_cells), run in an idle worker (started if none), which the next
+    isolated SceneRenderer then takes: the generator's 0.5-1 s of Python run beside the caller's own work
+    (a flight's vehicle: importing and building its physics) instead of holding its GIL."""
+    if not _IDLE:
+        _IDLE.append(_Worker())
+    worker = _IDLE[-1]
+    try:
+        return scene_from_json(worker.call("generate", int(seed), int(occupied_cells)))
+    except Exception:
+        _IDLE.remove(worker)
+        worker.kill()
+        raise
 
 
 # A forked child must not talk to its parent's workers over the inherited pipes.
