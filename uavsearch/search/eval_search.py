@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
+from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.world.settings import SETTINGS
 from uavsearch.viz import pyplot, save_figure
@@ -107,7 +108,7 @@ def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = 
 
 
 @dataclass
-class EvalArgs:
+class EvalArgs(ScaleOutArgs):
     setting: str = opt("all", "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells) | all")
     split: str = opt("paper", "scene split (paper: 10 test scenes per setting; large: 100)")
     out: str = opt("eval_search", "output folder: table2.md, table2.csv, fig6.png", required=True)
@@ -116,7 +117,7 @@ class EvalArgs:
     episodes: int = opt(10, "episodes per test scene per seed")
     seeds: int = opt(5, "evaluation seeds (0..seeds-1): the spread over seeds")
     argmax: bool = opt(False, "trained policies take their most likely action instead of sampling (paper: sample)")
-    workers: int = opt(2, "rendering processes when a view cache must be built")
+    cache_dir: str | None = opt(None, "view caches: a folder or an fsspec URL (default cache/)")
     progress: bool = opt(True, "progress bars")
 
 
@@ -256,7 +257,8 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
     t0 = time.perf_counter()
     if caches is None:
         net, _ = load_perception(args.perception)
-        caches = {s: get_view_cache(net, s, args.split, "test", workers=args.workers, progress=args.progress)
+        caches = {s: get_view_cache(net, s, args.split, "test", cache_dir=args.cache_dir, progress=args.progress,
+                                    executor=Executor.from_args(args))
                   for s in settings}
     results = {s: evaluate_setting(s, caches[s], args) for s in settings}
     rows = summarise(results, args.episodes)

@@ -29,11 +29,11 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tqdm import tqdm
 
 from ..flight.camera import SCENE_FILE
 from ..flight.sitl_process import SitlProcess
 from ..logs.flight_log import FlightLogWriter
+from ..parallel import Executor, map_scenes
 from ..paths import RUNS_DIR
 from ..world.scene import load_scene
 from ..world.settings import scene_seeds
@@ -386,33 +386,42 @@ def teleport_episode(mission, loaded: LoadedAgent | None = None):
     return ep.maps[0, -1].numpy(), pos, labels
 
 
+def flight_vs_teleport_scene(job) -> dict:
+    """The per-scene task: fly (mission, scene seed) and run the same episode teleported; one table row.
+    The flight log goes to <out>/flight_scene<seed> on the machine that flew it."""
+    mission, seed, out = job
+    r = fly(mission, out=Path(out) / f"flight_scene{seed}", progress=lambda s: None, gcs_port=0)
+    fused_t, pos_t, labels = teleport_episode(mission)
+    return dict(scene=seed, status=r.status.split(":")[0], flight_acc=r.acc, flight_f1=r.f1,
+                teleport_acc=float(map_accuracy(fused_t, labels)), teleport_f1=float(map_f1(fused_t, labels)),
+                same_route=bool(len(r.positions) == len(pos_t) and np.allclose(np.asarray(r.positions), pos_t)),
+                wall_s=r.wall_s, flight_wall_s=r.flight_wall_s, sim_s=r.sim_time_s)
+
+
 def eval_flight_vs_teleport(mission, setting: int = 2, split: str = "paper", speed="max", out=None,
-                            scenes: list[int] | None = None, progress: bool = True) -> dict:
+                            scenes: list[int] | None = None, progress: bool = True,
+                            executor: Executor | None = None) -> dict:
     """Fly the mission on every test scene of a setting and run the same episode in teleport mode.
 
     The policy acts greedily (its most likely move) in both modes, so the two runs take the same route
     unless a view's outputs differ enough to change a decision; what separates them is then the flown
     vehicle's pose error (projection at the reported pose) and the render at the true, not the nominal, pose.
-    `mission` (a missions.Mission) gives everything but the scene.
+    `mission` (a missions.Mission) gives everything but the scene. Each scene is one task
+    (flight_vs_teleport_scene) on `executor` (default: one at a time, here).
     """
     base = mission.with_overrides(**{"scene.setting": setting, "scene.occupied_cells": None,
                                                          "greedy_policy": True, "flight.speed": speed})
     seeds = scenes or scene_seeds(setting, split, "test")
     out = Path(out or RUNS_DIR / f"eval_flight_s{setting}")
     out.mkdir(parents=True, exist_ok=True)
-    loaded = base.agent()
-    rows = []
-    for seed in tqdm(seeds, desc=f"flight vs teleport, setting {setting}", disable=not progress):
-        m = base.with_overrides(**{"scene.seed": seed})
-        r = fly(m, out=out / f"flight_scene{seed}", progress=lambda s: None, gcs_port=0)
-        fused_t, pos_t, labels = teleport_episode(m, loaded)
-        row = dict(scene=seed, status=r.status.split(":")[0], flight_acc=r.acc, flight_f1=r.f1,
-                   teleport_acc=float(map_accuracy(fused_t, labels)), teleport_f1=float(map_f1(fused_t, labels)),
-                   same_route=bool(len(r.positions) == len(pos_t) and np.allclose(np.asarray(r.positions), pos_t)),
-                   wall_s=r.wall_s, flight_wall_s=r.flight_wall_s, sim_s=r.sim_time_s)
-        rows.append(row)
+
+    def record(_, row):
         with open(out / "flight_vs_teleport.jsonl", "a") as f:
             f.write(json.dumps(row) + "\n")
+
+    jobs = [(base.with_overrides(**{"scene.seed": seed}), int(seed), str(out.resolve())) for seed in seeds]
+    rows = map_scenes(flight_vs_teleport_scene, jobs, executor or Executor("local", 1),
+                      desc=f"flight vs teleport, setting {setting}", progress=progress, on_result=record)
     ok = [r for r in rows if r["flight_acc"] is not None]
     mean = lambda k: float(np.mean([r[k] for r in ok])) if ok else float("nan")  # noqa: E731
     summary = dict(setting=setting, split=split, scenes=len(rows), completed=len(ok),

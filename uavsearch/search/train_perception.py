@@ -36,6 +36,7 @@ from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
+from uavsearch.parallel import Executor, ScaleOutArgs, Store
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
 from uavsearch.viz import pyplot, save_figure
 
@@ -47,7 +48,7 @@ from .perception import PerceptionConfig, PerceptionNet, images_to_tensor, save_
 
 
 @dataclass
-class Args:
+class Args(ScaleOutArgs):
     exp_name: str = opt("perception", "the run's name in runs/")
     seed: int = opt(1, "seeds numpy, torch and the scene/position draw")
     train_scenes: int = opt(150, "training scenes (large-split train seeds of settings 1-3, K drawn in 1..12)")
@@ -55,8 +56,7 @@ class Args:
     val_scenes: int = opt(30, "validation scenes (large-split val seeds), K drawn in 1..12")
     val_views_per_scene: int = opt(4, "lattice positions per validation scene (the start view included)",
                                    flag="--val-views")
-    data_dir: str = opt(str(DATA_DIR), "where rendered view sets are cached")
-    workers: int = opt(2, "rendering processes")
+    data_dir: str = opt(str(DATA_DIR), "where rendered view sets are cached (a folder or an fsspec URL)")
     steps: int = opt(800, "optimiser steps")
     batch_size: int = opt(32, "views per mini-batch (paper: 32)")
     lr: float = opt(1e-3, "Adam learning rate (cosine-decayed to 5% of it); from scratch, not fine-tuning")
@@ -183,14 +183,14 @@ def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     val_spec = ViewSetSpec(f"val_v{args.val_views_per_scene}_s{args.seed}",
                            perception_scenes("val", args.val_scenes, args.seed),
                            views_per_scene=args.val_views_per_scene, seed=args.seed)
-    root = Path(args.data_dir)
+    root, executor = Store(args.data_dir), Executor.from_args(args)
     t0 = time.perf_counter()
-    tr_root = generate_views(train_spec, root / train_spec.name, args.workers, args.progress)
-    va_root = generate_views(val_spec, root / val_spec.name, args.workers, args.progress)
+    tr_root = generate_views(train_spec, root.path(train_spec.name), progress=args.progress, executor=executor)
+    va_root = generate_views(val_spec, root.path(val_spec.name), progress=args.progress, executor=executor)
     render_s = time.perf_counter() - t0
     train, val = load_views(tr_root, train_spec.scenes), load_views(va_root, val_spec.scenes)
     print(f"data: {len(train)} training views of {args.train_scenes} scenes, {len(val)} validation views of "
-          f"{args.val_scenes} scenes ({render_s:.0f} s to render / load from {root})")
+          f"{args.val_scenes} scenes ({render_s:.0f} s to render / load from {root.url})")
     return train, val, len(lattice_positions(SearchConfig())) // 2
 
 
