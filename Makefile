@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup run test test-all clean
+.PHONY: setup browser run test test-all clean
 
 setup: $(VENV)/.installed
 
@@ -23,10 +23,14 @@ $(VENV)/.installed: pyproject.toml
 run: setup
 	$(VENV)/bin/uavsearch fly
 
-test: setup
+# Headless Chromium for the flight review page's browser test (skipped with a message where it cannot be had).
+browser:
+	@bash tools/install_browser.sh
+
+test: setup browser
 	$(PY) -m pytest -q
 
-test-all: setup
+test-all: setup browser
 	$(PY) -m pytest -q -m ''
 
 clean:
