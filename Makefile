@@ -3,26 +3,34 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup run test test-all clean
+.PHONY: setup browser run test test-all clean
 
 setup: $(VENV)/.installed
 
+# pip prints one line per package it collects and installs (a fresh setup takes about 90 s: torch's CPU wheel
+# alone is ~200 MB), so the first `make run` is never a silent wait.
 $(VENV)/.installed: pyproject.toml
+	@echo "setup: creating $(VENV) and installing uavsearch with its dependencies (about 90 s the first time)"
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q -e '.[test]'
+	$(PY) -m pip install --progress-bar off --disable-pip-version-check -e '.[test]'
 	# MAVProxy for the ground-station test, without its declared dependencies (opencv-python and vtk
 	# would clash with opencv-python-headless); what it imports is already here plus pyserial.
-	$(PY) -m pip install -q --no-deps mavproxy==1.8.75 pyserial==3.5
-	touch $@
+	$(PY) -m pip install --progress-bar off --disable-pip-version-check --no-deps mavproxy==1.8.75 pyserial==3.5
+	@touch $@
+	@echo "setup: done; the command is $(VENV)/bin/uavsearch (or: . $(VENV)/bin/activate)"
 
 # The main job: fly the default search mission (paper setting 2) with the shipped model.
 run: setup
 	$(VENV)/bin/uavsearch fly
 
-test: setup
+# Headless Chromium for the flight review page's browser test (skipped with a message where it cannot be had).
+browser:
+	@bash tools/install_browser.sh
+
+test: setup browser
 	$(PY) -m pytest -q
 
-test-all: setup
+test-all: setup browser
 	$(PY) -m pytest -q -m ''
 
 clean:

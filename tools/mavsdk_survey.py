@@ -13,7 +13,6 @@ in its CAMERA_IMAGE_CAPTURED and runs perception + fusion on them (no uavsearch 
 import argparse
 import asyncio
 import math
-import subprocess
 import sys
 import threading
 
@@ -118,12 +117,16 @@ def main() -> int:
     if args.replay_out:
         if args.scene is None:
             raise SystemExit("--replay-out needs --scene SEED (the scene the sitl renders)")
-        cmd = [sys.executable, "-m", "uavsearch", "replay", args.tlog, "--scene", str(args.scene), "--setting",
-               str(args.setting), "--out", args.replay_out]
+        cmd = ["replay", args.tlog, "--scene", str(args.scene), "--setting", str(args.setting),
+               "--out", args.replay_out]
         cmd += ["--mission", args.mission] if args.mission else []
         cmd += ["--fusion", args.fusion] if args.fusion else []
-        print("$ " + " ".join(cmd[2:]).replace("-m uavsearch", "uavsearch"), flush=True)
-        return subprocess.call(cmd)
+        print("$ uavsearch " + " ".join(cmd), flush=True)
+        # In this process, not `python -m uavsearch`: from the folder that holds the clone, `-m` would import
+        # the clone's folder (also named uavsearch) instead of the package.
+        from uavsearch.cli import main as uavsearch_main
+
+        return uavsearch_main(cmd)
     print(f"replay it: uavsearch replay {args.tlog} --scene SEED --out DIR")
     return 0
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Regenerate every table, number and figure README.md quotes, into results/ under the names it cites.
+# Regenerate every table, number and figure README.md and docs/ quote, into results/ under the names they cite.
 #
 #   tools/reproduce.sh [--quick] [--ship] [--jobs N] [--only STEP[,STEP...]] [--dry-run] [--help]
 #

@@ -158,11 +158,12 @@ def _add_vehicle_option(p) -> None:
         if args.vehicle == "teleport":
             return teleport(args)
         from .missions import load_mission  # lazy: torch (2-5 s)
+        from .parallel import Executor
         from .search.mission_controller import eval_flight_vs_teleport
 
         setting = 2 if str(args.setting) == "all" else int(args.setting)
         res = eval_flight_vs_teleport(load_mission(args.mission), setting, args.split, args.speed, args.out,
-                                      args.scenes, progress=args.progress)
+                                      args.scenes, progress=args.progress, executor=Executor.from_args(args))
         print(res["table"].read_text())
         print(f"wrote {res['table']}")
         return 0

@@ -19,7 +19,7 @@ from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationI
                       model_validator)
 
 from .errors import MissionError, format_validation_error, read_user_file
-from .geometry import GeodeticOrigin
+from .geometry import CameraIntrinsics, GeodeticOrigin
 from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
 from .search.config import ACTIONS, SearchConfig
 from .search.mavlink_vehicle import FlightSettings
@@ -94,6 +94,28 @@ class SearchSection(_Strict):
         return tuple(v)
 
 
+# The camera the shipped models were trained with: every training and evaluation view set is rendered with
+# SearchConfig's default intrinsics (its manifest records them, search/dataset.py) and no training command
+# takes an option to change them.
+TRAINED_CAMERA = CameraIntrinsics()
+
+
+class CameraSection(_Strict):
+    """The simulated nadir pinhole camera: what the vehicle renders and what the search projects the grid with."""
+
+    hfov_deg: float = Field(TRAINED_CAMERA.hfov_deg, gt=1, lt=170)
+    width_px: int = Field(TRAINED_CAMERA.width_px, ge=16, le=4096)
+    height_px: int = Field(TRAINED_CAMERA.height_px, ge=16, le=4096)
+
+    def intrinsics(self) -> CameraIntrinsics:
+        return CameraIntrinsics(width_px=self.width_px, height_px=self.height_px, hfov_deg=self.hfov_deg)
+
+    def untrained(self) -> list[str]:
+        """What differs from TRAINED_CAMERA, as 'hfov_deg 90 (trained 60)'."""
+        return [f"{k} {getattr(self, k):g} (trained {getattr(TRAINED_CAMERA, k):g})" for k in type(self).model_fields
+                if not math.isclose(float(getattr(self, k)), float(getattr(TRAINED_CAMERA, k)), abs_tol=1e-6)]
+
+
 class Home(_Strict):
     """WGS84 position of the search area's centre (the scene origin)."""
 
@@ -108,6 +130,7 @@ class FlightSection(_Strict):
     settle_speed_m_s: float = Field(0.3, gt=0)
     settle_time_s: float = Field(0.5, ge=0)
     step_timeout_s: float = Field(60.0, gt=0)
+    connect_timeout_s: float = Field(30.0, gt=0)  # wall clock: the vehicle's heartbeat and health
     end_action: Literal["land", "rtl", "none"] = "land"
     vehicle_seed: int = Field(0, ge=0)  # sensor / estimator noise of the simulated vehicle
     # The controller drives the simulated vehicle's clock (sitl --lockstep), so the seeds fix the flight.
@@ -134,6 +157,7 @@ class Mission(_Strict):
     policy_seed: int = Field(0, ge=0)
     greedy_policy: bool = False  # the learned policy takes its most likely action instead of sampling
     home: Home = Home()
+    camera: CameraSection = CameraSection()
     flight: FlightSection = FlightSection()
     plan: str | None = None  # a QGroundControl .plan (relative to this file): `uavsearch mission upload` flies it
     source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
@@ -164,6 +188,15 @@ class Mission(_Strict):
             raise ValueError(f"search: {', '.join(off)}; the models were trained at {TRAINED_FOR['altitude_m']:g} m "
                              f"altitude with {TRAINED_FOR['step_m']:g} m steps (set search.allow_untrained: true "
                              "to fly it anyway)")
+        return self
+
+    @model_validator(mode="after")
+    def _camera_trained_for(self):
+        off = self.camera.untrained()
+        if off and not self.search.allow_untrained:
+            raise ValueError(f"camera: {', '.join(off)}; the models were trained with a {TRAINED_CAMERA.width_px}x"
+                             f"{TRAINED_CAMERA.height_px} px, {TRAINED_CAMERA.hfov_deg:g} deg camera (set "
+                             "search.allow_untrained: true to fly it anyway)")
         return self
 
     # -- derived ---------------------------------------------------------------------------------
@@ -210,13 +243,14 @@ class Mission(_Strict):
 
     def search_config(self) -> SearchConfig:
         s = self.search
-        return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions))
+        return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions),
+                            intrinsics=self.camera.intrinsics())
 
     def flight_settings(self) -> FlightSettings:
         f = self.flight
         return FlightSettings(arrive_radius_m=f.arrive_radius_m, settle_speed_m_s=f.settle_speed_m_s,
                               settle_time_s=f.settle_time_s, step_timeout_s=f.step_timeout_s, end_action=f.end_action,
-                              lockstep=f.lockstep)
+                              lockstep=f.lockstep, connect_timeout_s=f.connect_timeout_s)
 
     def origin(self) -> GeodeticOrigin:
         return GeodeticOrigin(self.home.lat_deg, self.home.lon_deg, self.home.alt_m)

@@ -50,6 +50,23 @@ def map_image(values: np.ndarray, grid: Grid) -> np.ndarray:
     return np.asarray(values, dtype=float).reshape(grid.n, grid.n)
 
 
+def overflow_in(fig) -> float:
+    """How far (inches) anything drawn (titles, legends, axis labels, colour bars) reaches past the canvas:
+    0 when it all fits. A figure rendered to a fixed canvas (video frames) loses whatever sticks out."""
+    fig.canvas.draw()
+    box = fig.get_tightbbox(fig.canvas.get_renderer())
+    w, h = fig.get_size_inches()
+    return float(max(0.0, -box.x0, -box.y0, box.x1 - w, box.y1 - h))
+
+
+def settle_tight_layout(fig) -> None:
+    """tight_layout for a fixed canvas, twice: the first pass places axes before an image's aspect shrinks
+    them, which moves their labels; the second sees the labels where they end up."""
+    fig.tight_layout()
+    fig.canvas.draw()
+    fig.tight_layout()
+
+
 def save_figure(fig, out: str | Path) -> Path:
     """Save a matplotlib figure, turning an unwritable path into a one-line error."""
     out = Path(out)
@@ -65,10 +82,14 @@ def save_figure(fig, out: str | Path) -> Path:
 
 
 def scene_show_figure(spec, view, grid: Grid, intrinsics: CameraIntrinsics, out: str | Path) -> Path:
+    """`uavsearch scene show`: scene_figure as a PNG."""
+    return save_figure(scene_figure(spec, view, grid, intrinsics), out)
+
+
+def scene_figure(spec, view, grid: Grid, intrinsics: CameraIntrinsics):
     """The start view with the grid and the occupied cells, beside a top-down map of the scene."""
-    plt = pyplot()
     occ = spec.occupancy_array()
-    fig, axes = plt.subplots(1, 2, figsize=(13, 6.5))
+    fig, axes = pyplot().subplots(1, 2, figsize=(13, 6.5), layout="constrained")
     axes[0].imshow(draw_grid_overlay(view.image, view.pose, grid, intrinsics, occ))
     axes[0].set_title(
         f"start view at {view.position_enu[2]:.0f} m, {intrinsics.width_px}x{intrinsics.height_px} px, "
@@ -77,4 +98,4 @@ def scene_show_figure(spec, view, grid: Grid, intrinsics: CameraIntrinsics, out:
     axes[0].axis("off")
     draw_topdown(spec, ax=axes[1])
     axes[1].set_title(f"scene seed {spec.seed}: {int(occ.sum())} occupied cells")
-    return save_figure(fig, out)
+    return fig

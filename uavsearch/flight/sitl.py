@@ -243,6 +243,9 @@ class Sitl:
         sign = "off" if c.signing_key is None else ("required on all links" if c.sign_api_strict
                                                     else "required on GCS link; API link signs, accepts unsigned")
         lines.append(f"  signing   {sign}")
+        cam = c.intrinsics
+        lines.append(f"  camera    {cam.width_px}x{cam.height_px} px, {cam.hfov_deg:g} deg horizontal FOV, nadir "
+                     "(compid 100)")
         lines.append(f"  run dir   {self.run_dir}")
         lines.append("ready; Ctrl-C to stop")
         return "\n".join(lines)
@@ -273,6 +276,27 @@ def _parse_home(text: str) -> GeodeticOrigin:
     return GeodeticOrigin(*parts)
 
 
+def _parse_size(text: str) -> tuple[int, int]:
+    w, sep, h = text.lower().partition("x")
+    try:
+        size = (int(w), int(h))
+    except ValueError:
+        size = (0, 0)
+    if not sep or not all(16 <= v <= 4096 for v in size):
+        raise argparse.ArgumentTypeError(f"--camera-size takes WIDTHxHEIGHT in pixels (16-4096), got {text!r}")
+    return size
+
+
+def _parse_hfov(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not 1.0 < v < 170.0:
+        raise argparse.ArgumentTypeError(f"--camera-hfov takes degrees between 1 and 170, got {text!r}")
+    return v
+
+
 def _parse_param(text: str) -> tuple[str, float]:
     name, sep, value = text.partition("=")
     try:
@@ -296,6 +320,12 @@ def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene-file", type=Path, default=None, metavar="JSON",
                    help="render a saved scene spec (uavsearch scene save) instead of --scene")
     p.add_argument("--cells", type=int, default=5, metavar="K", help="occupied cells in the scene (default 5)")
+    cam = CameraIntrinsics()
+    p.add_argument("--camera-hfov", type=_parse_hfov, default=cam.hfov_deg, metavar="DEG",
+                   help=f"the nadir camera's horizontal field of view (default {cam.hfov_deg:g}, what the models "
+                        "were trained with)")
+    p.add_argument("--camera-size", type=_parse_size, default=(cam.width_px, cam.height_px), metavar="WxH",
+                   help=f"the camera's image size in pixels (default {cam.width_px}x{cam.height_px})")
     p.add_argument("--seed", type=int, default=0, help="vehicle noise seed (default 0)")
     p.add_argument("--speed", type=_parse_speed, default=1.0, help="1 (real time, default), N (N x real time) or max")
     p.add_argument("--lockstep", action="store_true",
@@ -335,6 +365,7 @@ def config_from_args(args) -> SitlConfig:
         sign_api_strict=args.sign_api_strict,
         run_dir=args.out,
         params=dict(args.param),
+        intrinsics=CameraIntrinsics(*args.camera_size, args.camera_hfov),
     )
 
 
@@ -344,6 +375,8 @@ def run_sitl_command(args) -> int:
 
         prepare_output(args.out)
     cfg = config_from_args(args)
+    scene = "no camera scene" if cfg.scene_seed is None else f"the camera's scene {cfg.scene_file or cfg.scene_seed}"
+    print(f"uavsearch sitl: building the vehicle (JSBSim, estimator) and {scene} ...", flush=True)
     try:
         sitl = Sitl(cfg)
     except ParamError as e:

@@ -48,11 +48,12 @@ class SitlProcess:
     the scene (faster start; captures fail). A port of None is a free one, 0 turns the link off.
     `wait=False` returns as soon as the process is started, so its start-up (imports, physics) runs
     while the caller does its own; `wait_ready()` then waits for the ready line.
+    `progress(line)`, when given, hears every 2 s how long the start has taken and what the vehicle last said.
     """
 
     def __init__(self, run_dir: Path, *args: str, api_port: int | None = None, gcs_port: int | None = None,
                  speed: str = "max", lockstep: bool = False, camera: bool = True, timeout_s: float = 120.0,
-                 wait: bool = True):
+                 wait: bool = True, progress=None):
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         self.run_dir = run_dir
@@ -71,8 +72,10 @@ class SitlProcess:
                                      env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
                                      start_new_session=True)  # Ctrl-C reaches the client only: it lands first
         self.banner: list[str] = []  # the lines up to "ready" (ports, signing, run directory)
-        self._end = time.monotonic() + timeout_s
+        self._start = time.monotonic()
+        self._end = self._start + timeout_s
         self._timeout_s = timeout_s
+        self.progress = progress
         if wait:
             self.wait_ready()
 
@@ -82,6 +85,7 @@ class SitlProcess:
 
     def wait_ready(self) -> None:
         """Until the vehicle printed its ready line; SitlStartError if it exited or the start timed out."""
+        next_note = max(time.monotonic(), self._start + 2.0)
         while not self.banner:
             text = self.log_path.read_text()
             if "\nready" in text or text.startswith("ready"):
@@ -93,6 +97,10 @@ class SitlProcess:
                 raise self._failed(f"uavsearch sitl exited at start: {last[0]} (see {self.log_path})")
             if time.monotonic() > self._end:
                 raise self._failed(f"uavsearch sitl did not get ready in {self._timeout_s:.0f} s (see {self.log_path})")
+            if self.progress is not None and time.monotonic() >= next_note:  # not ready yet: say how far
+                next_note += 2.0
+                said = [ln.strip() for ln in text.splitlines() if ln.strip()][-1:] or ["starting Python"]
+                self.progress(f"vehicle   starting ({said[0]})  {time.monotonic() - self._start:4.0f} s")
             time.sleep(0.02)
 
     def wait_file(self, name: str) -> Path:

@@ -40,7 +40,7 @@ from ..search.agents import FUSION_METHODS, check_names
 from ..search.fusion import fuse_prefixes
 from ..search.metrics import map_accuracy, map_f1
 from ..search.views import make_view
-from ..viz import draw_grid_overlay, pyplot, save_figure
+from ..viz import draw_grid_overlay, pyplot, save_figure, settle_tight_layout
 from ..world.render import SceneRenderer
 from ..world.scene import generate_scene
 from ..world.settings import resolve_k
@@ -166,6 +166,7 @@ class ReplayData:
     track_t: np.ndarray | None = None  # (K,) log time of each track point
     view_t: np.ndarray | None = None  # (T,) log time of each view (to cut the track "so far")
     warnings: list = field(default_factory=list)
+    intrinsics: CameraIntrinsics | None = None  # the flight's camera (the mission's), for the grid overlay
 
     @property
     def acc(self) -> np.ndarray:
@@ -222,11 +223,12 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
         img = cv2.imread(str(run_dir / s["image"]), cv2.IMREAD_COLOR)
         images.append(None if img is None else img[..., ::-1].copy())
         poses.append(camera_pose_from_vehicle(s["reported_position_enu"], *s["reported_rpy_rad"]))
-    spec = None
+    spec, intrinsics = None, None
     try:
         mission = mission_from_dict(h["mission"], h.get("mission_file"))
         spec = mission.scene_spec()
         origin = mission.origin()
+        intrinsics = mission.search_config().intrinsics
     except UavsearchError:
         origin = GeodeticOrigin()
     true_pos = [s["true_pose"]["position_enu"] if s.get("true_pose") else None for s in log.steps]
@@ -239,7 +241,7 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
         view_t=None if any(t is None for t in view_t) else np.asarray(view_t, float),
         images=images, poses=poses, spec=spec,
         true_positions_enu=None if any(t is None for t in true_pos) else np.asarray(true_pos, float),
-        logged_maps=log.array("fused"),
+        logged_maps=log.array("fused"), intrinsics=intrinsics,
         warnings=[str(w.message) for w in caught] + ([f"flight ended early: {log.failure.get('error')}"]
                                                     if log.failure else []),
     )
@@ -328,7 +330,7 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     return ReplayData(track_t=tr.t_s, view_t=np.array([s[0] for s in shots]), title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
                       grid=config.grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,
                       positions_enu=np.asarray(positions), track_enu=track, images=images, poses=poses, spec=spec,
-                      warnings=warns)
+                      warnings=warns, intrinsics=config.intrinsics)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -374,17 +376,17 @@ def _draw_map(ax, d: ReplayData, t: int, title: str | None = None) -> None:
     ax.set_yticks([])
 
 
-def write_figures(d: ReplayData, out: Path) -> list[Path]:
-    plt = pyplot()
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    fig, ax = plt.subplots(figsize=(7, 7))
+def trajectory_figure(d: ReplayData):
+    fig, ax = pyplot().subplots(figsize=(7, 7), layout="constrained")
     _draw_track(ax, d)
-    ax.set_title(d.title, fontsize=9)
-    paths.append(save_figure(fig, out / "trajectory.png"))
+    ax.set_title(d.title, fontsize=9, wrap=True)
+    return fig
 
+
+def maps_figure(d: ReplayData):
+    """The fused map after each view beside the ground truth; one shared colour bar."""
     T = len(d.maps)
-    fig, axes = plt.subplots(1, T + 1, figsize=(2.6 * (T + 1), 2.9))
+    fig, axes = pyplot().subplots(1, T + 1, figsize=(max(2.6 * (T + 1), 6.0), 3.1), layout="constrained")
     axes = np.atleast_1d(axes)
     for t in range(T):
         _draw_map(axes[t], d, t)
@@ -395,9 +397,12 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
     axes[T].set_yticks([])
     fig.colorbar(im, ax=list(axes), fraction=0.012, pad=0.01, label="p(occupied)")  # all panels share 0..1
     fig.suptitle(f"{d.fusion} fusion: p(occupied) per cell (cyan: occupied cells)", fontsize=10)
-    paths.append(save_figure(fig, out / "maps.png"))
+    return fig
 
-    fig, ax = plt.subplots(figsize=(5, 3.4))
+
+def metrics_figure(d: ReplayData):
+    T = len(d.maps)
+    fig, ax = pyplot().subplots(figsize=(5, 3.4), layout="constrained")
     steps = np.arange(1, T + 1)
     ax.plot(steps, d.acc, "o-", label="accuracy (Eq. 16)")
     ax.plot(steps, d.f1, "s-", label="F1 (Eq. 17)")
@@ -411,26 +416,38 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
     ax.set_title(f"metrics vs. step ({d.fusion} fusion)", fontsize=9)
-    paths.append(save_figure(fig, out / "metrics.png"))
-    return paths
+    return fig
 
 
-def _frame(d: ReplayData, t: int) -> np.ndarray:
-    plt = pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4.2))
+def write_figures(d: ReplayData, out: Path) -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    return [save_figure(trajectory_figure(d), out / "trajectory.png"), save_figure(maps_figure(d), out / "maps.png"),
+            save_figure(metrics_figure(d), out / "metrics.png")]
+
+
+def frame_figure(d: ReplayData, t: int):
+    """One video frame: the view with the grid, the fused map so far, the track so far (a fixed canvas, so
+    every frame has the same size; the layout keeps every title and label on it)."""
+    fig, axes = pyplot().subplots(1, 3, figsize=(12, 4.4))
     img = d.images[t] if t < len(d.images) else None
     if img is not None:
-        axes[0].imshow(draw_grid_overlay(img, d.poses[t], d.grid, _intrinsics_of(img), d.labels, scale=2))
+        intr = d.intrinsics if d.intrinsics is not None else _intrinsics_of(img)
+        axes[0].imshow(draw_grid_overlay(img, d.poses[t], d.grid, intr, d.labels, scale=2))
     axes[0].set_title(f"view {t + 1} (grid at the reported pose)", fontsize=9)
     axes[0].axis("off")
     _draw_map(axes[1], d, t)
     _draw_track(axes[2], d, upto=t)
     axes[2].set_title("track so far", fontsize=9)
     fig.suptitle(d.title, fontsize=9)
-    fig.tight_layout()
+    settle_tight_layout(fig)
+    return fig
+
+
+def _frame(d: ReplayData, t: int) -> np.ndarray:
+    fig = frame_figure(d, t)
     fig.canvas.draw()
     buf = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-    plt.close(fig)
+    pyplot().close(fig)
     return buf
 
 
@@ -493,6 +510,7 @@ def replay_command(args) -> int:
         raise LogError(f"{src}: no such run directory or telemetry log")
     for w in d.warnings:
         print(f"uavsearch: warning: {w}", file=sys.stderr)
+    print(f"writing the figures and a {args.video} of {len(d.maps)} view(s) to {args.out} ...", flush=True)
     res = write_replay(d, args.out, args.video)
     print(f"{'view':>4} {'east':>7} {'north':>7} {'up':>6} {'acc':>6} {'F1':>6}")
     for t, (pos, a, f) in enumerate(zip(d.positions_enu, res["acc"], res["f1"])):

@@ -1,12 +1,13 @@
 """View datasets for perception training and single-view evaluation: rendered once, cached on disk.
 
 Rendering is the data bottleneck (PyBullet on CPU), so every (scene, lattice position) view is rendered
-once and kept. A dataset is a directory:
+once and kept. A dataset is a folder, local or at an fsspec URL (parallel.Store):
 
     <dir>/manifest.json        format version, the ViewSetSpec (without its scene list), the camera, grid and
-                               render options it was rendered with; a directory can grow by more scenes
+                               render options it was rendered with, and "shards": per finished shard its
+                               key, sha256, size and render tag; a directory can grow by more scenes
                                of the same kind (e.g. 40 then 80 test scenes per density) and reuse shards
-    <dir>/shards/s<seed>_k<K>.npz   one compressed shard per scene (numpy.savez_compressed):
+    <dir>/shards/s<seed>_k<K>.npz   one compressed shard per scene (parallel.npz_bytes: no timestamps):
         images         (V, H, W, 3) uint8   RGB, north up
         lattice_index  (V,) int16           index into config.lattice_positions (row-major from the NW corner)
         position_enu   (V, 3) float32       camera position, scene ENU metres (nadir, heading north)
@@ -20,29 +21,31 @@ Cell label images are not stored: the teleport camera is exactly nadir at a latt
 image is a pure function of the position (geometry.cell_label_image) and is recomputed once per position
 at load time.
 
-Generation is parallel over scenes (one process per worker, each with its own PyBullet renderer),
-resumable (finished shards are skipped; a shard is written to a temporary name and renamed, so a killed
-run never leaves a half shard) and deterministic: the lattice positions of scene s are drawn from
-numpy.random.default_rng([spec.seed, s, K]), and renders are deterministic per (scene, position).
+Generation is one per-scene task (render_scene_shard) mapped over the scenes by parallel.map_scenes, on
+local processes or on Ray; resumable (scenes whose manifest entry matches are skipped; a shard is written
+whole, so a killed run never leaves a half shard) and deterministic: the lattice positions of scene s are
+drawn from numpy.random.default_rng([spec.seed, s, K]), renders are deterministic per (scene, position),
+and the shard's bytes are the same whichever executor or machine wrote them (same library versions).
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import io
 import json
-import multiprocessing as mp
-import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Iterable, NamedTuple
 
 import numpy as np
-from tqdm import tqdm
 
 from uavsearch.errors import UavsearchError
 from uavsearch.geometry import cell_label_image, nadir_camera_pose
+from uavsearch.parallel import Executor, Store, finished, manifest_entry, map_scenes, npz_bytes, process_tree_cpu_s
 from uavsearch.paths import REPO_ROOT
-from uavsearch.world.scene import generate_scene
+from uavsearch.world.scene import generate_scene, scene_to_json
 from uavsearch.world.settings import SETTINGS, scene_seeds
 
 from .config import SearchConfig, lattice_positions
@@ -50,6 +53,7 @@ from .views import TeleportVehicle
 
 FORMAT = "uavsearch-views/1"
 DATA_DIR = REPO_ROOT / "data" / "views"
+PROBE_SCENE = (424242, 5)  # (seed, K) of the scene whose start view fingerprints the renderer
 
 
 @dataclass(frozen=True)
@@ -115,20 +119,41 @@ def positions_for_scene(spec: ViewSetSpec, scene_seed: int, k: int, num_position
     return np.sort(pick).astype(np.int16)
 
 
+def shard_key(scene_seed: int, k: int) -> str:
+    return f"shards/s{int(scene_seed)}_k{int(k)}.npz"
+
+
 def shard_path(root: Path, scene_seed: int, k: int) -> Path:
-    return Path(root) / "shards" / f"s{int(scene_seed)}_k{int(k)}.npz"
+    """The shard's file in a local view-set folder."""
+    return Path(root) / shard_key(scene_seed, k)
 
 
-def _render_scene(job: tuple[dict, str, int, int]) -> tuple[int, int, int, float]:
-    """Worker: render one scene's views and write its shard. Returns (seed, K, views, seconds)."""
-    spec_json, root, scene_seed, k = job
+@functools.lru_cache(maxsize=1)
+def probe_render() -> tuple[str, str, bytes]:
+    """(search config repr, probe scene JSON, its rendered start view's bytes) as this code makes them now:
+    what decides the pixels, once per process (about a second)."""
+    config = SearchConfig()
+    probe = generate_scene(PROBE_SCENE[0], PROBE_SCENE[1])
+    with TeleportVehicle(probe, config, cache=False) as vehicle:
+        view = vehicle.capture([0.0, 0.0, config.altitude_m])
+    return repr(config), scene_to_json(probe), np.ascontiguousarray(view.image).tobytes()
+
+
+def render_tag() -> str:
+    """The generator/renderer tag of every shard written now: a shard whose manifest entry carries another
+    tag was made by other scene or render code and is rendered again, never mixed in."""
+    h = hashlib.sha256(FORMAT.encode())
+    for part in probe_render():
+        h.update(part.encode() if isinstance(part, str) else part)
+    return h.hexdigest()[:12]
+
+
+def render_scene_shard(job: tuple[dict, Store, int, int, str]) -> dict:
+    """The per-scene task: render one scene's views and write its shard to the store, a pure function of
+    (spec, scene seed, K). Returns the shard's manifest entry plus views, seconds and CPU seconds."""
+    spec_json, store, scene_seed, k, tag = job
     spec = ViewSetSpec.from_json(spec_json)
-    out = shard_path(Path(root), scene_seed, k)
-    if out.is_file():
-        return scene_seed, k, 0, 0.0
-
-
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), process_tree_cpu_s()
     config = search_config(spec)
     lattice = lattice_positions(config)
     idx = positions_for_scene(spec, scene_seed, k, len(lattice))
@@ -144,10 +169,7 @@ def _render_scene(job: tuple[dict, str, int, int]) -> tuple[int, int, int, float
             lab = view.cell_label
             pm = view.person_mask if view.person_mask is not None else np.zeros(lab.shape, bool)
             person_px.append(np.bincount(lab[pm & (lab >= 0)].astype(np.int64), minlength=n_cells)[:n_cells])
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.stem + f".tmp{os.getpid()}.npz")
-    np.savez_compressed(
-        tmp,
+    data = npz_bytes(dict(
         images=np.stack(images).astype(np.uint8),
         lattice_index=idx,
         position_enu=lattice[idx].astype(np.float32),
@@ -157,9 +179,11 @@ def _render_scene(job: tuple[dict, str, int, int]) -> tuple[int, int, int, float
         occupancy=scene.occupancy_array().astype(np.int8),
         scene_seed=np.int64(scene_seed),
         occupied_cells=np.int64(k),
-    )
-    os.replace(tmp, out)
-    return scene_seed, k, len(idx), time.perf_counter() - t0
+    ))
+    key = shard_key(scene_seed, k)
+    store.write_bytes(key, data)
+    return {**manifest_entry(key, data, tag), "views": len(idx), "seconds": time.perf_counter() - t0,
+            "cpu_s": process_tree_cpu_s() - cpu0}
 
 
 def _manifest(spec: ViewSetSpec) -> dict:
@@ -175,46 +199,57 @@ def _manifest(spec: ViewSetSpec) -> dict:
 
 
 def _comparable(manifest: dict) -> dict:
-    """What must match for shards to be shared: everything but the set's name and scene list."""
+    """What must match for shards to be shared: everything but the set's name, scene list and shards."""
     spec = {k: v for k, v in manifest.get("spec", {}).items() if k not in ("name", "scenes")}
-    return {**manifest, "spec": spec}
+    return {**{k: v for k, v in manifest.items() if k != "shards"}, "spec": spec}
 
 
-def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: bool = True) -> Path:
-    """Render (or finish rendering) a view set into `root` (default data/views/<name>); returns root."""
-    root = Path(root) if root is not None else DATA_DIR / spec.name
-    man_path = root / "manifest.json"
+def _root_of(store: Store):
+    return Path(store.root) if store.local else store.url
+
+
+def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: bool = True,
+                   executor: Executor | None = None) -> Path | str:
+    """Render (or finish rendering) a view set into `root`, a folder or an fsspec URL (default
+    data/views/<name>); returns root. `executor` (default: `workers` local processes) runs the scenes.
+
+    The manifest lists every finished shard (key, sha256, size, render tag); a resumed run renders only
+    the scenes without a matching entry. Shards of an older run without entries are adopted (hashed and
+    recorded) when their bytes are complete, which the atomic write guarantees."""
+    store = Store(root if root is not None else DATA_DIR / spec.name)
+    executor = executor or Executor("local", workers)
     manifest = json.loads(json.dumps(_manifest(spec)))  # as it reads back from disk
-    if man_path.is_file():
-        old = json.loads(man_path.read_text())
-        if _comparable(old) != _comparable(manifest):
-            raise UavsearchError(
-                f"{root} holds a different view set (manifest differs); choose another directory or delete it"
-            )
-    else:
-        root.mkdir(parents=True, exist_ok=True)
-        man_path.write_text(json.dumps(manifest, indent=1))
-    todo = [s for s in spec.scenes if not shard_path(root, *s).is_file()]
+    old = store.read_json("manifest.json")
+    if old is not None and _comparable(old) != _comparable(manifest):
+        raise UavsearchError(
+            f"{store.url} holds a different view set (manifest differs); choose another directory or delete it"
+        )
+    tag = render_tag()
+    shards: dict[str, dict] = dict((old or {}).get("shards", {}))
+    stored = set(store.keys("shards"))
+    for key in sorted(stored - set(shards)):  # written by a run that stopped before recording them
+        shards[key] = manifest_entry(key, store.read_bytes(key), tag)
+    manifest["shards"] = shards
+    save = lambda: store.write_json("manifest.json", {**manifest, "shards": dict(sorted(shards.items()))})  # noqa: E731
+    save()
+    todo = [(s, k) for s, k in spec.scenes if not finished(store, shards.get(shard_key(s, k)), tag)]
     if not todo:
-        return root
-    jobs = [(spec.to_json(), str(root), int(s), int(k)) for s, k in todo]
-    bar = tqdm(total=len(spec.scenes), initial=len(spec.scenes) - len(todo), desc=f"render {spec.name}",
-               unit="scene", disable=not progress)
-    workers = max(1, min(int(workers), len(jobs)))
+        return _root_of(store)
+    last = [time.monotonic()]
+
+    def record(_, entry):
+        shards[entry["key"]] = {k: entry[k] for k in ("key", "sha256", "size", "tag")}
+        if time.monotonic() - last[0] > 5.0:  # a killed run loses at most the last few seconds' entries
+            save()
+            last[0] = time.monotonic()
+
+    jobs = [(spec.to_json(), store, int(s), int(k), tag) for s, k in todo]
     try:
-        if workers == 1:
-            for job in jobs:
-                _render_scene(job)
-                bar.update(1)
-        else:
-            # spawn, not fork: the parent may hold torch/OpenMP threads, and each child builds its own
-            # PyBullet client.
-            with mp.get_context("spawn").Pool(workers) as pool:
-                for _ in pool.imap_unordered(_render_scene, jobs):
-                    bar.update(1)
+        map_scenes(render_scene_shard, jobs, executor, desc=f"render {spec.name}", progress=progress,
+                   on_result=record)
     finally:
-        bar.close()
-    return root
+        save()
+    return _root_of(store)
 
 
 class ViewSet(NamedTuple):
@@ -243,26 +278,24 @@ class ViewSet(NamedTuple):
 
 
 def read_manifest(root) -> dict:
-    path = Path(root) / "manifest.json"
-    if not path.is_file():
+    store = Store(root)
+    man = store.read_json("manifest.json")
+    if man is None:
         raise UavsearchError(f"{root} is not a view set (no manifest.json); generate it first")
-    try:
-        man = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise UavsearchError(f"{path} is not valid JSON: {e}") from None
     if man.get("format") != FORMAT:
-        raise UavsearchError(f"{path}: unknown view set format {man.get('format')!r} (expected {FORMAT})")
+        raise UavsearchError(f"{store.path('manifest.json')}: unknown view set format {man.get('format')!r} "
+                             f"(expected {FORMAT})")
     return man
 
 
 def shards_in(root) -> list[tuple[int, int]]:
-    """(seed, K) of every finished shard in a view-set directory, sorted."""
+    """(seed, K) of every finished shard in a view set (folder or URL), sorted."""
     out = []
-    for p in (Path(root) / "shards").glob("s*_k*.npz"):
-        if ".tmp" in p.name:
-            continue
-        s, k = p.stem.split("_")
-        out.append((int(s[1:]), int(k[1:])))
+    for key in Store(root).keys("shards"):
+        name = key.rsplit("/", 1)[-1]
+        if name.startswith("s") and name.endswith(".npz") and "_k" in name:
+            s, k = name[:-4].split("_")
+            out.append((int(s[1:]), int(k[1:])))
     return sorted(out)
 
 
@@ -278,12 +311,13 @@ def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only
     parts: dict[str, list] = {k: [] for k in ("images", "lattice_index", "position_enu", "cell_area_px",
                                               "cells_in_view", "person_px", "occupancy", "scene_seed",
                                               "occupied_cells")}
+    store = Store(root)
     for s, k in wanted:
-        path = shard_path(root, s, k)
-        if not path.is_file():
+        path = store.path(shard_key(s, k))
+        if not store.exists(shard_key(s, k)):
             raise UavsearchError(f"{path} missing: the view set is incomplete (run the generation again to resume)")
         try:
-            with np.load(path) as z:
+            with np.load(io.BytesIO(store.read_bytes(shard_key(s, k)))) as z:
                 rows = np.flatnonzero(z["lattice_index"] == centre) if start_only else np.arange(len(z["lattice_index"]))
                 for key in ("images", "lattice_index", "position_enu", "cell_area_px", "cells_in_view", "person_px"):
                     parts[key].append(z[key][rows])

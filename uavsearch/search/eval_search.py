@@ -36,9 +36,10 @@ from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
+from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.world.settings import SETTINGS
-from uavsearch.viz import pyplot
+from uavsearch.viz import pyplot, save_figure
 
 from .agents import build_agent, checkpoint_path, needs_confidence
 from .config import SearchConfig
@@ -107,7 +108,7 @@ def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = 
 
 
 @dataclass
-class EvalArgs:
+class EvalArgs(ScaleOutArgs):
     setting: str = opt("all", "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells) | all")
     split: str = opt("paper", "scene split (paper: 10 test scenes per setting; large: 100)")
     out: str = opt("eval_search", "output folder: table2.md, table2.csv, fig6.png", required=True)
@@ -116,7 +117,7 @@ class EvalArgs:
     episodes: int = opt(10, "episodes per test scene per seed")
     seeds: int = opt(5, "evaluation seeds (0..seeds-1): the spread over seeds")
     argmax: bool = opt(False, "trained policies take their most likely action instead of sampling (paper: sample)")
-    workers: int = opt(2, "rendering processes when a view cache must be built")
+    cache_dir: str | None = opt(None, "view caches: a folder or an fsspec URL (default cache/)")
     progress: bool = opt(True, "progress bars")
 
 
@@ -205,10 +206,11 @@ def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict) ->
     return md_path, csv_path
 
 
-def plot_fig6(results: dict[int, dict[str, dict]], path: Path) -> Path:
-    plt = pyplot()
+def fig6_figure(results: dict[int, dict[str, dict]]):
+    """Metric vs. time step per setting; the legend below the panels (one column per 2 settings it spans)."""
     settings = list(results)
-    fig, axes = plt.subplots(2, len(settings), figsize=(4.6 * len(settings), 7.2), squeeze=False)
+    fig, axes = pyplot().subplots(2, len(settings), figsize=(max(4.6 * len(settings), 8.0), 7.8), squeeze=False,
+                                  layout="constrained")
     labels = {k: lab for k, lab, _, _ in ROWS}
     styles = {"single_view": ":", "oracle_random": "--", "oracle_policy": "--", "learned_policy": "-"}
     for j, s in enumerate(settings):
@@ -227,12 +229,14 @@ def plot_fig6(results: dict[int, dict[str, dict]], path: Path) -> Path:
             axes[i, j].set_xticks(x)
             axes[i, j].grid(alpha=0.3)
     handles, labs = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labs, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    fig.legend(handles, labs, loc="outside lower center", ncol=2 if len(settings) < 3 else 3, fontsize=8,
+               frameon=False)
     fig.suptitle("Fig. 6 (our testbed): performance vs. time step, test scenes")
-    fig.tight_layout(rect=(0, 0.09, 1, 0.96))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return fig
+
+
+def plot_fig6(results: dict[int, dict[str, dict]], path: Path) -> Path:
+    return save_figure(fig6_figure(results), path)
 
 
 def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
@@ -253,7 +257,8 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
     t0 = time.perf_counter()
     if caches is None:
         net, _ = load_perception(args.perception)
-        caches = {s: get_view_cache(net, s, args.split, "test", workers=args.workers, progress=args.progress)
+        caches = {s: get_view_cache(net, s, args.split, "test", cache_dir=args.cache_dir, progress=args.progress,
+                                    executor=Executor.from_args(args))
                   for s in settings}
     results = {s: evaluate_setting(s, caches[s], args) for s in settings}
     rows = summarise(results, args.episodes)

@@ -26,9 +26,10 @@ import torch
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
+from uavsearch.parallel import Executor, ScaleOutArgs, Store
 from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.world.settings import density_scenes
-from uavsearch.viz import pyplot
+from uavsearch.viz import pyplot, save_figure
 
 from .config import SearchConfig, lattice_positions
 
@@ -46,14 +47,13 @@ PERSON_PX_BINS = np.array([0, 1, 2, 3, 5, 9, 17, 10_000])  # [lo, hi) visible pe
 
 
 @dataclass
-class EvalArgs:
+class EvalArgs(ScaleOutArgs):
     out: str = opt("runs/single_view", "directory for table1.md/.csv and fig4.png")
     checkpoint: str = opt(str(MODELS_DIR / "perception.pt"), "perception checkpoint")
     scenes_per_pair: int = opt(80, "test scenes per pair of densities (paper: 80)")
     views_per_scene: int = opt(3, "the start view + random lattice positions (for Fig. 4)")
     seed: int = opt(0, "draw of the extra lattice positions")
-    workers: int = opt(2, "rendering processes")
-    data_dir: str = opt(str(DATA_DIR), "cache of rendered view sets")
+    data_dir: str = opt(str(DATA_DIR), "cache of rendered view sets (a folder or an fsspec URL)")
     threads: int = opt(2, "torch CPU threads")
     progress: bool = opt(True, "progress bars")
 
@@ -84,7 +84,8 @@ def evaluate_single_view(args: EvalArgs) -> dict:
     spec = ViewSetSpec(f"density_v{args.views_per_scene}_s{args.seed}", tuple(scenes),
                        views_per_scene=args.views_per_scene, seed=args.seed)
     t0 = time.perf_counter()
-    root = generate_views(spec, Path(args.data_dir) / spec.name, args.workers, args.progress)
+    root = generate_views(spec, Store(args.data_dir).path(spec.name), progress=args.progress,
+                          executor=Executor.from_args(args))
     views = load_views(root, scenes)
     t_data = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -156,8 +157,11 @@ def _binned(x: np.ndarray, ok: np.ndarray, edges: np.ndarray):
 
 
 def _plot_fig4(area, correct, dist, person_px, correct_pos, path: Path) -> Path:
-    plt = pyplot()
-    fig, (a, c, b) = plt.subplots(1, 3, figsize=(15, 4))
+    return save_figure(fig4_figure(area, correct, dist, person_px, correct_pos), path)
+
+
+def fig4_figure(area, correct, dist, person_px, correct_pos):
+    fig, (a, c, b) = pyplot().subplots(1, 3, figsize=(15, 4), layout="constrained")
     acc, n = _binned(area, correct, AREA_BINS)
     centres = (AREA_BINS[:-1] + AREA_BINS[1:]) / 2
     a2 = a.twinx()
@@ -198,10 +202,7 @@ def _plot_fig4(area, correct, dist, person_px, correct_pos, path: Path) -> Path:
     b.set_ylabel("accuracy on occupied cells (recall)")
     b.set_title("recall vs visible person pixels")
     b.grid(alpha=0.3, axis="y")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return fig
 
 
 # --------------------------------------------------------------------------------------------------

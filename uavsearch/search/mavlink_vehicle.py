@@ -24,6 +24,8 @@ A vehicle without lockstep answers UNSUPPORTED and the client falls back to free
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import os
 import time
@@ -53,6 +55,10 @@ MODE_RTL = (4, 5)
 # SYS_STATUS sensor bits the autopilot must report present and healthy before we arm.
 HEALTH_BITS = (M.MAV_SYS_STATUS_SENSOR_3D_GYRO | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL | M.MAV_SYS_STATUS_SENSOR_3D_MAG
                | M.MAV_SYS_STATUS_SENSOR_GPS)
+# A wait that lasts longer than PROGRESS_FIRST_S (wall clock) says what it waits for and how far it is, then
+# again every PROGRESS_EVERY_S, so a real-time take-off or landing or a silent link never looks like a hang.
+PROGRESS_FIRST_S = 2.0
+PROGRESS_EVERY_S = 5.0
 
 
 # Telemetry this client reads, at the rates it needs (Hz); everything else the autopilot streams on our link
@@ -164,8 +170,10 @@ class MavlinkVehicle:
         self.progress = progress  # callable(str) for status lines, or None
         os.environ["MAVLINK20"] = "1"  # speak MAVLink 2 from the first packet (pymavlink switches to it anyway)
         try:
-            self.conn = mavutil.mavlink_connection(url, source_system=source_system,
-                                                   source_component=source_component, dialect="common")
+            # pymavlink prints its own retries ("... sleeping") to stdout; the error below says it once
+            with contextlib.redirect_stdout(io.StringIO()):
+                self.conn = mavutil.mavlink_connection(url, source_system=source_system,
+                                                       source_component=source_component, dialect="common")
         except Exception as e:  # noqa: BLE001 - any bad URL / port is one line
             raise FlightError(f"cannot open MAVLink connection {url!r}: {e}") from None
         if tlog is not None:
@@ -251,13 +259,17 @@ class MavlinkVehicle:
         return r
 
     def _wait(self, cond, wall_timeout_s: float, what: str, sim_timeout_s: float | None = None, moving: bool = True,
-              tick_s: float | None = None):
+              tick_s: float | None = None, status=None):
         """Until cond() is truthy; FlightError (StepFailed for sim-time outs) naming `what` otherwise.
 
         `moving`: the condition needs simulation time (lockstep grants it, `tick_s` at a time, default
         lockstep_tick_s); otherwise it is an answer the vehicle sends at once, and in lockstep no time may
-        pass while waiting for it."""
-        wall_end = time.monotonic() + wall_timeout_s
+        pass while waiting for it. `status(elapsed)` (elapsed: simulation seconds when moving, else wall
+        seconds) is a progress line said while the wait lasts (PROGRESS_FIRST_S, then every
+        PROGRESS_EVERY_S of wall clock)."""
+        wall0 = time.monotonic()
+        wall_end = wall0 + wall_timeout_s
+        next_note = wall0 + PROGRESS_FIRST_S
         if self.lockstep and moving:
             self._grant(self._clock_ms)  # a barrier: what the vehicle sent so far has arrived
         sim0 = self.sim_time_s
@@ -265,6 +277,12 @@ class MavlinkVehicle:
             r = cond()
             if r:
                 return r
+            now = time.monotonic()
+            if status is not None and now >= next_note:
+                next_note = now + PROGRESS_EVERY_S
+                sim_now = self.sim_time_s
+                elapsed = sim_now - sim0 if moving and sim0 is not None and sim_now is not None else now - wall0
+                self._say(status(elapsed))
             if time.monotonic() > wall_end:
                 raise FlightError(f"{what}: no answer from the vehicle within {wall_timeout_s:.0f} s (wall clock)")
             if sim_timeout_s is not None and sim0 is not None and self.sim_time_s is not None \
@@ -350,6 +368,41 @@ class MavlinkVehicle:
         if self.progress:
             self.progress(text)
 
+    @property
+    def link_text(self) -> str:
+        """The URL with the port this client really listens on (`udpin:HOST:0` binds a free one)."""
+        scheme, _, rest = self.url.partition(":")
+        if scheme != "udpin":
+            return self.url
+        try:
+            port = self.conn.port.getsockname()[1]
+        except (AttributeError, OSError):
+            return self.url
+        return f"udpin:{rest.rpartition(':')[0]}:{port}"
+
+    def _where(self, elapsed_s: float) -> str:
+        """'at E .. N .. U .. m  flew .. s', the per-step lines' style, for progress lines."""
+        p = self.position_enu()
+        at = "no position yet" if p is None else f"at E {p[0]:6.1f} N {p[1]:6.1f} U {p[2]:5.1f} m"
+        return f"{at}  flew {elapsed_s:5.1f} s"
+
+    def _missing_health(self) -> str:
+        """What the health check still waits for, e.g. 'GPS, position'."""
+        s, missing = self._sys_status, []
+        if s is None:
+            missing.append("SYS_STATUS")
+        else:
+            ok = s.onboard_control_sensors_present & s.onboard_control_sensors_health
+            missing += [name for bit, name in ((M.MAV_SYS_STATUS_SENSOR_3D_GYRO, "gyro"),
+                                               (M.MAV_SYS_STATUS_SENSOR_3D_ACCEL, "accel"),
+                                               (M.MAV_SYS_STATUS_SENSOR_3D_MAG, "mag"),
+                                               (M.MAV_SYS_STATUS_SENSOR_GPS, "GPS")) if not ok & bit]
+        if self._gpos is None:
+            missing.append("position")
+        if self._ext_state is None:
+            missing.append("landed state")
+        return ", ".join(missing) or "nothing"
+
     # ------------------------------------------------------------------ state
     def position_enu(self) -> np.ndarray | None:
         """The vehicle's reported position in the scene frame (its estimate)."""
@@ -357,6 +410,10 @@ class MavlinkVehicle:
         if g is None:
             return None
         return wire.position_enu(g, self.origin)
+
+    def _distance_to(self, target) -> float:
+        p = self.position_enu()
+        return math.nan if p is None else float(np.linalg.norm(p - target))
 
     def velocity_enu(self) -> np.ndarray | None:
         g = self._gpos
@@ -379,8 +436,10 @@ class MavlinkVehicle:
     def connect(self) -> None:
         """Wait for the autopilot's heartbeat and health (gyro, accel, mag, GPS) and a position."""
         st = self.settings
-        self._say(f"connecting to {self.url} ...")
-        self._wait(lambda: self._hb, st.connect_timeout_s, f"no heartbeat on {self.url}", moving=False)
+        self._say(f"connecting to {self.link_text} ...")
+        self._wait(lambda: self._hb, st.connect_timeout_s, f"no heartbeat on {self.link_text}", moving=False,
+                   status=lambda el: f"connecting  no heartbeat yet on {self.link_text}  "
+                                     f"{el:.0f} s of {st.connect_timeout_s:.0f} s")
         self._heartbeat(force=True)
         if st.lockstep:
             self.lockstep = self._grant(0) == M.MAV_RESULT_ACCEPTED
@@ -388,7 +447,10 @@ class MavlinkVehicle:
                 self._say("the vehicle does not run in lockstep: this flight will not be reproducible from its seed")
         for mid, hz in STREAM_RATES_HZ.items():
             self.command_long(M.MAV_CMD_SET_MESSAGE_INTERVAL, mid, 1e6 / hz if hz > 0 else -1)
-        self._wait(self._healthy, st.connect_timeout_s, "vehicle not healthy (SYS_STATUS sensors, position)")
+        wall0 = time.monotonic()
+        self._wait(self._healthy, st.connect_timeout_s, "vehicle not healthy (SYS_STATUS sensors, position)",
+                   status=lambda _: f"connecting  waiting for the vehicle's health ({self._missing_health()})  "
+                                    f"{time.monotonic() - wall0:.0f} s of {st.connect_timeout_s:.0f} s")
         self.connected_sim_s = self.sim_time_s
 
     def take_off(self) -> None:
@@ -411,7 +473,8 @@ class MavlinkVehicle:
         self._say(f"taking off to {self.config.altitude_m:.0f} m")
         self._wait(lambda: self.mode() == MODE_TAKEOFF or self._at_alt(alt_amsl), st.wall_timeout_s, "takeoff start")
         self._wait(lambda: self.mode() == MODE_HOLD and self._at_alt(alt_amsl), st.wall_timeout_s, "takeoff",
-                   sim_timeout_s=st.takeoff_timeout_s)
+                   sim_timeout_s=st.takeoff_timeout_s,
+                   status=lambda el: f"take-off  {self._where(el)}  (to {self.config.altitude_m:.0f} m)")
 
     def _at_alt(self, alt_amsl: float, tol_m: float = 1.0) -> bool:
         return self._gpos is not None and abs(wire.lla(self._gpos)[2] - alt_amsl) < tol_m
@@ -433,7 +496,9 @@ class MavlinkVehicle:
             t0 = getattr(self._last_ack, "_sim_s", None) or self.sim_time_s or 0.0
             self._settle.reset_before(t0)
             self._wait(lambda: self._settle.done_at, st.wall_timeout_s, f"goto {np.round(target, 1).tolist()}",
-                       sim_timeout_s=st.step_timeout_s)
+                       sim_timeout_s=st.step_timeout_s,
+                       status=lambda el: f"flying    {self._where(el)}  (to E {target[0]:.1f} N {target[1]:.1f}, "
+                                         f"{self._distance_to(target):.1f} m to go)")
             return self._settle.done_at - t0
         finally:
             self._settle = None
@@ -507,8 +572,10 @@ class MavlinkVehicle:
         if r != M.MAV_RESULT_ACCEPTED:
             raise FlightError(f"{st.end_action} refused (MAV_RESULT {r})")
         self._say("landing" if st.end_action == "land" else "returning to launch")
+        what = "landing" if st.end_action == "land" else "returning"
         self._wait(lambda: not self.armed, st.wall_timeout_s, f"{st.end_action} until disarmed",
-                   sim_timeout_s=300.0, tick_s=st.land_tick_s)
+                   sim_timeout_s=300.0, tick_s=st.land_tick_s,
+                   status=lambda el: f"{what:<9} {self._where(el)}  (until landed and disarmed)")
         self.in_air = False
         return "landed" if st.end_action == "land" else "returned and landed"
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -29,12 +30,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from tqdm import tqdm
 
 from ..errors import MissionError
 from ..flight.camera import SCENE_FILE
 from ..flight.sitl_process import SitlProcess
 from ..logs.flight_log import FlightLogWriter
+from ..parallel import Executor, map_scenes
 from ..paths import RUNS_DIR
 from ..world.scene import load_scene
 from ..world.settings import scene_seeds
@@ -252,16 +253,17 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
 LAND_DESCENT_M_S = 3.0
 
 
-def _start_sitl(run_dir: Path, mission, api_port: int, gcs_port: int) -> SitlProcess:
+def _start_sitl(run_dir: Path, mission, api_port: int, gcs_port: int, progress=None) -> SitlProcess:
     """The simulated vehicle for `mission`: its scene, noise seed, home, pacing and lockstep. Returns at once:
     the vehicle starts while the controller loads its agent (`wait_ready()` before flying)."""
-    s, h = mission.flight, mission.home
+    s, h, c = mission.flight, mission.home, mission.camera
     scene = ["--scene-file", str(mission.spec_path)] if mission.spec_path is not None else \
         ["--scene", str(mission.scene.seed), "--cells", str(mission.scene.k)]
     return SitlProcess(run_dir, *scene, "--seed", str(s.vehicle_seed), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}",
                        "--param", f"MPC_Z_VEL_MAX_DN={LAND_DESCENT_M_S:g}",
+                       "--camera-hfov", f"{c.hfov_deg:g}", "--camera-size", f"{c.width_px}x{c.height_px}",
                        speed="max" if s.speed == "max" else f"{float(s.speed):g}", lockstep=s.lockstep,
-                       api_port=api_port, gcs_port=gcs_port, wait=False)
+                       api_port=api_port, gcs_port=gcs_port, wait=False, progress=progress)
 
 
 def default_run_dir(mission) -> Path:
@@ -283,11 +285,16 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
     phases = {"start_unix": time.time()}  # then: wall seconds since the start at which each stage ended
     config = mission.search_config()
     run_dir = Path(out) if out else default_run_dir(mission)
+    made_run_dir = not run_dir.exists()
     log = FlightLogWriter(run_dir)
     (run_dir / "mission.json").write_text(mission.model_dump_json(indent=2) + "\n")
     url = connect or "udpin:127.0.0.1:0"
-    vehicle = MavlinkVehicle(url, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
-                             image_dir=run_dir / "images", progress=progress)
+    try:
+        vehicle = MavlinkVehicle(url, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
+                                 image_dir=run_dir / "images", progress=progress)
+    except FlightError:
+        _discard(log, run_dir, made_run_dir)
+        raise
     sitl = None
     rec, status, end, fwall0 = None, "not started", "", None
     try:
@@ -297,7 +304,9 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
                 else f"scene {mission.spec_path}"
             progress(f"starting uavsearch sitl ({desc}, speed {mission.flight.speed}) -> API link udp "
                      f"127.0.0.1:{port}")
-            sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port)
+            sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port, progress=progress)
+        progress(f"models    loading {mission.fusion} fusion + {mission.policy} policy (torch)"
+                 + (" while the vehicle starts ..." if sitl is not None else " ..."))
         import torch  # while the vehicle starts (see the note at the imports)
 
         torch.set_num_threads(int(torch_threads))
@@ -332,7 +341,8 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             log.failure(step=None, error=str(e), sim_time_s=vehicle.sim_time_s)
         try:
             end = vehicle.finish()
-            progress(f"{end}")
+            if end != "not flown":
+                progress(end)
         except FlightError as e:
             end = f"end action failed: {e or type(e).__name__}"
             progress(end)
@@ -345,6 +355,13 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         vehicle.close()
         if sitl is not None:
             sitl.stop(wait=False)  # it closes its links and exits on its own; nothing here needs its exit
+    if connect is not None and vehicle.mode() is None and made_run_dir:
+        # Nothing answered: no flight happened, so no flight log is left behind to be mistaken for one.
+        _discard(log, run_dir, made_run_dir)
+        if status == "interrupted":
+            raise KeyboardInterrupt
+        raise FlightError(f"{status.removeprefix('failed: ')}; nothing flown, no flight log kept "
+                          f"(is a vehicle running and sending to {vehicle.link_text}?)")
     fused = None if rec is None or not rec.records else np.asarray(rec.records[-1]["fused"])
     acc = None if fused is None else float(map_accuracy(fused, labels))
     f1 = None if fused is None else float(map_f1(fused, labels))
@@ -366,6 +383,13 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
 
     write_flown_plan(run_dir)  # the flown search as a QGroundControl plan
     return result
+
+
+def _discard(log: FlightLogWriter, run_dir: Path, made: bool) -> None:
+    """Close the log and remove the run directory this flight created (only that one)."""
+    log.close()
+    if made:
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def format_maps(fused, labels, n: int) -> str:
@@ -409,33 +433,42 @@ def teleport_episode(mission, loaded: LoadedAgent | None = None):
     return ep.maps[0, -1].numpy(), pos, labels
 
 
+def flight_vs_teleport_scene(job) -> dict:
+    """The per-scene task: fly (mission, scene seed) and run the same episode teleported; one table row.
+    The flight log goes to <out>/flight_scene<seed> on the machine that flew it."""
+    mission, seed, out = job
+    r = fly(mission, out=Path(out) / f"flight_scene{seed}", progress=lambda s: None, gcs_port=0)
+    fused_t, pos_t, labels = teleport_episode(mission)
+    return dict(scene=seed, status=r.status.split(":")[0], flight_acc=r.acc, flight_f1=r.f1,
+                teleport_acc=float(map_accuracy(fused_t, labels)), teleport_f1=float(map_f1(fused_t, labels)),
+                same_route=bool(len(r.positions) == len(pos_t) and np.allclose(np.asarray(r.positions), pos_t)),
+                wall_s=r.wall_s, flight_wall_s=r.flight_wall_s, sim_s=r.sim_time_s)
+
+
 def eval_flight_vs_teleport(mission, setting: int = 2, split: str = "paper", speed="max", out=None,
-                            scenes: list[int] | None = None, progress: bool = True) -> dict:
+                            scenes: list[int] | None = None, progress: bool = True,
+                            executor: Executor | None = None) -> dict:
     """Fly the mission on every test scene of a setting and run the same episode in teleport mode.
 
     The policy acts greedily (its most likely move) in both modes, so the two runs take the same route
     unless a view's outputs differ enough to change a decision; what separates them is then the flown
     vehicle's pose error (projection at the reported pose) and the render at the true, not the nominal, pose.
-    `mission` (a missions.Mission) gives everything but the scene.
+    `mission` (a missions.Mission) gives everything but the scene. Each scene is one task
+    (flight_vs_teleport_scene) on `executor` (default: one at a time, here).
     """
     base = mission.with_overrides(**{"scene.setting": setting, "scene.occupied_cells": None,
                                                          "greedy_policy": True, "flight.speed": speed})
     seeds = scenes or scene_seeds(setting, split, "test")
     out = Path(out or RUNS_DIR / f"eval_flight_s{setting}")
     out.mkdir(parents=True, exist_ok=True)
-    loaded = base.agent()
-    rows = []
-    for seed in tqdm(seeds, desc=f"flight vs teleport, setting {setting}", disable=not progress):
-        m = base.with_overrides(**{"scene.seed": seed})
-        r = fly(m, out=out / f"flight_scene{seed}", progress=lambda s: None, gcs_port=0)
-        fused_t, pos_t, labels = teleport_episode(m, loaded)
-        row = dict(scene=seed, status=r.status.split(":")[0], flight_acc=r.acc, flight_f1=r.f1,
-                   teleport_acc=float(map_accuracy(fused_t, labels)), teleport_f1=float(map_f1(fused_t, labels)),
-                   same_route=bool(len(r.positions) == len(pos_t) and np.allclose(np.asarray(r.positions), pos_t)),
-                   wall_s=r.wall_s, flight_wall_s=r.flight_wall_s, sim_s=r.sim_time_s)
-        rows.append(row)
+
+    def record(_, row):
         with open(out / "flight_vs_teleport.jsonl", "a") as f:
             f.write(json.dumps(row) + "\n")
+
+    jobs = [(base.with_overrides(**{"scene.seed": seed}), int(seed), str(out.resolve())) for seed in seeds]
+    rows = map_scenes(flight_vs_teleport_scene, jobs, executor or Executor("local", 1),
+                      desc=f"flight vs teleport, setting {setting}", progress=progress, on_result=record)
     ok = [r for r in rows if r["flight_acc"] is not None]
     mean = lambda k: float(np.mean([r[k] for r in ok])) if ok else float("nan")  # noqa: E731
     summary = dict(setting=setting, split=split, scenes=len(rows), completed=len(ok),

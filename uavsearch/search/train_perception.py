@@ -36,8 +36,9 @@ from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
+from uavsearch.parallel import Executor, ScaleOutArgs, Store
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
-from uavsearch.viz import pyplot
+from uavsearch.viz import pyplot, save_figure
 
 from .config import SearchConfig, lattice_positions
 from .dataset import DATA_DIR, ViewSet, ViewSetSpec, generate_views, load_views, perception_scenes
@@ -47,7 +48,7 @@ from .perception import PerceptionConfig, PerceptionNet, images_to_tensor, save_
 
 
 @dataclass
-class Args:
+class Args(ScaleOutArgs):
     exp_name: str = opt("perception", "the run's name in runs/")
     seed: int = opt(1, "seeds numpy, torch and the scene/position draw")
     train_scenes: int = opt(150, "training scenes (large-split train seeds of settings 1-3, K drawn in 1..12)")
@@ -55,8 +56,7 @@ class Args:
     val_scenes: int = opt(30, "validation scenes (large-split val seeds), K drawn in 1..12")
     val_views_per_scene: int = opt(4, "lattice positions per validation scene (the start view included)",
                                    flag="--val-views")
-    data_dir: str = opt(str(DATA_DIR), "where rendered view sets are cached")
-    workers: int = opt(2, "rendering processes")
+    data_dir: str = opt(str(DATA_DIR), "where rendered view sets are cached (a folder or an fsspec URL)")
     steps: int = opt(800, "optimiser steps")
     batch_size: int = opt(32, "views per mini-batch (paper: 32)")
     lr: float = opt(1e-3, "Adam learning rate (cosine-decayed to 5% of it); from scratch, not fine-tuning")
@@ -149,8 +149,12 @@ def evaluate(net: PerceptionNet, views: ViewSet, centre_index: int) -> dict[str,
 
 
 def _plot_curves(rows: list[dict], path: Path) -> None:
-    plt = pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+    save_figure(curves_figure(rows), path)
+
+
+def curves_figure(rows: list[dict]):
+    """Stage 1's learning curves: training loss, validation metrics."""
+    fig, (a, b) = pyplot().subplots(1, 2, figsize=(10, 3.8), layout="constrained")
     tr = [r for r in rows if r.get("losses/train_loss") not in (None, "")]
     if tr:
         st = np.array([r["step"] for r in tr])
@@ -168,9 +172,7 @@ def _plot_curves(rows: list[dict], path: Path) -> None:
             b.plot(st, [r[key] for r in ev], marker="o", ms=3, label=lab)
         b.set_xlabel("step"), b.set_ylabel("validation"), b.set_ylim(0, 1), b.legend(), b.grid(alpha=0.3)
     fig.suptitle("Stage 1: one-view perception training")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
 def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
@@ -181,14 +183,14 @@ def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     val_spec = ViewSetSpec(f"val_v{args.val_views_per_scene}_s{args.seed}",
                            perception_scenes("val", args.val_scenes, args.seed),
                            views_per_scene=args.val_views_per_scene, seed=args.seed)
-    root = Path(args.data_dir)
+    root, executor = Store(args.data_dir), Executor.from_args(args)
     t0 = time.perf_counter()
-    tr_root = generate_views(train_spec, root / train_spec.name, args.workers, args.progress)
-    va_root = generate_views(val_spec, root / val_spec.name, args.workers, args.progress)
+    tr_root = generate_views(train_spec, root.path(train_spec.name), progress=args.progress, executor=executor)
+    va_root = generate_views(val_spec, root.path(val_spec.name), progress=args.progress, executor=executor)
     render_s = time.perf_counter() - t0
     train, val = load_views(tr_root, train_spec.scenes), load_views(va_root, val_spec.scenes)
     print(f"data: {len(train)} training views of {args.train_scenes} scenes, {len(val)} validation views of "
-          f"{args.val_scenes} scenes ({render_s:.0f} s to render / load from {root})")
+          f"{args.val_scenes} scenes ({render_s:.0f} s to render / load from {root.url})")
     return train, val, len(lattice_positions(SearchConfig())) // 2
 
 

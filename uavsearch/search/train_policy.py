@@ -40,6 +40,7 @@ from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
+from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
 from uavsearch.viz import pyplot
 
@@ -55,7 +56,7 @@ from .view_cache import get_view_cache
 
 
 @dataclass
-class Args:
+class Args(ScaleOutArgs):
     setting: int = opt(2, "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)")
     fusion: str = opt("learned", "fusion the policy is trained with and rewarded through",
                       choices=tuple(FUSION_METHODS))
@@ -88,7 +89,6 @@ class Args:
     threads: int = opt(1, "torch CPU threads")
     cache_dir: str | None = opt(None, "view cache root (default cache/)")
     runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
-    workers: int = opt(2, "rendering processes when a view cache must be built")
     progress: bool = opt(True, "progress bar")
     plot: bool = opt(True, "write learning_curve.png at the end")
 
@@ -115,7 +115,7 @@ def check_args(args: Args) -> None:
 def load_caches(args: Args):
 
     net, _ = load_perception(args.perception)
-    kw = dict(cache_dir=args.cache_dir, workers=args.workers, progress=args.progress)
+    kw = dict(cache_dir=args.cache_dir, progress=args.progress, executor=Executor.from_args(args))
     return get_view_cache(net, args.setting, args.split, "train", **kw), get_view_cache(net, args.setting, args.split, "val", **kw)
 
 

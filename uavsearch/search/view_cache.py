@@ -12,7 +12,7 @@ Two layers, both under the gitignored ``cache/`` folder:
    (world_tag) fingerprints a probe scene's spec and rendered start view plus the splits and the search
    config, so a change to how scenes are made or drawn never silently reuses old renders.
 2. Perception outputs, one ``.npz`` per (world, perception weights, split, setting, part):
-   ``cache/search_views/<world tag>-<perception tag>/<split>_s<setting>_<part>.npz`` (numpy.savez):
+   ``cache/search_views/<world tag>-<perception tag>/<split>_s<setting>_<part>.npz`` (parallel.npz_bytes):
 
        format           () str        "uavsearch-search-views/1"
        perception_tag   () str        first 16 hex of sha256 over the perception state dict
@@ -27,16 +27,18 @@ Two layers, both under the gitignored ``cache/`` folder:
 
    P indexes config.lattice_positions (row-major from the NW corner; the centre is P // 2).
 
-A run is resumable at layer 1 (dataset.generate_views skips finished shards); layer 2 is one pass of the
-CNN over the rendered images (about a minute for a whole paper split on one core).
+A run is resumable at layer 1 (dataset.generate_views skips finished shards; its scenes run on local
+processes or on Ray, parallel.map_scenes); layer 2 is one pass of the CNN over the rendered images, in this
+process (about a minute for a whole paper split on one core). ``cache_dir`` may be an fsspec URL (e.g.
+s3://bucket/uavsearch-cache) that every node of a cluster reaches.
 """
 
 from __future__ import annotations
 
 import functools
 import hashlib
+import io
 import json
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -46,19 +48,17 @@ import torch
 from tqdm import tqdm
 
 from uavsearch.errors import UavsearchError
+from uavsearch.parallel import Executor, Store, npz_bytes
 from uavsearch.paths import REPO_ROOT
 from uavsearch.world import settings
-from uavsearch.world.scene import generate_scene, scene_to_json
 from uavsearch.world.settings import SETTINGS, scene_seeds
 
 from .config import SearchConfig, lattice_positions
-from .dataset import ViewSetSpec, generate_views, load_views
-from .views import TeleportVehicle
+from .dataset import ViewSetSpec, generate_views, load_views, probe_render
 
 FORMAT = "uavsearch-search-views/1"
 CACHE_DIR = REPO_ROOT / "cache"
 PARTS = ("train", "val", "test")
-PROBE_SCENE = (424242, 5)  # (seed, K) of the scene whose start view fingerprints the renderer
 
 
 class ViewCache(NamedTuple):
@@ -113,14 +113,10 @@ def world_tag() -> str:
     scene splits and the search config. Any change to how scenes are generated or drawn changes it (and
     so never silently reuses old renders); edits that change no pixel do not. About a second, once per
     process."""
-
-    config = SearchConfig()
-    probe = generate_scene(PROBE_SCENE[0], PROBE_SCENE[1])
-    with TeleportVehicle(probe, config, cache=False) as vehicle:
-        view = vehicle.capture([0.0, 0.0, config.altitude_m])
-    h = hashlib.sha256(repr(config).encode())
-    h.update(scene_to_json(probe).encode())
-    h.update(np.ascontiguousarray(view.image).tobytes())
+    config_repr, probe_json, image = probe_render()
+    h = hashlib.sha256(config_repr.encode())
+    h.update(probe_json.encode())
+    h.update(image)
     h.update(Path(settings.SETTINGS_FILE).read_bytes())
     return h.hexdigest()[:12]
 
@@ -146,28 +142,32 @@ def perception_outputs(net, images: np.ndarray, labels: np.ndarray, batch: int =
     return {k: np.concatenate(v).astype(np.float32) for k, v in out.items()}
 
 
-def render_lattice_views(key: CacheKey, scenes=None, root=None, workers: int = 2, progress: bool = True) -> Path:
+def render_lattice_views(key: CacheKey, scenes=None, root=None, workers: int = 2, progress: bool = True,
+                         executor: Executor | None = None):
     """Layer 1: render every lattice position of every scene (resumable); returns the view-set folder."""
     scenes = list(scenes) if scenes is not None else key.scenes()
     n_pos = len(lattice_positions(SearchConfig()))
     spec = ViewSetSpec(name=f"lattice-{key.name}", scenes=tuple((int(s), int(k)) for s, k in scenes),
                        views_per_scene=n_pos, include_start=True, seed=0)
-    root = Path(root) if root is not None else CACHE_DIR / "lattice_views" / world_tag() / key.name
-    return generate_views(spec, root=root, workers=workers, progress=progress)
+    root = root if root is not None else CACHE_DIR / "lattice_views" / world_tag() / key.name
+    return generate_views(spec, root=root, workers=workers, progress=progress, executor=executor)
 
 
 def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: int = 2,
-                     progress: bool = True) -> Path:
-    """Render (if needed) and run perception over one part; returns the .npz path (reused when present)."""
-    cache_dir = Path(cache_dir) if cache_dir is not None else CACHE_DIR
+                     progress: bool = True, executor: Executor | None = None):
+    """Render (if needed) and run perception over one part; returns the .npz path or URL (reused when
+    present). `cache_dir` is a folder or an fsspec URL; `executor` renders the scenes (default: `workers`
+    local processes). Perception runs here, over the stored renders, in scene order."""
+    store = Store(cache_dir if cache_dir is not None else CACHE_DIR)
     tag = perception_tag(net)
     world = world_tag()
-    out = cache_dir / "search_views" / f"{world}-{tag}" / f"{key.name}.npz"
-    if out.is_file():
+    out_key = f"search_views/{world}-{tag}/{key.name}.npz"
+    out = Path(store.path(out_key)) if store.local else store.path(out_key)
+    if store.exists(out_key):
         return out
     scenes = list(scenes) if scenes is not None else key.scenes()
-    root = render_lattice_views(key, scenes, root=cache_dir / "lattice_views" / world / key.name, workers=workers,
-                                progress=progress)
+    root = render_lattice_views(key, scenes, root=store.path(f"lattice_views/{world}/{key.name}"), workers=workers,
+                                progress=progress, executor=executor)
     parts: dict[str, list] = {k: [] for k in ("log_probs", "cell_features", "global_feature", "cell_area_px",
                                               "valid", "occupancy", "scene_seed", "occupied_cells")}
     for s, k in tqdm(scenes, desc=f"perception {key.name}", unit="scene", disable=not progress):
@@ -184,22 +184,22 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
         parts["occupancy"].append(vs.occupancy[0])
         parts["scene_seed"].append(int(s))
         parts["occupied_cells"].append(int(k))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f"{out.stem}.tmp{os.getpid()}.npz")  # two processes building at once never clash
-    np.savez(tmp, format=np.array(FORMAT), perception_tag=np.array(tag),
-             **{k: np.stack(v) if k not in ("scene_seed", "occupied_cells") else np.array(v, np.int64)
-                for k, v in parts.items()})
-    tmp.replace(out)
+    # written whole (two processes building at once never clash), without timestamps (equal caches are equal bytes)
+    store.write_bytes(out_key, npz_bytes({
+        "format": np.array(FORMAT), "perception_tag": np.array(tag),
+        **{k: np.stack(v) if k not in ("scene_seed", "occupied_cells") else np.array(v, np.int64)
+           for k, v in parts.items()}}, compress=False))
     return out
 
 
 def load_view_cache(path) -> ViewCache:
-    """Read a cache .npz written by build_view_cache."""
-    path = Path(path)
-    if not path.is_file():
+    """Read a cache .npz written by build_view_cache (a file or an fsspec URL)."""
+    parent, _, name = str(path).rpartition("/")
+    store = Store(parent or ".")
+    if not store.exists(name):
         raise UavsearchError(f"view cache {path} not found")
     try:
-        with np.load(path) as z:
+        with np.load(io.BytesIO(store.read_bytes(name))) as z:
             if str(z["format"]) != FORMAT:
                 raise KeyError(f"format {z['format']}")
             d = {k: z[k] for k in z.files}
@@ -215,10 +215,10 @@ def load_view_cache(path) -> ViewCache:
 
 
 def get_view_cache(net, setting: int, split: str = "paper", part: str = "train", cache_dir=None,
-                   workers: int = 2, progress: bool = True) -> ViewCache:
+                   workers: int = 2, progress: bool = True, executor: Executor | None = None) -> ViewCache:
     """The cache of one part, building it first if needed (the one call training and evaluation make)."""
     return load_view_cache(build_view_cache(net, CacheKey(setting, split, part), cache_dir=cache_dir,
-                                            workers=workers, progress=progress))
+                                            workers=workers, progress=progress, executor=executor))
 
 
 def describe(cache: ViewCache) -> str:
