@@ -24,7 +24,8 @@ def display_path(path) -> str:
 
 
 def prepare_output(path, kind: str = "dir") -> Path:
-    """Make sure an output folder (kind 'dir') or file (kind 'file') can be written, before any work starts.
+    """Make sure an output folder (kind 'dir') or file (kind 'file') can be written, before any work starts
+    (checked at its nearest existing folder; nothing is created, so a run that fails later leaves no folder).
 
     Any problem (a file where a folder is wanted, no permission, a read-only or missing parent) is one
     UavsearchError line naming the path and the reason, never a traceback half-way through a run.
@@ -39,13 +40,12 @@ def prepare_output(path, kind: str = "dir") -> Path:
         raise UavsearchError(f"cannot write {path}: it is a folder, a file is needed")
     if kind == "dir" and path.exists() and not path.is_dir():
         raise UavsearchError(f"cannot write to {path}: it is a file, a folder is needed")
+    existing = next(p for p in [folder, *folder.parents] if p.exists())  # nothing is created here
+    if not existing.is_dir():
+        raise UavsearchError(f"cannot write to {folder}: {existing} is a file")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=folder):
+        with tempfile.TemporaryFile(dir=existing):
             pass
-    except (FileExistsError, NotADirectoryError):
-        blocker = next((p for p in [folder, *folder.parents] if p.exists()), folder)
-        raise UavsearchError(f"cannot write to {folder}: {blocker} is a file") from None
     except OSError as e:
         raise UavsearchError(f"cannot write to {folder}: {e.strerror or e}") from None
     return path
