@@ -1,4 +1,4 @@
-"""Calibrate the start view's difficulty against the paper (issue 2, item 5).
+"""Calibrate the start view's difficulty against the paper.
 
 At 70 m, nadir, from the centre and from a corner of the 10 m lattice, over N scenes of a setting:
 cell pixel areas (F_size) of cells in view, person pixel counts from the segmentation (pixels touched
