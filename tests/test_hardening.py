@@ -59,12 +59,18 @@ def _heartbeat_gap(c: Client, seconds: float) -> float:
 # ------------------------------------------------------------------------------------------------ camera
 
 
-@pytest.fixture(scope="module")
-def camera_sitl(tmp_path_factory):
-    p = SitlProcess(tmp_path_factory.mktemp("cam"), speed="1", camera=True)
+def _sitl_at_speed_1(tmp_path_factory, name: str, camera: bool):
+    """A module's vehicle at --speed 1; yields it, then returns its log after checking it exited cleanly."""
+    p = SitlProcess(tmp_path_factory.mktemp(name), speed="1", camera=camera)
     yield p
     code, out = p.stop()
     assert code == 0, out
+    return out
+
+
+@pytest.fixture(scope="module")
+def camera_sitl(tmp_path_factory):
+    out = yield from _sitl_at_speed_1(tmp_path_factory, "cam", camera=True)
     assert "Traceback" not in out
 
 
@@ -109,10 +115,7 @@ def test_interval_capture_renders_while_the_vehicle_keeps_answering(camera_sitl)
 
 @pytest.fixture(scope="module")
 def sitl(tmp_path_factory):
-    p = SitlProcess(tmp_path_factory.mktemp("proto"), speed="1", camera=False)
-    yield p
-    code, out = p.stop()
-    assert code == 0, out
+    yield from _sitl_at_speed_1(tmp_path_factory, "proto", camera=False)
 
 
 @pytest.fixture

@@ -22,6 +22,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .errors import MissionError, format_validation_error, read_user_file
+from .flight.mavlink.wire_units import deg_to_e7
 from .flight.mission import (FRAME_GLOBAL_RELATIVE_ALT, FRAME_MISSION, IMAGE_START_CAPTURE, NAV_LAND,
                              NAV_RETURN_TO_LAUNCH, NAV_TAKEOFF, NAV_WAYPOINT, SUPPORTED_COMMANDS, MissionItem)
 
@@ -236,7 +237,7 @@ def save_plan(path, items: list[MissionItem], home_lla, **kw) -> Path:
 
 def _global_item(seq: int, command: int, lat: float, lon: float, rel_alt_m: float, param1: float = 0.0) -> MissionItem:
     return MissionItem(seq=seq, frame=FRAME_GLOBAL_RELATIVE_ALT, command=command, param1=param1,
-                       param4=math.nan, x=int(round(lat * 1e7)), y=int(round(lon * 1e7)), z=float(rel_alt_m))
+                       param4=math.nan, x=deg_to_e7(lat), y=deg_to_e7(lon), z=float(rel_alt_m))
 
 
 def flown_search_items(home: dict, waypoints_enu, end_action: str = "land") -> list[MissionItem]:

@@ -29,6 +29,7 @@ import numpy as np
 
 from ..errors import LogError
 from ..flight.commander import PX4_MODES
+from ..flight.mavlink.wire_units import CM_S, DEG_E7, home_lla, lla, seconds
 from ..geometry import GeodeticOrigin
 
 _MODE_COLOURS = {"TAKEOFF": "#fdd49e", "HOLD": "#c6dbef", "MISSION": "#c7e9c0", "RTL": "#fcbba1",
@@ -92,21 +93,21 @@ def read_telemetry(path) -> Telemetry:
                 continue
             if hasattr(m, "time_boot_ms"):
                 t_ms = max(t_ms, int(m.time_boot_ms))
-            t = t_ms * 1e-3
+            t = seconds(t_ms)
             if typ == "GLOBAL_POSITION_INT" and comp == 1:
                 for k, v in zip(("t", "lat", "lon", "alt", "vn", "ve", "vd"),
-                                (t, m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3, m.vx * 0.01, m.vy * 0.01, m.vz * 0.01)):
+                                (t, *lla(m), m.vx * CM_S, m.vy * CM_S, m.vz * CM_S)):
                     tel.pos[k].append(v)
             elif typ == "ATTITUDE" and comp == 1:
                 for k, v in zip(("t", "roll", "pitch", "yaw"), (t, m.roll, m.pitch, m.yaw)):
                     tel.att[k].append(math.degrees(v) if k != "t" else v)
             elif typ == "GPS_RAW_INT" and comp == 1 and m.fix_type >= 3:
                 tg = m.time_usec * 1e-6 if 0 < m.time_usec < 1e12 else t  # time since boot, as PX4 sends it
-                for k, v in zip(("t", "lat", "lon", "alt"), (tg, m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3)):
+                for k, v in zip(("t", "lat", "lon", "alt"), (tg, *lla(m))):
                     tel.gps[k].append(v)
             elif typ == "SIM_STATE":
-                for k, v in zip(("t", "lat", "lon", "alt"), (t, m.lat_int * 1e-7 if m.lat_int else m.lat,
-                                                             m.lon_int * 1e-7 if m.lon_int else m.lon, m.alt)):
+                for k, v in zip(("t", "lat", "lon", "alt"), (t, m.lat_int * DEG_E7 if m.lat_int else m.lat,
+                                                             m.lon_int * DEG_E7 if m.lon_int else m.lon, m.alt)):
                     tel.truth[k].append(v)
             elif typ == "HEARTBEAT" and comp == 1:
                 mode = (mode_name(m.custom_mode), bool(m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED))
@@ -118,9 +119,9 @@ def read_telemetry(path) -> Telemetry:
                 tel.events.append((t, sev, str(m.text).rstrip("\x00")))
             elif typ == "CAMERA_IMAGE_CAPTURED" and m.capture_result == 1 and m.image_index not in seen_caps:
                 seen_caps.add(m.image_index)
-                tel.captures.append((t, m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3, int(m.image_index)))
+                tel.captures.append((t, *lla(m), int(m.image_index)))
             elif typ == "HOME_POSITION" and tel.home is None:
-                tel.home = (m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3)
+                tel.home = home_lla(m)
     finally:
         conn.close()
     if sysid is None:
