@@ -53,12 +53,15 @@ def test_perception_scenes_avoid_test_seeds_and_cover_densities():
 
 def test_shards_hold_the_documented_arrays(tiny_root):
     man = json.loads((tiny_root / "manifest.json").read_text())
-    assert man["format"] == "uavsearch-views/1" and man["spec"]["views_per_scene"] == 2
+    assert man["format"] == "uavsearch-views/2" and man["spec"]["views_per_scene"] == 2
     with np.load(shard_path(tiny_root, S0, K0)) as z:
         assert z["images"].shape == (2, 224, 224, 3) and z["images"].dtype == np.uint8
         assert z["cell_area_px"].shape == (2, 100) and z["cells_in_view"].dtype == bool
         assert int(z["occupancy"].sum()) == K0 and int(z["occupied_cells"]) == K0
         assert z["person_px"].shape == (2, 100)
+        assert z["person_frac"].shape == (2, *z["images"].shape[1:3]) and z["person_frac"].dtype == np.uint8
+        # the dense target agrees with the per-cell counts: a cell counts a pixel iff some person covers it
+        assert (z["person_frac"] > 0).sum() >= z["person_px"].sum() > 0
 
 
 def test_load_views_and_label_images(tiny_root):

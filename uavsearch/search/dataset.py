@@ -14,6 +14,8 @@ once and kept. A dataset is a folder, local or at an fsspec URL (parallel.Store)
         cell_area_px   (V, N*N) float32     F_size of every cell (clipped image polygon area)
         cells_in_view  (V, N*N) bool        c^t
         person_px      (V, N*N) int32       pixels showing a person inside each cell (diagnostics only)
+        person_frac    (V, H, W) uint8      share of each pixel showing a person x 255: the dense target of
+                                            perception's auxiliary person head (mostly zeros: compresses well)
         occupancy      (N*N,) int8          ground truth of the scene
         scene_seed, occupied_cells          ()-shaped int64
 
@@ -51,7 +53,7 @@ from uavsearch.world.settings import SETTINGS, scene_seeds
 from .config import SearchConfig, lattice_positions
 from .views import TeleportVehicle
 
-FORMAT = "uavsearch-views/1"
+FORMAT = "uavsearch-views/2"
 DATA_DIR = REPO_ROOT / "data" / "views"
 PROBE_SCENE = (424242, 5)  # (seed, K) of the scene whose start view fingerprints the renderer
 
@@ -159,7 +161,7 @@ def render_scene_shard(job: tuple[dict, Store, int, int, str]) -> dict:
     idx = positions_for_scene(spec, scene_seed, k, len(lattice))
     scene = generate_scene(int(scene_seed), int(k))
     n_cells = config.grid.num_cells
-    images, areas, inview, person_px = [], [], [], []
+    images, areas, inview, person_px, person_frac = [], [], [], [], []
     with TeleportVehicle(scene, config, cache=False) as vehicle:
         for i in idx:
             view = vehicle.capture(lattice[i])
@@ -169,6 +171,8 @@ def render_scene_shard(job: tuple[dict, Store, int, int, str]) -> dict:
             lab = view.cell_label
             pm = view.person_mask if view.person_mask is not None else np.zeros(lab.shape, bool)
             person_px.append(np.bincount(lab[pm & (lab >= 0)].astype(np.int64), minlength=n_cells)[:n_cells])
+            frac = view.person_fraction if view.person_fraction is not None else pm.astype(np.float32)
+            person_frac.append(np.round(np.clip(frac, 0.0, 1.0) * 255.0).astype(np.uint8))
     data = npz_bytes(dict(
         images=np.stack(images).astype(np.uint8),
         lattice_index=idx,
@@ -176,6 +180,7 @@ def render_scene_shard(job: tuple[dict, Store, int, int, str]) -> dict:
         cell_area_px=np.stack(areas).astype(np.float32),
         cells_in_view=np.stack(inview).astype(bool),
         person_px=np.stack(person_px).astype(np.int32),
+        person_frac=np.stack(person_frac),
         occupancy=scene.occupancy_array().astype(np.int8),
         scene_seed=np.int64(scene_seed),
         occupied_cells=np.int64(k),
@@ -265,13 +270,14 @@ class ViewSet(NamedTuple):
     occupancy: np.ndarray  # (V, N*N) int8, the scene's ground truth repeated per view
     scene_seed: np.ndarray  # (V,) int64
     occupied_cells: np.ndarray  # (V,) int64
+    person_frac: np.ndarray | None = None  # (V, H, W) uint8, loaded on request (load_views(person_frac=True))
 
     def __len__(self) -> int:
         return len(self.images)
 
     def subset(self, rows) -> "ViewSet":
         rows = np.asarray(rows)
-        return ViewSet(*(x if name == "labels" else x[rows] for name, x in zip(self._fields, self)))
+        return ViewSet(*(x if name == "labels" or x is None else x[rows] for name, x in zip(self._fields, self)))
 
     def label_images(self, rows) -> np.ndarray:
         return self.labels[self.label_id[np.asarray(rows)]]
@@ -299,9 +305,10 @@ def shards_in(root) -> list[tuple[int, int]]:
     return sorted(out)
 
 
-def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only: bool = False) -> ViewSet:
+def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only: bool = False,
+               person_frac: bool = False) -> ViewSet:
     """Load the given scenes of a view set (default: every finished shard, sorted); `start_only` keeps the
-    start (lattice centre) views."""
+    start (lattice centre) views; `person_frac` also loads the dense person targets."""
     man = read_manifest(root)
     spec = ViewSetSpec.from_json({**man["spec"], "scenes": [[0, 0]]})
     config = search_config(spec)
@@ -311,6 +318,8 @@ def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only
     parts: dict[str, list] = {k: [] for k in ("images", "lattice_index", "position_enu", "cell_area_px",
                                               "cells_in_view", "person_px", "occupancy", "scene_seed",
                                               "occupied_cells")}
+    if person_frac:
+        parts["person_frac"] = []
     store = Store(root)
     for s, k in wanted:
         path = store.path(shard_key(s, k))
@@ -319,7 +328,8 @@ def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only
         try:
             with np.load(io.BytesIO(store.read_bytes(shard_key(s, k)))) as z:
                 rows = np.flatnonzero(z["lattice_index"] == centre) if start_only else np.arange(len(z["lattice_index"]))
-                for key in ("images", "lattice_index", "position_enu", "cell_area_px", "cells_in_view", "person_px"):
+                for key in ("images", "lattice_index", "position_enu", "cell_area_px", "cells_in_view", "person_px",
+                            *(("person_frac",) if person_frac else ())):
                     parts[key].append(z[key][rows])
                 parts["occupancy"].append(np.repeat(z["occupancy"][None], len(rows), 0))
                 parts["scene_seed"].append(np.full(len(rows), int(z["scene_seed"])))
@@ -336,5 +346,5 @@ def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only
         images=cat["images"], label_id=label_id.astype(np.int64), labels=labels,
         lattice_index=cat["lattice_index"], position_enu=cat["position_enu"], cell_area_px=cat["cell_area_px"],
         cells_in_view=cat["cells_in_view"], person_px=cat["person_px"], occupancy=cat["occupancy"],
-        scene_seed=cat["scene_seed"], occupied_cells=cat["occupied_cells"],
+        scene_seed=cat["scene_seed"], occupied_cells=cat["occupied_cells"], person_frac=cat.get("person_frac"),
     )

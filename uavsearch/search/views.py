@@ -28,6 +28,7 @@ class View:
     cell_area_px: np.ndarray  # (num_cells,) float32: F_size, clipped image polygon area
     cells_in_view: np.ndarray  # (num_cells,) bool: c^t
     person_mask: np.ndarray | None = None  # (H, W) bool ground truth, when the vehicle knows it
+    person_fraction: np.ndarray | None = None  # (H, W) float32 share of each pixel showing a person, likewise
 
 
 def make_view(
@@ -37,6 +38,7 @@ def make_view(
     intrinsics: CameraIntrinsics,
     person_mask: np.ndarray | None = None,
     min_cell_area_px: float = 1.0,
+    person_fraction: np.ndarray | None = None,
 ) -> View:
     """Project the grid into an image taken at `pose` (Eq. 1) and package it."""
     areas = cell_pixel_areas(grid, intrinsics, pose).astype(np.float32)
@@ -48,6 +50,7 @@ def make_view(
         cell_area_px=areas,
         cells_in_view=areas >= min_cell_area_px,
         person_mask=person_mask,
+        person_fraction=person_fraction,
     )
 
 
@@ -89,7 +92,7 @@ class TeleportVehicle:
         r = self._renderer.render(pose, self._rng_for(key[:2]))
         self.renders += 1
         view = make_view(r.rgb, pose, self.config.grid, self.config.intrinsics, r.person_mask,
-                         self.config.min_cell_area_px)
+                         self.config.min_cell_area_px, r.person_fraction)
         if self._cache is not None:
             self._cache[key] = view
         return view
