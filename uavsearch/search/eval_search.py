@@ -17,6 +17,17 @@ Each stochastic method runs `episodes` episodes per test scene for each of `seed
 standard deviation over seeds of the per-seed means. Deterministic methods (single view, coverage,
 greedy) give the same number for every seed.
 
+A row whose checkpoint is missing from `models_dir` (a user may have trained only some) is left out
+with a one-line notice. Beside the table (bounds.py):
+
+- paired comparison: every row minus the coverage route and minus the greedy route, per test scene, with
+  a 95% bootstrap interval over scenes and the scenes won / tied / lost (table2_paired.csv);
+- the share of the single-view -> oracle fusion + policy AF1 gap each row closes;
+- bounds and difficulty per setting: single-view AF1, the occupied cells hidden from the start view
+  (and from every view), the hindsight-best route (the best of all move sequences per scene, learned
+  fusion), the best single fixed route, hindsight-best minus coverage, and the label-peeking greedy where
+  installed (table2_bounds.csv).
+
 Everything goes through search_loop.run_search over cached perception outputs (view_cache.py); the same
 loop flies a vehicle (search_loop.LiveViews), and agents.build_agent builds the agents of both.
 """
@@ -41,10 +52,12 @@ from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.world.settings import SETTINGS
 from uavsearch.viz import pyplot, save_figure
 
-from .agents import build_agent, checkpoint_path, needs_confidence
+from .agents import POLICIES, build_agent, checkpoint_path, needs_confidence
+from .bounds import RESAMPLES, bootstrap_ci, hidden_shares, label_greedy_af1, paired_differences, route_bounds
 from .config import SearchConfig
 from .metrics import map_accuracy, map_f1
 from .perception import load_perception
+from .policy import load_search_model
 from .search_loop import Agent, CachedViews, Episode, run_search
 from .view_cache import get_view_cache
 
@@ -63,7 +76,38 @@ ROWS: tuple[tuple[str, str, str, str], ...] = (
     ("learned_greedy", "learned confidence fusion + greedy uncertainty", "learned", "greedy"),
 )
 NON_ORACLE = [r[0] for r in ROWS if r[2] != "oracle"]
+LABELS = {key: label for key, label, _, _ in ROWS}
+REFERENCES = ("learned_coverage", "learned_greedy")  # the fixed baselines every row is paired with
 model_path = checkpoint_path  # where the shipped policy trained with a fusion for a setting lives
+
+
+def policy_checkpoint(setting: int, fusion: str, policy: str, models_dir=None) -> Path | None:
+    """The checkpoint a row's policy loads (None for a policy built from the config)."""
+    if POLICIES[policy].build is not None:
+        return None
+    if policy == "learned":
+        return checkpoint_path(setting, fusion, models_dir)
+    return checkpoint_path(setting, fusion, models_dir, policy=policy)
+
+
+def row_checkpoints(setting: int, fusion: str, policy: str, models_dir=None) -> list[Path]:
+    """Every file a row needs: its policy's checkpoint, and the confidence net's for learned fusion."""
+    need = [policy_checkpoint(setting, fusion, policy, models_dir)]
+    if needs_confidence(fusion):
+        need.append(checkpoint_path(setting, "learned", models_dir))
+    return [p for p in need if p is not None]
+
+
+def available_rows(setting: int, models_dir=None) -> tuple[list[str], list[str]]:
+    """(keys of the rows whose checkpoints exist, one notice per row left out)."""
+    keys, notices = [], []
+    for key, label, fusion, policy in ROWS:
+        missing = [p for p in row_checkpoints(setting, fusion, policy, models_dir) if not Path(p).is_file()]
+        if missing:
+            notices.append(f"setting {setting}: {label!r} left out: {display_path(missing[0])} not found")
+        else:
+            keys.append(key)
+    return keys, notices
 
 
 class EpisodeScores(NamedTuple):
@@ -99,12 +143,14 @@ def evaluate_agent(cache, agent: Agent, episodes_per_scene: int = 10, seed: int 
 # --------------------------------------------------------------------------------------------------
 
 
-def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = False) -> dict[str, Agent]:
-    """Every Table II row (plus coverage and greedy) as an Agent, from the checkpoints in `models_dir`."""
-    return {key: build_agent(fusion, policy, config, checkpoint=checkpoint_path(setting, fusion, models_dir),
+def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = False,
+            keys=None) -> dict[str, Agent]:
+    """Every Table II row (plus coverage and greedy; only `keys` when given) as an Agent, from the checkpoints
+    in `models_dir`."""
+    return {key: build_agent(fusion, policy, config, checkpoint=policy_checkpoint(setting, fusion, policy, models_dir),
                              confidence_checkpoint=checkpoint_path(setting, "learned", models_dir),
                              greedy=argmax).agent
-            for key, _, fusion, policy in ROWS}
+            for key, _, fusion, policy in ROWS if keys is None or key in keys}
 
 
 @dataclass
@@ -118,13 +164,30 @@ class EvalArgs(ScaleOutArgs):
     seeds: int = opt(5, "evaluation seeds (0..seeds-1): the spread over seeds")
     argmax: bool = opt(False, "trained policies take their most likely action instead of sampling (paper: sample)")
     cache_dir: str | None = opt(None, "view caches: a folder or an fsspec URL (default cache/)")
+    bootstrap: int = opt(RESAMPLES, "bootstrap resamples over scenes for the paired intervals")
+    bootstrap_seed: int = opt(0, "seed of the bootstrap resamples")
+    bounds: bool = opt(True, "the hindsight-best route and label-peeking greedy bounds (every route on every scene)")
     progress: bool = opt(True, "progress bars")
 
 
-def evaluate_setting(setting: int, cache, args: EvalArgs) -> dict[str, dict]:
-    """{row key: {"acc": (seeds, E, T), "f1": ..., "revisit": (seeds,), "scenes": S}} on one setting's cache."""
+def parse_settings(text: str) -> list[int]:
+    """--setting 1 | 2 | 3 | all as a list of paper settings, or a one-line error."""
+    if text == "all":
+        return sorted(SETTINGS)
+    try:
+        settings = [int(text)]
+    except ValueError:
+        raise UavsearchError(f"--setting must be 1, 2, 3 or all, not {text!r}") from None
+    if settings[0] not in SETTINGS:
+        raise UavsearchError(f"unknown setting {settings[0]}; valid: {sorted(SETTINGS)} or all")
+    return settings
+
+
+def evaluate_setting(setting: int, cache, args: EvalArgs, keys=None) -> dict[str, dict]:
+    """{row key: {"acc": (seeds, E, T), "f1": ..., "revisit": (seeds,), "scenes": S}} on one setting's cache,
+    for the rows `keys` (default every row)."""
     config = SearchConfig()
-    agents = methods(setting, config, args.models_dir, args.argmax)
+    agents = methods(setting, config, args.models_dir, args.argmax, keys)
     res: dict[str, dict] = {}
     for key, agent in tqdm(agents.items(), desc=f"eval setting {setting}", disable=not args.progress, leave=False):
         single = key == "single_view"
@@ -139,11 +202,18 @@ def evaluate_setting(setting: int, cache, args: EvalArgs) -> dict[str, dict]:
 
 
 def summarise(results: dict[int, dict[str, dict]], episodes: int) -> list[dict]:
-    """Table rows: final-step Aacc (%) and AF1, mean and std over seeds, per setting."""
+    """Table rows: final-step Aacc (%) and AF1, mean and std over seeds, per setting (NaN where a setting lacks
+    the row); rows no setting evaluated are left out. `s<K>_gap`: the share of the AF1 gap closed."""
     rows = []
     for key, label, fusion, kind in ROWS:
+        if not any(key in res for res in results.values()):
+            continue
         row = {"method": label, "key": key}
         for setting, res in results.items():
+            if key not in res:
+                row.update({f"s{setting}_{f}": float("nan") for f in ("aacc", "aacc_std", "af1", "af1_std", "revisit")})
+                row.update({f"s{setting}_scenes": 0, f"s{setting}_episodes": 0})
+                continue
             r = res[key]
             acc_seed = r["acc"][:, :, -1].mean(1) * 100.0  # (seeds,)
             f1_seed = r["f1"][:, :, -1].mean(1)
@@ -155,50 +225,178 @@ def summarise(results: dict[int, dict[str, dict]], episodes: int) -> list[dict]:
             row[f"s{setting}_scenes"] = int(r["scenes"])
             row[f"s{setting}_episodes"] = int(r["acc"].shape[1] * r["acc"].shape[0])
         rows.append(row)
+    for row in rows:
+        for setting in results:
+            row[f"s{setting}_gap"] = gap_closure(rows, setting, row["key"])
     return rows
 
 
-def gap_closure(rows: list[dict], setting: int) -> float:
-    """Share of the single-view -> oracle fusion + policy AF1 gap the paper's method closes."""
+def gap_closure(rows: list[dict], setting: int, key: str = "learned_policy") -> float:
+    """Share of the single-view -> oracle fusion + policy AF1 gap a row (default the paper's method) closes;
+    NaN where a row is missing or the gap is zero."""
     by = {r["key"]: r for r in rows}
-    sv, ours, orc = (by[k][f"s{setting}_af1"] for k in ("single_view", "learned_policy", "oracle_policy"))
+    if not all(k in by for k in ("single_view", key, "oracle_policy")):
+        return float("nan")
+    sv, ours, orc = (by[k][f"s{setting}_af1"] for k in ("single_view", key, "oracle_policy"))
     return (ours - sv) / (orc - sv) if orc != sv else float("nan")
 
 
-def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict) -> tuple[Path, Path]:
-
-    out.mkdir(parents=True, exist_ok=True)
-    csv_path = out / "table2.csv"
-    with csv_path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+def _csv(path: Path, rows: list[dict]) -> Path:
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
         w.writeheader()
         w.writerows(rows)
+    return path
+
+
+def _num(x: float, fmt: str) -> str:
+    return "—" if x is None or not np.isfinite(x) else format(x, fmt)
+
+
+def setting_bounds(setting: int, cache, res: dict[str, dict], args: EvalArgs) -> dict:
+    """Difficulty and upper bounds of one setting (module docstring); `notes` says what was skipped and why."""
+    config = SearchConfig()
+    nan = float("nan")
+    b = {"setting": setting, "scenes": cache.num_scenes, "single_view_af1": nan, "hidden_start": nan,
+         "hidden_all": nan, "coverage_af1": nan, "best_fixed_af1": nan, "best_fixed_route": "",
+         "hindsight_best_af1": nan, "hindsight_minus_coverage": nan, "ci_low": nan, "ci_high": nan,
+         "label_greedy_af1": nan, "notes": []}
+    if "single_view" in res:
+        b["single_view_af1"] = float(res["single_view"]["f1"][:, :, -1].mean())
+    hidden = hidden_shares(cache, config)
+    if hidden is None:
+        b["notes"].append("hidden cells skipped: this view cache was written before it kept person_px (delete its "
+                          ".npz under cache/search_views/ to rebuild it from the stored renders)")
+    else:
+        b["hidden_start"], b["hidden_all"] = hidden
+    conf_path = checkpoint_path(setting, "learned", args.models_dir)
+    confidence = load_search_model(conf_path)[2] if args.bounds and conf_path.is_file() else None
+    if not args.bounds:
+        b["notes"].append("route bounds not computed (--bounds false)")
+    elif confidence is None:
+        b["notes"].append(f"route bounds skipped: no learned fusion confidence net ({display_path(conf_path)})")
+    else:
+        rb = route_bounds(cache, confidence, config)
+        m, lo, hi = bootstrap_ci(rb.best - rb.coverage, args.bootstrap, args.bootstrap_seed)
+        b.update(coverage_af1=float(rb.coverage.mean()), best_fixed_af1=rb.best_fixed,
+                 best_fixed_route=" ".join(config.actions[a].removeprefix("Move") for a in rb.best_fixed_route),
+                 hindsight_best_af1=float(rb.best.mean()), hindsight_minus_coverage=m, ci_low=lo, ci_high=hi)
+        greedy, note = label_greedy_af1(cache, confidence, config)
+        if greedy is None:
+            b["notes"].append(note)
+        else:
+            b["label_greedy_af1"] = float(greedy.mean())
+    return b
+
+
+def _paired_lines(paired: list[dict], settings: list[int], meta: dict) -> list[str]:
+    lines = ["## Paired with the fixed routes (per test scene)", "",
+             f"Each row's per-scene mean final AF1 (over its episodes and seeds) minus the reference route's on the "
+             f"same scenes; mean over scenes [95% bootstrap interval over scenes, {meta['bootstrap']} resamples, "
+             f"seed {meta['bootstrap_seed']}]; W/T/L: scenes the row wins / ties / loses. An interval that "
+             "holds 0 cannot tell the two apart.", ""]
+    for s in settings:
+        here = [p for p in paired if p["setting"] == s]
+        refs = [r for r in REFERENCES if any(p["reference"] == r for p in here)]
+        if not refs:
+            lines += [f"- setting {s}: no paired comparison (neither fixed route was evaluated)", ""]
+            continue
+        first = here[0]
+        lines += [f"Setting {s} ({SETTINGS[s]} cells): paired over {first['scenes']} test scenes, "
+                  f"{first['episodes_per_scene']} episodes per scene x {first['seeds']} seeds per row (a fixed "
+                  "route scores the same on each).", "",
+                  "| method | AF1 | " + " | ".join(f"Δ AF1 vs {LABELS[r].split(' + ')[-1]} [95% CI] | W/T/L"
+                                                     for r in refs) + " |",
+                  "|---|---|" + "---|---|" * len(refs)]
+        keys = list(dict.fromkeys(p["key"] for p in here))
+        for key in keys:
+            cells = []
+            for r in refs:
+                q = next((p for p in here if p["key"] == key and p["reference"] == r), None)
+                cells += (["—", "—"] if q is None else
+                          [f"{q['diff']:+.3f} [{q['ci_low']:+.3f}, {q['ci_high']:+.3f}]",
+                           f"{q['wins']}/{q['ties']}/{q['losses']}"])
+            af1 = next(p["af1"] for p in here if p["key"] == key)
+            lines.append(f"| {LABELS[key]} | {af1:.3f} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
+
+
+def _bounds_lines(bounds: dict[int, dict], settings: list[int]) -> list[str]:
+    def row(name, f):
+        return f"| {name} | " + " | ".join(f(bounds[s]) for s in settings) + " |"
+
+    pct = lambda x: _num(100 * x, ".0f") + ("%" if np.isfinite(x) else "")  # noqa: E731
+    lines = ["## Difficulty and upper bounds (learned confidence fusion)", "",
+             "| | " + " | ".join(f"setting {s} ({SETTINGS[s]} cells)" for s in settings) + " |",
+             "|---|" + "---|" * len(settings),
+             row("single-view AF1", lambda b: _num(b["single_view_af1"], ".3f")),
+             row("occupied cells hidden from the start view (no person pixel)", lambda b: pct(b["hidden_start"])),
+             row("occupied cells hidden from every lattice view", lambda b: pct(b["hidden_all"])),
+             row("coverage route AF1", lambda b: _num(b["coverage_af1"], ".3f")),
+             row("best single fixed route AF1 (route)", lambda b: _num(b["best_fixed_af1"], ".3f") + (
+                 f" ({b['best_fixed_route']})" if b["best_fixed_route"] else "")),
+             row("hindsight-best route AF1 (ceiling of any route)", lambda b: _num(b["hindsight_best_af1"], ".3f")),
+             row("hindsight-best − coverage [95% CI]", lambda b: _num(b["hindsight_minus_coverage"], "+.3f") + (
+                 f" [{b['ci_low']:+.3f}, {b['ci_high']:+.3f}]" if np.isfinite(b["ci_low"]) else "")),
+             row("label-peeking greedy AF1", lambda b: _num(b["label_greedy_af1"], ".3f")), "",
+             "Hindsight-best: per scene the best final AF1 over all 4^(T-1) move sequences from the start; the best "
+             "single fixed route is best on average over the scenes.", ""]
+    for s in settings:
+        lines += [f"- setting {s}: {n}" for n in bounds[s]["notes"]]
+    return lines + [""]
+
+
+def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict, paired: list[dict] | None = None,
+                bounds: dict[int, dict] | None = None) -> tuple[Path, Path]:
+    """table2.md and table2.csv (and table2_paired.csv / table2_bounds.csv when given) into `out`."""
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path = _csv(out / "table2.csv", rows)
     best = {}
     for s in settings:
-        cand = [r for r in rows if r["key"] in NON_ORACLE]
-        best[s] = (max(cand, key=lambda r: r[f"s{s}_aacc"])["key"], max(cand, key=lambda r: r[f"s{s}_af1"])["key"])
+        cand = [r for r in rows if r["key"] in NON_ORACLE and np.isfinite(r[f"s{s}_af1"])]
+        best[s] = (max(cand, key=lambda r: r[f"s{s}_aacc"])["key"] if cand else None,
+                   max(cand, key=lambda r: r[f"s{s}_af1"])["key"] if cand else None)
     head = " | ".join(f"{SETTINGS[s]} cells Aacc (%) ↑ | {SETTINGS[s]} cells AF1 ↑" for s in settings)
     lines = [f"# Table II (our testbed): T = {meta['T']}, {meta['split']} split, test scenes only", "",
              f"| method | {head} |", "|---|" + "---|---|" * len(settings)]
     for r in rows:
         cells = []
         for s in settings:
-            a = f"{r[f's{s}_aacc']:.2f} ± {r[f's{s}_aacc_std']:.2f}"
-            f1 = f"{r[f's{s}_af1']:.3f} ± {r[f's{s}_af1_std']:.3f}"
+            a = "—" if not np.isfinite(r[f"s{s}_aacc"]) else f"{r[f's{s}_aacc']:.2f} ± {r[f's{s}_aacc_std']:.2f}"
+            f1 = "—" if not np.isfinite(r[f"s{s}_af1"]) else f"{r[f's{s}_af1']:.3f} ± {r[f's{s}_af1_std']:.3f}"
             if r["key"] == best[s][0]:
                 a = f"**{a}**"
             if r["key"] == best[s][1]:
                 f1 = f"**{f1}**"
             cells += [a, f1]
         lines.append(f"| {r['method']} | " + " | ".join(cells) + " |")
-    lines += ["", "Bold: best non-oracle row. ± : standard deviation over evaluation seeds (action sampling).", ""]
+    lines += ["", "Bold: best non-oracle row. ± : standard deviation over evaluation seeds (action sampling). "
+              "—: left out (checkpoint not found).", ""]
     for s in settings:
-        r0 = rows[0]
+        r0 = next((r for r in rows if r[f"s{s}_scenes"]), rows[0])
         lines.append(f"- setting {s} ({SETTINGS[s]} cells): {r0[f's{s}_scenes']} test scenes, "
                      f"{r0[f's{s}_episodes']} episodes per method ({meta['episodes']} per scene x {meta['seeds']} "
                      f"seeds); single view -> oracle fusion + policy AF1 gap closed by ours: "
-                     f"{100 * gap_closure(rows, s):.0f}% (paper: 37% / 52% / 41%)")
-    lines += ["", f"perception {meta['perception']} (tag {meta['tag']}); policies {meta['models_dir']}; "
+                     f"{_num(100 * gap_closure(rows, s), '.0f')}% (paper: 37% / 52% / 41%)")
+    lines += [f"- {n}" for n in meta.get("notices", [])]
+    gap_rows = [r for r in rows if r["key"] not in ("single_view", "oracle_policy")]
+    if any(np.isfinite(r[f"s{s}_gap"]) for r in gap_rows for s in settings):
+        lines += ["", "## Share of the single view -> oracle fusion + policy AF1 gap closed", "",
+                  "| method | " + " | ".join(f"setting {s}" for s in settings) + " |", "|---|" + "---|" * len(settings)]
+        lines += [f"| {r['method']} | " + " | ".join(_num(100 * r[f"s{s}_gap"], ".0f") + "%" * bool(
+            np.isfinite(r[f"s{s}_gap"])) for s in settings) + " |" for r in gap_rows]
+    lines.append("")
+    if paired is not None:
+        lines += _paired_lines(paired, settings, meta)
+        if paired:
+            _csv(out / "table2_paired.csv", paired)
+    if bounds is not None:
+        lines += _bounds_lines(bounds, settings)
+        _csv(out / "table2_bounds.csv", [{k: ("; ".join(v) if k == "notes" else v) for k, v in b.items()}
+                                         for b in bounds.values()])
+    lines += [f"perception {meta['perception']} (tag {meta['tag']}); policies {meta['models_dir']}; "
               f"trained policies {'take argmax actions' if meta['argmax'] else 'sample their actions'}; "
               f"{meta['seconds']:.0f} s"]
     md_path = out / "table2.md"
@@ -241,36 +439,41 @@ def plot_fig6(results: dict[int, dict[str, dict]], path: Path) -> Path:
 
 def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
     """Table II + Fig. 6 into args.out; `caches` ({setting: ViewCache}) skips perception and rendering."""
-
-    if args.setting == "all":
-        settings = sorted(SETTINGS)
-    else:
-        try:
-            settings = [int(args.setting)]
-        except ValueError:
-            raise UavsearchError(f"--setting must be 1, 2, 3 or all, not {args.setting!r}") from None
-        if settings[0] not in SETTINGS:
-            raise UavsearchError(f"unknown setting {settings[0]}; valid: {sorted(SETTINGS)} or all")
+    settings = parse_settings(args.setting)
     if args.episodes < 1 or args.seeds < 1:
         raise UavsearchError("--episodes and --seeds must be at least 1")
+    if args.bootstrap < 1:
+        raise UavsearchError("--bootstrap must be at least 1")
     torch.set_num_threads(1)
     t0 = time.perf_counter()
+    keys, notices = {}, []
+    for s in settings:
+        keys[s], left_out = available_rows(s, args.models_dir)
+        notices += left_out
+    for n in notices:
+        print(f"uavsearch: {n}")
     if caches is None:
         net, _ = load_perception(args.perception)
         caches = {s: get_view_cache(net, s, args.split, "test", cache_dir=args.cache_dir, progress=args.progress,
                                     executor=Executor.from_args(args))
                   for s in settings}
-    results = {s: evaluate_setting(s, caches[s], args) for s in settings}
+    results = {s: evaluate_setting(s, caches[s], args, keys[s]) for s in settings}
     rows = summarise(results, args.episodes)
+    paired = [{"setting": s, **p} for s in settings
+              for p in paired_differences(results[s], REFERENCES, LABELS, args.bootstrap, args.bootstrap_seed)]
+    bounds = {s: setting_bounds(s, caches[s], results[s], args) for s in settings}
     out = Path(args.out)
     meta = {"T": SearchConfig().budget_T, "split": args.split, "episodes": args.episodes, "seeds": args.seeds,
-            "perception": display_path(args.perception), "tag": caches[settings[0]].perception_tag, "models_dir": display_path(args.models_dir),
-            "argmax": args.argmax, "seconds": time.perf_counter() - t0}
-    md, csv_path = write_table(rows, settings, out, meta)
+            "perception": display_path(args.perception), "tag": caches[settings[0]].perception_tag,
+            "models_dir": display_path(args.models_dir), "argmax": args.argmax, "notices": notices,
+            "bootstrap": args.bootstrap, "bootstrap_seed": args.bootstrap_seed, "seconds": time.perf_counter() - t0}
+    md, csv_path = write_table(rows, settings, out, meta, paired, bounds)
     fig = plot_fig6(results, out / "fig6.png")
     print(md.read_text())
-    print(f"wrote {md}, {csv_path}, {fig}")
-    return {"rows": rows, "results": results, "table": md, "figure": fig}
+    extra = [out / n for n in ("table2_paired.csv", "table2_bounds.csv") if (out / n).is_file()]
+    print(f"wrote {md}, {csv_path}, " + "".join(f"{p}, " for p in extra) + f"{fig}")
+    return {"rows": rows, "results": results, "paired": paired, "bounds": bounds, "notices": notices,
+            "table": md, "figure": fig}
 
 
 # --------------------------------------------------------------------------------------------------

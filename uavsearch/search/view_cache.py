@@ -24,6 +24,9 @@ Two layers, both under the gitignored ``cache/`` folder:
        global_feature   (S, P, G) float32      the image embedding's input (G = global_dim)
        cell_area_px     (S, P, N) float32      F_size: the cell's clipped image polygon area
        valid            (S, P, N) bool         cell measured by the view: in view (c^t) and pooled pixels > 0
+       person_px        (S, P, N) int32        pixels showing a person inside the cell in that view (ground truth,
+                                               for evaluation only: how visible each person is; absent in caches
+                                               written before it, loaded as None)
 
    P indexes config.lattice_positions (row-major from the NW corner; the centre is P // 2).
 
@@ -72,6 +75,7 @@ class ViewCache(NamedTuple):
     cell_area_px: torch.Tensor  # (S, P, N)
     valid: torch.Tensor  # (S, P, N) bool
     perception_tag: str
+    person_px: torch.Tensor | None = None  # (S, P, N) int32 visible person pixels per cell (None: an older cache)
 
     @property
     def num_scenes(self) -> int:
@@ -86,7 +90,7 @@ class ViewCache(NamedTuple):
         t = torch.as_tensor(rows, dtype=torch.long)
         return ViewCache(self.scene_seed[rows], self.occupied_cells[rows], self.occupancy[t], self.log_probs[t],
                          self.cell_features[t], self.global_feature[t], self.cell_area_px[t], self.valid[t],
-                         self.perception_tag)
+                         self.perception_tag, None if self.person_px is None else self.person_px[t])
 
 
 @dataclass(frozen=True)
@@ -169,7 +173,8 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
     root = render_lattice_views(key, scenes, root=store.path(f"lattice_views/{world}/{key.name}"), workers=workers,
                                 progress=progress, executor=executor)
     parts: dict[str, list] = {k: [] for k in ("log_probs", "cell_features", "global_feature", "cell_area_px",
-                                              "valid", "occupancy", "scene_seed", "occupied_cells")}
+                                              "valid", "person_px", "occupancy", "scene_seed",
+                                              "occupied_cells")}
     for s, k in tqdm(scenes, desc=f"perception {key.name}", unit="scene", disable=not progress):
         vs = load_views(root, scenes=[(s, k)])
         order = np.argsort(vs.lattice_index)
@@ -181,6 +186,7 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
         parts["global_feature"].append(o["global_feature"])
         parts["cell_area_px"].append(vs.cell_area_px[order])
         parts["valid"].append(vs.cells_in_view[order] & (o["cell_pixels"] > 0))
+        parts["person_px"].append(vs.person_px[order].astype(np.int32))
         parts["occupancy"].append(vs.occupancy[0])
         parts["scene_seed"].append(int(s))
         parts["occupied_cells"].append(int(k))
@@ -211,6 +217,7 @@ def load_view_cache(path) -> ViewCache:
         cell_features=torch.as_tensor(d["cell_features"]), global_feature=torch.as_tensor(d["global_feature"]),
         cell_area_px=torch.as_tensor(d["cell_area_px"]), valid=torch.as_tensor(d["valid"]).bool(),
         perception_tag=str(d["perception_tag"]),
+        person_px=torch.as_tensor(d["person_px"].astype(np.int32)) if "person_px" in d else None,
     )
 
 
