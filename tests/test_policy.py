@@ -197,3 +197,10 @@ def test_view_cache_matches_live_perception_on_the_teleport_vehicle(tmp_path):
     assert torch.equal(ep_live.lattice_idx, ep_cache.lattice_idx)
     assert torch.allclose(ep_live.maps, ep_cache.maps, atol=1e-5)
     assert len(live.views) == CONFIG.budget_T
+    # person_px comes through build/load: each visited view's person pixels per cell, counted afresh here
+    assert cache.person_px.shape == (1, 25, 100) and cache.person_px.dtype == torch.int32
+    for t, view in enumerate(live.views):
+        lab = view.cell_label
+        fresh = np.bincount(lab[view.person_mask & (lab >= 0)].astype(np.int64), minlength=100)[:100]
+        assert np.array_equal(cache.person_px[0, int(ep_live.lattice_idx[0, t])].numpy(), fresh)
+    assert cache.subset([0]).person_px.shape == (1, 25, 100)

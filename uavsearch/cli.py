@@ -209,7 +209,8 @@ def _add_replay_parser(sub) -> None:
 
 
 TRAIN_HELP = "train in teleport mode: perception (stage 1), then fusion + policy (stage 2)"
-EVAL_HELP = "evaluate: single-view perception (Table I, Fig. 4), search methods (Table II, Fig. 6)"
+EVAL_HELP = ("evaluate: single-view perception (Table I, Fig. 4), search methods (Table II, Fig. 6), "
+             "perception against its targets")
 
 
 def _add_train_parser(sub) -> None:
@@ -225,13 +226,15 @@ def _add_train_parser(sub) -> None:
 
 def _add_eval_parser(sub) -> None:
     # lazy: torch (2-5 s); built only when `eval` is the command (build_parser)
+    from .search.eval_perception import add_eval_perception_parser
     from .search.eval_search import add_eval_search_parser
     from .search.eval_single_view import add_eval_single_view_parser
 
     ev = sub.add_parser("eval", help=EVAL_HELP)
-    esub = ev.add_subparsers(dest="eval_cmd", required=True, metavar="{single-view,search}")
+    esub = ev.add_subparsers(dest="eval_cmd", required=True, metavar="{single-view,search,perception}")
     add_eval_single_view_parser(esub)
     add_eval_search_parser(esub)
+    add_eval_perception_parser(esub)
     _add_vehicle_option(esub.choices["search"])
 
 

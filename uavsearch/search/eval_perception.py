@@ -1,0 +1,234 @@
+"""Stage-1 perception against its targets, on the TEST view caches: what the search gets to fuse.
+
+Every lattice position of every test scene of each setting (view_cache.get_view_cache: renders and runs
+perception only where the cache is missing). A cell counts where the view measured it (the cache's
+`valid`); its score is p(occupied) = exp(log_probs[..., 1]); the threshold is 0.5 as in the metrics.
+
+    measure                               target     why
+    cell average precision                >= 0.75    ranks occupied cells above empty ones, whatever the threshold
+    false alarms per view                 <= 1.0     empty valid cells with p > 0.5; each one costs fused precision
+    recall at 4-7 visible person pixels   >= 0.80    a person a few pixels wide at 70 m must still be found
+    persistent false-alarm cells / scene  <= 0.3     an empty cell that fires in more than half of the views
+                                                     measuring it: fusion cannot vote it away
+
+Also precision / recall at 0.5 and recall per visible-pixel bin (0 = hidden, 1-3, 4-7, 8-15, 16+; needs the
+cache's person_px, skipped with a note for an older cache). Outputs in --out: perception_targets.md,
+perception_targets.csv, perception_targets.png (recall vs visible person pixels; false alarms per view).
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.errors import UavsearchError
+from uavsearch.parallel import Executor, ScaleOutArgs
+from uavsearch.paths import MODELS_DIR, display_path
+from uavsearch.viz import pyplot, save_figure
+from uavsearch.world.settings import SETTINGS
+
+from .eval_search import parse_settings
+from .perception import load_perception
+from .view_cache import PARTS, get_view_cache
+
+THRESHOLD = 0.5
+PX_BINS: tuple[tuple[int, int | None], ...] = ((0, 0), (1, 3), (4, 7), (8, 15), (16, None))  # [lo, hi] pixels
+# (key, what, ">=" or "<=", target)
+TARGETS: tuple[tuple[str, str, str, float], ...] = (
+    ("cell_ap", "cell average precision", ">=", 0.75),
+    ("fa_per_view", "false alarms per view", "<=", 1.0),
+    ("recall_4_7px", "recall at 4-7 visible person pixels", ">=", 0.80),
+    ("persistent_fa_per_scene", "persistent false-alarm cells per scene", "<=", 0.3),
+)
+
+
+def bin_name(lo: int, hi: int | None) -> str:
+    return f"{lo}+" if hi is None else (f"{lo}" if lo == hi else f"{lo}-{hi}")
+
+
+def average_precision(scores, labels) -> float:
+    """Area under the precision-recall step curve: sum over score thresholds of (recall gain) x precision,
+    tied scores forming one threshold (sklearn's average_precision_score). NaN without positives."""
+    s = np.asarray(scores, dtype=np.float64).ravel()
+    y = np.asarray(labels).astype(bool).ravel()
+    n_pos = int(y.sum())
+    if n_pos == 0:
+        return float("nan")
+    order = np.argsort(-s, kind="stable")
+    s, y = s[order], y[order]
+    last = np.r_[np.flatnonzero(np.diff(s)), len(s) - 1]  # last index of each distinct score
+    tp = np.cumsum(y)[last]
+    precision = tp / (last + 1)
+    recall = tp / n_pos
+    return float(np.sum(np.diff(np.r_[0.0, recall]) * precision))
+
+
+def perception_stats(caches, threshold: float = THRESHOLD) -> dict:
+    """The measures of the module docstring over the scenes of one or more ViewCaches (pooled)."""
+    caches = list(caches)
+    p = np.concatenate([c.log_probs[..., 1].exp().numpy() for c in caches])  # (S, P, N)
+    valid = np.concatenate([c.valid.numpy() for c in caches]).astype(bool)
+    occ = np.concatenate([c.occupancy.numpy() for c in caches]).astype(bool)  # (S, N)
+    y = np.broadcast_to(occ[:, None, :], p.shape)
+    fires = p > threshold
+    fa_cell = fires & ~y & valid  # (S, P, N)
+    fa_view = fa_cell.sum(-1).ravel()  # per view
+    tp, fn = int((fires & y & valid).sum()), int((~fires & y & valid).sum())
+    fp = int(fa_view.sum())
+    n_valid, n_fa = valid.sum(1), fa_cell.sum(1)  # (S, N) views measuring each cell, of them firing on it
+    persistent = (~occ & (n_valid > 0) & (2 * n_fa > n_valid)).sum(-1)  # (S,)
+    stats = {"scenes": int(p.shape[0]), "views": int(p.shape[0] * p.shape[1]), "valid_cells": int(valid.sum()),
+             "occupied_valid_cells": tp + fn, "cell_ap": average_precision(p[valid], y[valid]),
+             "fa_per_view": float(fa_view.mean()), "precision": tp / (tp + fp) if tp + fp else float("nan"),
+             "recall": tp / (tp + fn) if tp + fn else float("nan"),
+             "persistent_fa_per_scene": float(persistent.mean()), "fa_hist": np.bincount(fa_view),
+             "recall_by_px": None}
+    if all(c.person_px is not None for c in caches):
+        px = np.concatenate([c.person_px.numpy() for c in caches])
+        by = {}
+        for lo, hi in PX_BINS:
+            m = y & valid & (px >= lo) & (px <= (np.iinfo(px.dtype).max if hi is None else hi))
+            by[bin_name(lo, hi)] = (float(fires[m].mean()) if m.any() else float("nan"), int(m.sum()))
+        stats["recall_by_px"] = by
+        stats["recall_4_7px"] = by["4-7"][0]
+    else:
+        stats["recall_4_7px"] = float("nan")
+    return stats
+
+
+def meets(value: float, op: str, target: float) -> bool | None:
+    if not np.isfinite(value):
+        return None
+    return value >= target if op == ">=" else value <= target
+
+
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class EvalArgs(ScaleOutArgs):
+    out: str = opt("runs/perception_targets", "output folder: perception_targets.md/.csv/.png", required=True)
+    setting: str = opt("all", "paper setting 1 | 2 | 3 | all (pooled in the last column)")
+    split: str = opt("paper", "scene split (paper: 10 test scenes per setting; large: 100)")
+    part: str = opt("test", "which part of the split", choices=PARTS)
+    perception: str = opt(str(MODELS_DIR / "perception.pt"), "perception checkpoint")
+    cache_dir: str | None = opt(None, "view caches: a folder or an fsspec URL (default cache/)")
+    progress: bool = opt(True, "progress bars")
+
+
+def _fmt(x: float, digits: int = 3) -> str:
+    return "—" if not np.isfinite(x) else f"{x:.{digits}f}"
+
+
+def write_report(stats: dict[str, dict], out: Path, meta: dict) -> tuple[Path, Path]:
+    """perception_targets.md / .csv from {column name: perception_stats}."""
+    out.mkdir(parents=True, exist_ok=True)
+    cols = list(stats)
+    pooled = stats[cols[-1]]
+    rows = []
+    for key, what, op, target in TARGETS:
+        rows.append({"measure": what, "key": key, "target": f"{op} {target:g}",
+                     **{c: stats[c][key] for c in cols}, "met": meets(pooled[key], op, target)})
+    for key, what in (("precision", "precision at 0.5"), ("recall", "recall at 0.5")):
+        rows.append({"measure": what, "key": key, "target": "", **{c: stats[c][key] for c in cols}, "met": None})
+    if pooled["recall_by_px"] is not None:
+        for name in pooled["recall_by_px"]:
+            rows.append({"measure": f"recall at {name} visible person pixels (n)", "key": f"recall_{name}px",
+                         "target": "", **{c: stats[c]["recall_by_px"][name][0] for c in cols},
+                         "met": None, "n": pooled["recall_by_px"][name][1]})
+    csv_path = out / "perception_targets.csv"
+    with csv_path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["measure", "key", "target", *cols, "met", "n"])
+        w.writeheader()
+        w.writerows(rows)
+    lines = [f"# Stage-1 perception targets: {meta['split']} split, {meta['part']} scenes, every lattice view", "",
+             f"perception `{meta['perception']}` (tag {meta['tag']}); "
+             + "; ".join(f"{c}: {stats[c]['scenes']} scenes, {stats[c]['views']} views, {stats[c]['valid_cells']} "
+                         f"valid cells ({stats[c]['occupied_valid_cells']} occupied)" for c in cols)
+             + f"; threshold {THRESHOLD}.", "",
+             "| measure | target | " + " | ".join(cols) + f" | met ({cols[-1]}) |", "|---|---|" + "---|" * (len(cols) + 1)]
+    for r in rows:
+        met = {True: "yes", False: "**no**", None: ""}[r["met"]]
+        name = r["measure"].replace(" (n)", f" (n = {r['n']})") if "n" in r else r["measure"]
+        lines.append(f"| {name} | {r['target']} | " + " | ".join(_fmt(r[c]) for c in cols) + f" | {met} |")
+    if pooled["recall_by_px"] is None:
+        lines += ["", "Recall by visible person pixels skipped: a view cache was written before it kept person_px "
+                      "(delete its .npz under cache/search_views/ to rebuild it from the stored renders)."]
+    lines += ["", "Persistent false-alarm cell: an empty cell with p > 0.5 in more than half of the views that "
+                  "measure it.", f"{meta['seconds']:.0f} s"]
+    md_path = out / "perception_targets.md"
+    md_path.write_text("\n".join(lines) + "\n")
+    return md_path, csv_path
+
+
+def targets_figure(stats: dict[str, dict]):
+    """Left: recall vs visible person pixels per column; right: false alarms per view (pooled column)."""
+    fig, (a, b) = pyplot().subplots(1, 2, figsize=(11, 4), layout="constrained")
+    names = [bin_name(lo, hi) for lo, hi in PX_BINS]
+    for c, st in stats.items():
+        if st["recall_by_px"] is not None:
+            a.plot(range(len(names)), [st["recall_by_px"][n][0] for n in names], "o-", label=c)
+    a.plot([names.index("4-7")], [dict((t[0], t[3]) for t in TARGETS)["recall_4_7px"]], "k_", ms=30, mew=2,
+           label="target at 4-7 px")
+    a.set_xticks(range(len(names)), names)
+    a.set_ylim(0, 1.05)
+    a.set_xlabel("visible person pixels in the cell")
+    a.set_ylabel("recall of occupied cells (p > 0.5)")
+    a.set_title("recall vs visible person pixels")
+    a.grid(alpha=0.3)
+    a.legend(fontsize=8)
+    name, pooled = list(stats.items())[-1]
+    hist = pooled["fa_hist"]
+    b.bar(np.arange(len(hist)), hist / max(hist.sum(), 1), color="C3")
+    b.axvline(1.0, color="k", ls="--", label=f"target <= 1 (mean {pooled['fa_per_view']:.2f})")
+    b.set_xlabel("false alarms in the view (empty cells with p > 0.5)")
+    b.set_ylabel("share of views")
+    b.set_title(f"false alarms per view ({name})")
+    b.grid(alpha=0.3, axis="y")
+    b.legend(fontsize=8)
+    return fig
+
+
+def eval_perception(args: EvalArgs, caches: dict | None = None) -> dict:
+    """The report into args.out; `caches` ({setting: ViewCache}) skips perception and rendering."""
+    settings = parse_settings(args.setting)
+    if args.part not in PARTS:
+        raise UavsearchError(f"unknown part {args.part!r}; valid: {', '.join(PARTS)}")
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    if caches is None:
+        net, _ = load_perception(args.perception)
+        caches = {s: get_view_cache(net, s, args.split, args.part, cache_dir=args.cache_dir, progress=args.progress,
+                                    executor=Executor.from_args(args)) for s in settings}
+    missing = [s for s in settings if s not in caches]
+    if missing:
+        raise UavsearchError(f"no view cache for setting {missing[0]}")
+    stats = {f"setting {s} ({SETTINGS[s]} cells)": perception_stats([caches[s]]) for s in settings}
+    if len(settings) > 1:
+        stats["all"] = perception_stats([caches[s] for s in settings])
+    out = Path(args.out)
+    meta = {"split": args.split, "part": args.part, "perception": display_path(args.perception),
+            "tag": caches[settings[0]].perception_tag, "seconds": time.perf_counter() - t0}
+    md, csv_path = write_report(stats, out, meta)
+    fig = save_figure(targets_figure(stats), out / "perception_targets.png")
+    print(md.read_text())
+    print(f"wrote {md}, {csv_path}, {fig}")
+    return {"stats": stats, "table": md, "csv": csv_path, "figure": fig}
+
+
+def add_eval_perception_parser(subparsers) -> None:
+    """`uavsearch eval perception ...` (subparsers: the `eval` command's)."""
+    p = subparsers.add_parser("perception", help="stage-1 perception against its targets on the test view caches")
+    add_dataclass_args(p, EvalArgs)
+    p.set_defaults(func=cmd_eval_perception)
+
+
+def cmd_eval_perception(args) -> int:
+    eval_perception(dataclass_from_args(EvalArgs, args))
+    return 0
