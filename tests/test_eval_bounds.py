@@ -188,7 +188,7 @@ def test_eval_perception_writes_the_report_and_fits_its_figure(tmp_path):
                           {**caches, 3: _with_person_px(synthetic_cache(2, k=10, seed=2), 3)})
     md = (tmp_path / "perception_targets.md").read_text()
     for text in ("cell average precision | >= 0.75", "false alarms per view | <= 1", "recall at 4-7",
-                 "persistent false-alarm cells per scene | <= 0.3", "| met (all) |"):
+                 "persistent false-alarm cells per scene | <= 0.3", "| met |", "pooled column 'all'"):
         assert text in md
     rows = {r["key"]: r for r in csv.DictReader((tmp_path / "perception_targets.csv").open())}
     assert float(rows["cell_ap"]["all"]) == pytest.approx(res["stats"]["all"]["cell_ap"])

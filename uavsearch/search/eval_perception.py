@@ -152,14 +152,15 @@ def write_report(stats: dict[str, dict], out: Path, meta: dict) -> tuple[Path, P
              + "; ".join(f"{c}: {stats[c]['scenes']} scenes, {stats[c]['views']} views, {stats[c]['valid_cells']} "
                          f"valid cells ({stats[c]['occupied_valid_cells']} occupied)" for c in cols)
              + f"; threshold {THRESHOLD}.", "",
-             "| measure | target | " + " | ".join(cols) + f" | met ({cols[-1]}) |", "|---|---|" + "---|" * (len(cols) + 1)]
+             f"Met: judged on the {'pooled ' if len(cols) > 1 else ''}column {cols[-1]!r}.", "",
+             "| measure | target | " + " | ".join(cols) + " | met |", "|---|---|" + "---|" * (len(cols) + 1)]
     for r in rows:
         met = {True: "yes", False: "**no**", None: ""}[r["met"]]
         name = r["measure"].replace(" (n)", f" (n = {r['n']})") if "n" in r else r["measure"]
         lines.append(f"| {name} | {r['target']} | " + " | ".join(_fmt(r[c]) for c in cols) + f" | {met} |")
     if pooled["recall_by_px"] is None:
         lines += ["", "Recall by visible person pixels skipped: a view cache was written before it kept person_px "
-                      "(delete its .npz under cache/search_views/ to rebuild it from the stored renders)."]
+                      "(delete its .npz under cache/search_views/ and run again to rebuild it)."]
     lines += ["", "Persistent false-alarm cell: an empty cell with p > 0.5 in more than half of the views that "
                   "measure it.", f"{meta['seconds']:.0f} s"]
     md_path = out / "perception_targets.md"
