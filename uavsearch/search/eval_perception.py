@@ -156,7 +156,7 @@ def write_report(stats: dict[str, dict], out: Path, meta: dict) -> tuple[Path, P
              "| measure | target | " + " | ".join(cols) + " | met |", "|---|---|" + "---|" * (len(cols) + 1)]
     for r in rows:
         met = {True: "yes", False: "**no**", None: ""}[r["met"]]
-        name = r["measure"].replace(" (n)", f" (n = {r['n']})") if "n" in r else r["measure"]
+        name = r["measure"].replace(" (n)", f" (n = {r['n']} in {cols[-1]})") if "n" in r else r["measure"]
         lines.append(f"| {name} | {r['target']} | " + " | ".join(_fmt(r[c]) for c in cols) + f" | {met} |")
     if pooled["recall_by_px"] is None:
         lines += ["", "Recall by visible person pixels skipped: a view cache was written before it kept person_px "
@@ -175,8 +175,11 @@ def targets_figure(stats: dict[str, dict]):
     for c, st in stats.items():
         if st["recall_by_px"] is not None:
             a.plot(range(len(names)), [st["recall_by_px"][n][0] for n in names], "o-", label=c)
-    a.plot([names.index("4-7")], [dict((t[0], t[3]) for t in TARGETS)["recall_4_7px"]], "k_", ms=30, mew=2,
-           label="target at 4-7 px")
+    x = names.index("4-7")
+    a.hlines(dict((t[0], t[3]) for t in TARGETS)["recall_4_7px"], x - 0.3, x + 0.3, colors="k", lw=2,
+             label="target at 4-7 px")
+    if all(st["recall_by_px"] is None for st in stats.values()):
+        a.text(0.5, 0.5, "no person_px in these view caches", transform=a.transAxes, ha="center", color="0.4")
     a.set_xticks(range(len(names)), names)
     a.set_ylim(0, 1.05)
     a.set_xlabel("visible person pixels in the cell")
