@@ -17,6 +17,7 @@ from uavsearch.search.bounds import (
     all_routes,
     bootstrap_ci,
     hidden_shares,
+    label_greedy_af1,
     paired_differences,
     route_af1,
     route_bounds,
@@ -212,3 +213,25 @@ def test_one_line_errors():
         route_af1(synthetic_cache(1), None)
     with pytest.raises(UavsearchError, match="setting"):
         eval_perception(PerceptionArgs(out="x", setting="9", progress=False), {})
+
+
+def test_label_greedy_bound_runs_the_teacher_where_installed(monkeypatch):
+    import sys
+    import types
+
+    class Teacher:  # stands in for reactive.LabelGreedyTeacher: flies the coverage route
+        def __init__(self, cache, scene_rows, confidence, config):
+            self.route, self.rows = CoverageRoute(config), scene_rows
+
+        def act(self, inp, generator=None):
+            assert len(self.rows) == inp.lattice_idx.shape[0]
+            return self.route.act(inp, generator)
+
+    torch.manual_seed(0)
+    cache, conf = synthetic_cache(3), ConfidenceNet(6).eval()
+    monkeypatch.setitem(sys.modules, "uavsearch.search.reactive", types.ModuleType("uavsearch.search.reactive"))
+    f1, note = label_greedy_af1(cache, conf, CONFIG)
+    assert f1 is None and "skipped" in note and "LabelGreedyTeacher" in note
+    sys.modules["uavsearch.search.reactive"].LabelGreedyTeacher = Teacher
+    f1, note = label_greedy_af1(cache, conf, CONFIG)
+    assert note == "" and np.allclose(f1, route_bounds(cache, conf, CONFIG).coverage)
