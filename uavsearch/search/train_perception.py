@@ -73,7 +73,7 @@ class Args(ScaleOutArgs):
     val_scenes: int = opt(10, "validation scenes per setting, every lattice position")
     data_dir: str | None = opt(None, "where lattice views are rendered and cached (default cache/, shared with the "
                                      "stage-2 view caches; a folder or an fsspec URL)")
-    steps: int = opt(2000, "optimiser steps")
+    steps: int = opt(1500, "optimiser steps")
     batch_size: int = opt(32, "crops per mini-batch (paper: 32 views)")
     crop: int = opt(128, "square crop side in pixels (a multiple of the net's stride; 0 = whole views)")
     lr: float = opt(2e-3, "Adam learning rate (cosine-decayed to 5% of it); from scratch, not fine-tuning")
@@ -81,7 +81,7 @@ class Args(ScaleOutArgs):
     pos_weight: float = opt(3.0, "loss weight of the occupied class (class imbalance; see module docstring)")
     hard_negative_weight: float = opt(2.0, "extra weight of an empty cell x its false-alarm share so far")
     person_weight: float = opt(1.0, "weight of the dense person loss (0: no person supervision)")
-    person_pos_weight: float = opt(5.0, "weight of person pixels in the dense loss")
+    person_pos_weight: float = opt(20.0, "weight of person pixels in the dense loss")
     augment: bool = opt(True, "random flips / 90-degree rotations of image + label image + person map")
     min_cell_px: float = opt(16.0, "cells with fewer pixels in the crop are not trained on")
     calibrate: bool = opt(True, "fold the validation-chosen logit shift into the classifier (module docstring)")
