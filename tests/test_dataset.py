@@ -95,28 +95,33 @@ def test_a_different_spec_in_the_same_directory_is_refused(tiny_root):
         load_views(tiny_root / "nowhere")
 
 
-def test_stage1_smoke_trains_and_writes_a_run(tmp_path, tiny_root):
-    data = tiny_root.parent
+def test_stage1_smoke_trains_resumes_and_writes_a_run(tmp_path):
     from uavsearch.search.perception import load_perception
     from uavsearch.search.train_perception import Args, train
 
-    args = Args(exp_name="smoke", seed=3, train_scenes=2, train_views_per_scene=2, val_scenes=1,
-                val_views_per_scene=1, data_dir=str(data), workers=1, steps=4, batch_size=4,
-                eval_every=2, out=str(tmp_path / "p.pt"), runs_dir=str(tmp_path / "runs"), progress=False)
+    args = Args(exp_name="smoke", seed=3, settings="2", train_scenes=1, val_scenes=1, data_dir=str(tmp_path / "cache"),
+                workers=1, steps=4, batch_size=4, eval_every=2, out=str(tmp_path / "p.pt"),
+                runs_dir=str(tmp_path / "runs"), progress=False)
     rep = train(args)
     run = next((tmp_path / "runs").iterdir())
-    assert {"args.json", "metrics.csv", "learning_curve.png", "perception.pt", "report.json"} <= {p.name for p in run.iterdir()}
+    assert {"args.json", "metrics.csv", "learning_curve.png", "perception.pt", "last.pt", "report.json"} <= {
+        p.name for p in run.iterdir()}
     lines = (run / "metrics.csv").read_text().splitlines()
     assert lines[0].startswith("step,") and len(lines) == 5
-    assert 0.0 <= rep["eval/aacc"] <= 1.0
+    assert rep["train_views"] == 25 and rep["val_views"] == 25  # every lattice position of one scene each
+    assert 0.0 <= rep["eval/aacc"] <= 1.0 and 0.0 <= rep["eval/cell_ap"] <= 1.0
     net, extra = load_perception(tmp_path / "p.pt")
-    assert extra["args"]["steps"] == 4
-    # Same seed, same data -> same weights (determinism).
+    assert extra["args"]["steps"] == 4 and net.cfg.person_head
+    # Same seed, same data -> same weights (determinism), and the renders are reused, not redone.
     args2 = Args(**{**args.__dict__, "out": str(tmp_path / "p2.pt"), "runs_dir": str(tmp_path / "runs2")})
     train(args2)
     net2, _ = load_perception(tmp_path / "p2.pt")
     for (k, a), (_, b) in zip(net.state_dict().items(), net2.state_dict().items()):
         assert torch.equal(a, b), k
+    # A rerun continues: two more steps on the first run, its metrics file grows without repeats.
+    train(Args(**{**args.__dict__, "steps": 6, "resume": str(run)}))
+    steps = [int(line.split(",")[0]) for line in (run / "metrics.csv").read_text().splitlines()[1:]]
+    assert steps == [1, 2, 3, 4, 5, 6]
 
 
 def test_table1_scenes_are_balanced_per_density_pair_and_disjoint_from_training():

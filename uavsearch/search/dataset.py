@@ -283,6 +283,22 @@ class ViewSet(NamedTuple):
         return self.labels[self.label_id[np.asarray(rows)]]
 
 
+def concat_views(sets: list[ViewSet]) -> ViewSet:
+    """One ViewSet of several (e.g. one per setting), label images shared per distinct lattice position."""
+    li = np.concatenate([v.lattice_index for v in sets])
+    uniq, label_id = np.unique(li, return_inverse=True)
+    labels = np.empty((len(uniq), *sets[0].labels.shape[1:]), sets[0].labels.dtype)
+    for v in sets:
+        labels[np.searchsorted(uniq, v.lattice_index[np.unique(v.label_id, return_index=True)[1]])] = v.labels
+    fields = {}
+    for name in ViewSet._fields:
+        if name in ("labels", "label_id"):
+            continue
+        parts = [getattr(v, name) for v in sets]
+        fields[name] = None if any(x is None for x in parts) else np.concatenate(parts)
+    return ViewSet(labels=labels, label_id=label_id.astype(np.int64), **fields)
+
+
 def read_manifest(root) -> dict:
     store = Store(root)
     man = store.read_json("manifest.json")

@@ -74,3 +74,19 @@ def cell_correct(p_occ, labels) -> np.ndarray:
     p = np.asarray(p_occ, dtype=np.float64)
     y = np.asarray(labels).astype(bool)
     return np.where(y, p > 0.5, p < 0.5)
+
+
+def average_precision(scores, labels) -> float:
+    """Area under the precision-recall curve as the mean precision at each positive's rank (ties broken
+    by sort order), the detection literature's AP; NaN without positives. numpy only: one sort."""
+    s = np.asarray(scores, dtype=np.float64).ravel()
+    y = np.asarray(labels).astype(bool).ravel()
+    if s.shape != y.shape:
+        raise UavsearchError(f"scores {s.shape} and labels {y.shape} must have the same shape")
+    if not y.any():
+        return float("nan")
+    order = np.argsort(-s, kind="stable")
+    hits = y[order]
+    precision_at = np.cumsum(hits) / np.arange(1, len(hits) + 1)
+    return float(precision_at[hits].mean())
+

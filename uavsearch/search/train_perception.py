@@ -1,22 +1,35 @@
-"""Stage 1 (paper Sec. V-A): one-view training of the perception backbone and the cell classifier.
+"""Stage 1 (paper Sec. V-A): one-view training of the perception backbone, its person head and the cell classifier.
 
-CleanRL-style: an Args dataclass, `train(args)` does everything. Each mini-batch is 32 views; the loss is
-the softmax (NLL of the log-softmax) loss over every cell of every view that covers at least
-`min_cell_px` pixels.
+CleanRL-style: an Args dataclass, `train(args)` does everything.
 
-Class imbalance: only 1-12 of 100 cells hold a person. We weight the occupied class's loss by
-`pos_weight` (default 4), a middle ground: unweighted training learns "always empty" for a long time
-(Aacc ~0.95 at F1 ~0), while full inverse-frequency weighting (~15) floods maps with false positives.
-The weight moves the decision threshold, so it is chosen for validation F1 at the fixed 0.5 threshold
-of the paper's metric, and for what fusion needs: with weight 3 (400 steps) an occupied cell's mean
-p(occupied) was 0.38, so averaging views pulled true positives under 0.5 and every multi-view fusion
-lost F1 to the single view; with weight 4 (800 steps) it is 0.5-0.6 and averaging gains. Augmentation: the 8 flips/rotations of the image, applied to the image and its
-cell label image together, which keeps every cell's ground truth (the heading is fixed north, so
-this only adds orientation variety).
+Data: every lattice view of the large split's training scenes, the very renders the stage-2 view caches
+are built from (view_cache.render_lattice_views: 500 scenes x 25 positions x 3 settings = 37,500 views,
+rendered once and shared), validated on the large split's validation scenes. Views are drawn at random
+(with the 8 flips/rotations of image, cell labels and person map together: the heading is fixed north,
+so this only adds orientation variety) and trained on random `crop` x `crop` windows: a third of the
+pixels per step for the same number of cells seen, while each cell keeps the geometry features
+(pixel count, centroid) of the whole view, which is what inference sees.
+
+Loss, per mini-batch of `batch_size` crops:
+- cells: the softmax (NLL of the log-softmax) loss over every cell with at least `min_cell_px` pixels in
+  the crop, the occupied class weighted by `pos_weight` (only 2-10 of 100 cells hold a person; unweighted
+  training learns "always empty" for a long time, full inverse-frequency weighting floods maps with
+  false alarms); and empty cells weighted up by `hard_negative_weight` x the share of their earlier
+  views in which they were false alarms: a bench or a dark window that fools the net from every
+  position is a persistent false alarm no second view can correct, so it is mined and weighted;
+- pixels: `person_weight` x the binary cross-entropy of the person head against the renderer's
+  per-pixel person fraction (dense supervision: every person pixel is a label, where a cell is one
+  label per 200 pixels), positives weighted by `person_pos_weight`.
+
+The checkpoint kept is the one with the best validation cell average precision (threshold-free); at the
+end its decision threshold is calibrated on the validation views: a shift of the classifier's logit
+margin, chosen for validation AF1 at the paper's fixed 0.5 threshold, is folded into the last layer's
+bias (`calibration_shift` in the checkpoint's metadata).
 
 Output: runs/<exp_name>__<seed>__<unix time>/ with args.json (written first), metrics.csv (grouped
-names: losses/, charts/, eval/), learning_curve.png and the best checkpoint (by validation AF1). Only
-`--out PATH` or `--ship` (models/perception.pt, the shipped net) copies it elsewhere.
+names: losses/, charts/, eval/), learning_curve.png and the best checkpoint. Only `--out PATH` or
+`--ship` (models/perception.pt, the shipped net) copies it elsewhere. A rerun with the same run name
+(`--resume DIR`) continues from the last periodic checkpoint.
 """
 
 from __future__ import annotations
@@ -39,33 +52,42 @@ from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs, Store
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
 from uavsearch.viz import pyplot, save_figure
+from uavsearch.world.settings import SETTINGS
 
 from .config import SearchConfig, lattice_positions
-from .dataset import DATA_DIR, ViewSet, ViewSetSpec, generate_views, load_views, perception_scenes
+from .dataset import ViewSet, concat_views, load_views
 from .fusion import DEFAULT_PRIOR
-from .metrics import average_metrics, cell_correct
-from .perception import PerceptionConfig, PerceptionNet, images_to_tensor, save_perception
+from .metrics import average_metrics, average_precision, cell_correct
+from .perception import (PerceptionConfig, PerceptionNet, cell_pooling, images_to_tensor, load_perception,
+                         save_perception)
+from .view_cache import CACHE_DIR, CacheKey, render_lattice_views, world_tag
 
 
 @dataclass
 class Args(ScaleOutArgs):
     exp_name: str = opt("perception", "the run's name in runs/")
-    seed: int = opt(1, "seeds numpy, torch and the scene/position draw")
-    train_scenes: int = opt(150, "training scenes (large-split train seeds of settings 1-3, K drawn in 1..12)")
-    train_views_per_scene: int = opt(8, "distinct lattice positions rendered per training scene", flag="--train-views")
-    val_scenes: int = opt(30, "validation scenes (large-split val seeds), K drawn in 1..12")
-    val_views_per_scene: int = opt(4, "lattice positions per validation scene (the start view included)",
-                                   flag="--val-views")
-    data_dir: str = opt(str(DATA_DIR), "where rendered view sets are cached (a folder or an fsspec URL)")
-    steps: int = opt(800, "optimiser steps")
-    batch_size: int = opt(32, "views per mini-batch (paper: 32)")
-    lr: float = opt(1e-3, "Adam learning rate (cosine-decayed to 5% of it); from scratch, not fine-tuning")
+    seed: int = opt(1, "seeds numpy, torch and the batch draw")
+    split: str = opt("large", "scene split whose lattice views train (train part) and validate (val part)")
+    settings: str = opt("1,2,3", "comma-separated settings whose scenes are used (K = 2, 5, 10 people)")
+    train_scenes: int = opt(500, "training scenes per setting (large split: 500 = all, 37,500 views)")
+    val_scenes: int = opt(10, "validation scenes per setting, every lattice position")
+    data_dir: str | None = opt(None, "where lattice views are rendered and cached (default cache/, shared with the "
+                                     "stage-2 view caches; a folder or an fsspec URL)")
+    steps: int = opt(1500, "optimiser steps")
+    batch_size: int = opt(32, "crops per mini-batch (paper: 32 views)")
+    crop: int = opt(128, "square crop side in pixels (a multiple of the net's stride; 0 = whole views)")
+    lr: float = opt(2e-3, "Adam learning rate (cosine-decayed to 5% of it); from scratch, not fine-tuning")
     weight_decay: float = opt(1e-5, "Adam L2 (paper's alpha: 1e-6)")
-    pos_weight: float = opt(4.0, "loss weight of the occupied class (class imbalance; see module docstring)")
-    augment: bool = opt(True, "random flips / 90-degree rotations of image + label image")
-    min_cell_px: float = opt(16.0, "cells smaller than this in a view are not trained on")
-    eval_every: int = opt(100, "steps between validations")
+    pos_weight: float = opt(3.0, "loss weight of the occupied class (class imbalance; see module docstring)")
+    hard_negative_weight: float = opt(2.0, "extra weight of an empty cell x its false-alarm share so far")
+    person_weight: float = opt(1.0, "weight of the dense person loss (0: no person supervision)")
+    person_pos_weight: float = opt(20.0, "weight of person pixels in the dense loss")
+    augment: bool = opt(True, "random flips / 90-degree rotations of image + label image + person map")
+    min_cell_px: float = opt(16.0, "cells with fewer pixels in the crop are not trained on")
+    calibrate: bool = opt(True, "fold the validation-chosen logit shift into the classifier (module docstring)")
+    eval_every: int = opt(250, "steps between validations (and resumable checkpoints)")
     threads: int = opt(2, "torch CPU threads")
+    resume: str | None = opt(None, "a run directory to continue (its args are kept; --steps may grow)")
     out: str | None = opt(None, "also copy the best checkpoint here (it always stays in the run directory)")
     ship: bool = opt(False, "copy the best checkpoint over the shipped models/perception.pt")
     runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
@@ -94,26 +116,76 @@ def seed_everything(seed: int) -> np.random.Generator:
     return np.random.default_rng(seed)
 
 
-def augment_batch(images: np.ndarray, labels: np.ndarray, rng: np.random.Generator):
-    """Apply one of the 8 dihedral transforms per view to the image and its label image alike."""
-    imgs, labs = images.copy(), labels.copy()
-    for b in range(len(images)):
+def augment_batch(rng: np.random.Generator, *arrays: np.ndarray) -> list[np.ndarray]:
+    """Apply one of the 8 dihedral transforms per view to every (V, H, W, ...) array alike (image, cell label
+    image, person map)."""
+    outs = [x.copy() for x in arrays]
+    for b in range(len(arrays[0])):
         k, flip = int(rng.integers(4)), bool(rng.integers(2))
-        im, lb = np.rot90(images[b], k, axes=(0, 1)), np.rot90(labels[b], k, axes=(0, 1))
-        if flip:
-            im, lb = im[:, ::-1], lb[:, ::-1]
-        imgs[b], labs[b] = im, lb
-    return imgs, labs
+        for x, o in zip(arrays, outs):
+            v = np.rot90(x[b], k, axes=(0, 1))
+            o[b] = v[:, ::-1] if flip else v
+    return outs
 
 
-def batch_loss(net: PerceptionNet, images, labels, occupancy, min_px: float, pos_weight: float):
-    """Weighted softmax loss over the trainable cells of a batch; returns (loss, log_probs, cell mask)."""
-    out = net.forward_all(images, labels)
-    y = torch.as_tensor(occupancy, dtype=torch.long)
-    mask = out.cell_pixels >= min_px
+def random_crops(rng: np.random.Generator, size: int, step: int, *arrays: np.ndarray) -> list[np.ndarray]:
+    """One random size x size window per view (offsets on the `step` grid, so feature pixels stay aligned),
+    the same window in every (V, H, W, ...) array."""
+    V, H, W = arrays[0].shape[:3]
+    if size <= 0 or size >= min(H, W):
+        return list(arrays)
+    r0 = rng.integers(0, (H - size) // step + 1, V) * step
+    c0 = rng.integers(0, (W - size) // step + 1, V) * step
+    return [np.stack([x[b, r0[b]:r0[b] + size, c0[b]:c0[b] + size] for b in range(V)]) for x in arrays]
+
+
+class HardNegatives:
+    """Per (scene, cell): how often an empty cell was a false alarm in the views trained on so far. Its
+    share is the extra loss weight of that cell (persistent false alarms are mined as they happen, no
+    extra pass over the data)."""
+
+    def __init__(self, num_scenes: int, num_cells: int):
+        self.false_alarms = np.zeros((num_scenes, num_cells), np.float32)
+        self.seen = np.zeros((num_scenes, num_cells), np.float32)
+
+    def weights(self, scene_rows: np.ndarray, empty: np.ndarray, scale: float) -> np.ndarray:
+        share = self.false_alarms[scene_rows] / np.maximum(self.seen[scene_rows], 1.0)
+        return 1.0 + scale * np.where(empty & (self.seen[scene_rows] >= 2), share, 0.0)
+
+    def update(self, scene_rows: np.ndarray, empty: np.ndarray, alarm: np.ndarray) -> None:
+        np.add.at(self.seen, scene_rows, empty.astype(np.float32))
+        np.add.at(self.false_alarms, scene_rows, (empty & alarm).astype(np.float32))
+
+
+def batch_loss(net: PerceptionNet, images, labels, occupancy, args: Args, person=None, geometry=None,
+               negative_weight=None):
+    """Stage 1's loss on a batch: weighted cell NLL (+ hard negatives) + the dense person loss.
+    Returns (loss, parts dict, log_probs, trained-cell mask)."""
+    lab = torch.as_tensor(np.asarray(labels))
+    out = net.forward_all(images, lab, geometry)
+    y = torch.as_tensor(np.asarray(occupancy), dtype=torch.long)
+    B, N = y.shape
+    keys = (torch.arange(B)[:, None, None] * (N + 1) + lab.long() + 1).reshape(-1)
+    in_crop = torch.bincount(keys, minlength=B * (N + 1)).view(B, N + 1)[:, 1:]
+    mask = in_crop >= args.min_cell_px
     nll = F.nll_loss(out.log_probs.reshape(-1, 2), y.reshape(-1), reduction="none").view_as(y)
-    w = torch.where(y == 1, torch.full_like(nll, pos_weight), torch.ones_like(nll)) * mask
-    return (nll * w).sum() / w.sum().clamp(min=1.0), out.log_probs, mask
+    w = torch.where(y == 1, torch.full_like(nll, args.pos_weight), torch.ones_like(nll))
+    if negative_weight is not None:
+        w = w * torch.as_tensor(negative_weight, dtype=w.dtype)
+    w = w * mask
+    loss_cells = (nll * w).sum() / w.sum().clamp(min=1.0)
+    loss_person = torch.zeros(())
+    if person is not None and out.person_logits is not None and args.person_weight > 0:
+        s = net.cfg.head_stride
+        target = torch.as_tensor(np.asarray(person), dtype=torch.float32) / 255.0
+        if s > 1:
+            target = F.avg_pool2d(target.unsqueeze(1), s)
+        else:
+            target = target.unsqueeze(1)
+        loss_person = F.binary_cross_entropy_with_logits(
+            out.person_logits, target, pos_weight=torch.tensor(args.person_pos_weight))
+    loss = loss_cells + args.person_weight * loss_person
+    return loss, {"cells": float(loss_cells.detach()), "person": float(loss_person.detach())}, out.log_probs, mask
 
 
 @torch.no_grad()
@@ -132,20 +204,43 @@ def predict_views(net: PerceptionNet, views: ViewSet, batch_size: int = 64, prog
 
 
 def evaluate(net: PerceptionNet, views: ViewSet, centre_index: int) -> dict[str, float]:
-    """Single-view Aacc/AF1 on every view and on the start views only, plus cell-level numbers."""
+    """Single-view Aacc/AF1 on every view and on the start views only, plus cell-level numbers (average
+    precision over the cells in view, false alarms per view, precision and recall at 0.5)."""
     p, _ = predict_views(net, views)
-    y = views.occupancy
+    return view_metrics(p, views.occupancy, views.cells_in_view, views.lattice_index == centre_index)
+
+
+def view_metrics(p: np.ndarray, y: np.ndarray, seen: np.ndarray, start: np.ndarray) -> dict[str, float]:
+
     aacc, af1 = average_metrics(p, y)
-    start = views.lattice_index == centre_index
     s_aacc, s_af1 = average_metrics(p[start], y[start]) if start.any() else (float("nan"), float("nan"))
-    seen = views.cells_in_view
     pos, pred = (y == 1) & seen, (p > 0.5) & seen
     return {
         "eval/aacc": aacc, "eval/af1": af1, "eval/start_aacc": s_aacc, "eval/start_af1": s_af1,
         "eval/cell_acc": float(cell_correct(p, y)[seen].mean()),
         "eval/recall": float((pos & pred).sum() / max(pos.sum(), 1)),
         "eval/precision": float((pos & pred).sum() / max(pred.sum(), 1)),
+        "eval/cell_ap": average_precision(p[seen], y[seen] == 1),
+        "eval/false_alarms_per_view": float((pred & (y == 0)).sum() / max(len(p), 1)),
     }
+
+
+def calibration_shift(net: PerceptionNet, views: ViewSet, shifts=np.linspace(-3.0, 3.0, 61)) -> tuple[float, float]:
+    """The logit-margin shift with the best single-view AF1 at 0.5 on these (validation) views: (shift, AF1)."""
+    p, _ = predict_views(net, views)
+    z = np.log(np.clip(p, 1e-7, 1.0)) - np.log(np.clip(1.0 - p, 1e-7, 1.0))
+    seen, y = views.cells_in_view, views.occupancy
+    best = max(((average_metrics(np.where(seen, 1.0 / (1.0 + np.exp(-(z + b))), DEFAULT_PRIOR), y)[1], -abs(b), b)
+                for b in shifts))
+    return float(best[2]), float(best[0])
+
+
+def apply_shift(net: PerceptionNet, shift: float) -> None:
+    """Add `shift` to the classifier's logit margin log p(1) - log p(0) (its last layer's biases)."""
+    last = net.classifier[-1]
+    with torch.no_grad():
+        last.bias[1] += shift / 2.0
+        last.bias[0] -= shift / 2.0
 
 
 def _plot_curves(rows: list[dict], path: Path) -> None:
@@ -175,23 +270,38 @@ def curves_figure(rows: list[dict]):
     return fig
 
 
+def _settings(args: Args) -> list[int]:
+    try:
+        out = [int(x) for x in str(args.settings).split(",") if x.strip()]
+    except ValueError:
+        raise UavsearchError(f"--settings must be comma-separated setting ids, not {args.settings!r}") from None
+    unknown = [x for x in out if x not in SETTINGS]
+    if unknown or not out:
+        raise UavsearchError(f"unknown setting(s) {unknown or args.settings}; valid: {sorted(SETTINGS)}")
+    return out
+
+
 def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
-    """Render (or reuse) the training and validation view sets; returns them and the start-view index."""
-    train_spec = ViewSetSpec(f"train_v{args.train_views_per_scene}_s{args.seed}",
-                             perception_scenes("train", args.train_scenes, args.seed),
-                             views_per_scene=args.train_views_per_scene, seed=args.seed)
-    val_spec = ViewSetSpec(f"val_v{args.val_views_per_scene}_s{args.seed}",
-                           perception_scenes("val", args.val_scenes, args.seed),
-                           views_per_scene=args.val_views_per_scene, seed=args.seed)
-    root, executor = Store(args.data_dir), Executor.from_args(args)
+    """Render (or reuse) the lattice views of the chosen scenes; returns (train, val, start-view index).
+    The renders are the stage-2 view caches' own (view_cache.render_lattice_views): made once for both."""
+    store, executor = Store(args.data_dir if args.data_dir is not None else CACHE_DIR), Executor.from_args(args)
     t0 = time.perf_counter()
-    tr_root = generate_views(train_spec, root.path(train_spec.name), progress=args.progress, executor=executor)
-    va_root = generate_views(val_spec, root.path(val_spec.name), progress=args.progress, executor=executor)
-    render_s = time.perf_counter() - t0
-    train, val = load_views(tr_root, train_spec.scenes), load_views(va_root, val_spec.scenes)
-    print(f"data: {len(train)} training views of {args.train_scenes} scenes, {len(val)} validation views of "
-          f"{args.val_scenes} scenes ({render_s:.0f} s to render / load from {root.url})")
-    return train, val, len(lattice_positions(SearchConfig())) // 2
+    sets = {}
+    for part, n in (("train", args.train_scenes), ("val", args.val_scenes)):
+        loaded = []
+        for setting in _settings(args):
+            key = CacheKey(setting, args.split, part)
+            scenes = key.scenes()
+            if not 1 <= n <= len(scenes):
+                raise UavsearchError(f"{part} scenes per setting must be 1..{len(scenes)} for the {args.split} split")
+            root = render_lattice_views(key, scenes[:n], root=store.path(f"lattice_views/{world_tag()}/{key.name}"),
+                                        progress=args.progress, executor=executor)
+            loaded.append(load_views(root, scenes[:n], person_frac=part == "train"))
+        sets[part] = loaded[0] if len(loaded) == 1 else concat_views(loaded)
+        del loaded
+    print(f"data: {len(sets['train'])} training views, {len(sets['val'])} validation views of the {args.split} "
+          f"split, settings {args.settings} ({time.perf_counter() - t0:.0f} s to render / load from {store.url})")
+    return sets["train"], sets["val"], len(lattice_positions(SearchConfig())) // 2
 
 
 def train(args: Args) -> dict:
@@ -199,65 +309,112 @@ def train(args: Args) -> dict:
     if args.batch_size < 1 or args.steps < 1:
         raise UavsearchError("batch_size and steps must be positive")
     torch.set_num_threads(max(1, args.threads))
+    cfg = PerceptionConfig(layers=tuple(tuple(x) for x in args.layers))
+    if args.crop and args.crop % cfg.stride:
+        raise UavsearchError(f"--crop {args.crop} must be a multiple of the net's stride {cfg.stride}")
     rng = seed_everything(args.seed)
-    run_dir = Path(args.runs_dir) / f"{args.exp_name}__{args.seed}__{int(time.time())}"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
+    if args.resume:
+        run_dir = Path(args.resume)
+        if not (run_dir / "last.pt").is_file():
+            raise UavsearchError(f"{run_dir} has no last.pt to resume from")
+    else:
+        run_dir = Path(args.runs_dir) / f"{args.exp_name}__{args.seed}__{int(time.time())}"
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
     t_start = time.perf_counter()
     train_set, val_set, centre = prepare_data(args)
     t_data = time.perf_counter() - t_start
+    scene_row = np.unique(train_set.scene_seed, return_inverse=True)[1]
+    hard = HardNegatives(int(scene_row.max()) + 1, cfg.num_cells)
 
-    net = PerceptionNet(PerceptionConfig(layers=tuple(tuple(x) for x in args.layers)))
+    net = PerceptionNet(cfg)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: 0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * min(s, args.steps) / args.steps)))
     rows: list[dict] = []
-    best: dict = {"eval/af1": -1.0}
-    ckpt = run_dir / "perception.pt"
+    best: dict = {"eval/cell_ap": -1.0}
+    ckpt, last = run_dir / "perception.pt", run_dir / "last.pt"
     csv_path = run_dir / "metrics.csv"
-    fields = ["step", "time_s", "losses/train_loss", "charts/lr", "charts/views_per_s", "eval/aacc", "eval/af1",
-              "eval/start_aacc", "eval/start_af1", "eval/cell_acc", "eval/recall", "eval/precision"]
-    with open(csv_path, "w", newline="") as fh:
-        csv.DictWriter(fh, fields).writeheader()
+    fields = ["step", "time_s", "losses/train_loss", "losses/cells", "losses/person", "charts/lr",
+              "charts/views_per_s", "eval/aacc", "eval/af1", "eval/start_aacc", "eval/start_af1", "eval/cell_acc",
+              "eval/recall", "eval/precision", "eval/cell_ap", "eval/false_alarms_per_view"]
+    first, t_before = 1, 0.0
+    if args.resume:
+        st = torch.load(last, map_location="cpu", weights_only=False)
+        net.load_state_dict(st["net"]), opt.load_state_dict(st["opt"]), sched.load_state_dict(st["sched"])
+        rng.bit_generator.state = st["rng"]
+        torch.set_rng_state(st["torch_rng"])
+        hard.false_alarms, hard.seen = st["hard"]
+        rows, best, first, t_before = st["rows"], st["best"], st["step"] + 1, st["time_s"]
+        print(f"resuming {run_dir} at step {first}")
+    with open(csv_path, "w", newline="") as fh:  # rewritten whole: a resumed run's file has no gap or repeat
+        w = csv.DictWriter(fh, fields)
+        w.writeheader()
+        w.writerows(rows)
 
     def log(row):
         rows.append(row)
         with open(csv_path, "a", newline="") as fh:
             csv.DictWriter(fh, fields).writerow(row)
 
-    t_train = time.perf_counter()
-    bar = tqdm(range(1, args.steps + 1), desc="train perception", unit="step", disable=not args.progress)
+    t_train = time.perf_counter() - t_before
+    bar = tqdm(range(first, args.steps + 1), desc="train perception", unit="step", disable=not args.progress,
+               initial=first - 1, total=args.steps)
     for step in bar:
         net.train()
         rows_b = rng.integers(0, len(train_set), args.batch_size)
-        imgs, labs = train_set.images[rows_b], train_set.label_images(rows_b)
+        imgs, labs, pers = train_set.images[rows_b], train_set.label_images(rows_b), train_set.person_frac[rows_b]
         if args.augment:
-            imgs, labs = augment_batch(imgs, labs, rng)
-        loss, _, _ = batch_loss(net, images_to_tensor(np.ascontiguousarray(imgs)), np.ascontiguousarray(labs),
-                                train_set.occupancy[rows_b], args.min_cell_px, args.pos_weight)
+            imgs, labs, pers = augment_batch(rng, imgs, labs, pers)
+        pooling = cell_pooling(torch.as_tensor(np.ascontiguousarray(labs)), cfg.stride, cfg.num_cells)
+        imgs, labs, pers = random_crops(rng, args.crop, cfg.stride, imgs, labs, pers)
+        y = train_set.occupancy[rows_b]
+        sr = scene_row[rows_b]
+        neg_w = hard.weights(sr, y == 0, args.hard_negative_weight)
+        loss, parts, log_probs, mask = batch_loss(
+            net, images_to_tensor(np.ascontiguousarray(imgs)), np.ascontiguousarray(labs), y, args,
+            person=np.ascontiguousarray(pers), geometry=(pooling.pixels, pooling.centroid), negative_weight=neg_w)
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
-        row = {"step": step, "time_s": round(time.perf_counter() - t_train, 2), "losses/train_loss": loss.item(),
-               "charts/lr": sched.get_last_lr()[0],
-               "charts/views_per_s": step * args.batch_size / (time.perf_counter() - t_train)}
+        m = mask.numpy()
+        hard.update(sr, (y == 0) & m, (log_probs[..., 1].detach().exp().numpy() > 0.5) & m)
+        elapsed = time.perf_counter() - t_train
+        row = {"step": step, "time_s": round(elapsed, 2), "losses/train_loss": loss.item(),
+               "losses/cells": parts["cells"], "losses/person": parts["person"], "charts/lr": sched.get_last_lr()[0],
+               "charts/views_per_s": (step - first + 1) * args.batch_size / max(elapsed - t_before, 1e-9)}
         if step % args.eval_every == 0 or step == args.steps:
             row.update(evaluate(net, val_set, centre))
-            bar.set_postfix(af1=f"{row['eval/af1']:.3f}", aacc=f"{row['eval/aacc']:.3f}")
-            if row["eval/af1"] > best["eval/af1"]:
+            bar.set_postfix(ap=f"{row['eval/cell_ap']:.3f}", af1=f"{row['eval/af1']:.3f}",
+                            fa=f"{row['eval/false_alarms_per_view']:.2f}")
+            if row["eval/cell_ap"] > best["eval/cell_ap"]:
                 best = {**row}
                 save_perception(net, ckpt, extra={"args": asdict(args), "step": step,
                                                   "val": {k: v for k, v in row.items() if k.startswith("eval/")}})
-        log(row)
+            log(row)
+            torch.save({"net": net.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                        "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
+                        "hard": (hard.false_alarms, hard.seen), "rows": rows, "best": best, "step": step,
+                        "time_s": time.perf_counter() - t_train}, last)
+        else:
+            log(row)
     bar.close()
     train_s = time.perf_counter() - t_train
+    net, extra = load_perception(ckpt)
+    shift, cal_af1 = (calibration_shift(net, val_set) if args.calibrate else (0.0, best["eval/af1"]))
+    if shift:
+        apply_shift(net, shift)
+        val = {**extra["val"], **evaluate(net, val_set, centre)}
+        save_perception(net, ckpt, extra={**extra, "calibration_shift": shift, "val": val,
+                                          "val_before_calibration": extra["val"]})
+        best.update(val)
     _plot_curves(rows, run_dir / "learning_curve.png")
     out = copy_checkpoint(ckpt, args.out, args.ship, MODELS_DIR / "perception.pt")
     report = {
         "best_step": best["step"], **{k: best[k] for k in best if k.startswith("eval/")},
-        "train_views": len(train_set), "val_views": len(val_set), "data_s": t_data, "train_s": train_s,
-        "run_dir": str(run_dir), "checkpoint": str(out or ckpt),
+        "calibration_shift": shift, "train_views": len(train_set), "val_views": len(val_set), "data_s": t_data,
+        "train_s": train_s, "run_dir": str(run_dir), "checkpoint": str(out or ckpt),
     }
     (run_dir / "report.json").write_text(json.dumps(report, indent=1))
     _print_report(report)
@@ -268,7 +425,7 @@ def _print_report(r: dict) -> None:
     print("\nstage 1 perception: validation of the best checkpoint (single view, threshold 0.5)")
     print(f"| {'metric':<22} | {'value':>10} |\n|{'-' * 24}|{'-' * 12}|")
     for k in ("eval/aacc", "eval/af1", "eval/start_aacc", "eval/start_af1", "eval/cell_acc", "eval/recall",
-              "eval/precision"):
+              "eval/precision", "eval/cell_ap", "eval/false_alarms_per_view", "calibration_shift"):
         print(f"| {k:<22} | {r[k]:>10.3f} |")
     print(f"| {'best step':<22} | {r['best_step']:>10d} |")
     print(f"| {'train / val views':<22} | {str(r['train_views']) + ' / ' + str(r['val_views']):>10} |")
