@@ -27,7 +27,6 @@ from uavsearch.search.config import SearchConfig
 from uavsearch.search.eval_perception import (
     EvalArgs as PerceptionArgs,
     add_eval_perception_parser,
-    average_precision,
     eval_perception,
     perception_stats,
     targets_figure,
@@ -166,7 +165,7 @@ def _tiny_cache() -> ViewCache:
 
 def test_perception_targets_on_a_hand_computed_cache():
     st = perception_stats([_tiny_cache()])
-    # valid (score, label) ranked: .9 1, .8 1, .7 1, .6 0, .6 0, .3 1, .1 0 -> AP = 3 x 1/4 + 1/4 x 4/6
+    # valid (score, label) ranked: .9 1, .8 1, .7 1, .6 0, .6 0, .3 1, .1 0 -> AP = mean(1, 1, 1, 4/6)
     assert st["cell_ap"] == pytest.approx(0.75 + 0.25 * 4 / 6, abs=1e-6)
     assert st["fa_per_view"] == 1.0 and st["fa_hist"].tolist() == [0, 2]
     assert st["precision"] == pytest.approx(3 / 5) and st["recall"] == pytest.approx(3 / 4)
@@ -174,7 +173,6 @@ def test_perception_targets_on_a_hand_computed_cache():
     by = st["recall_by_px"]
     assert by["0"] == (0.0, 1) and by["1-3"] == (1.0, 1) and by["4-7"] == (1.0, 1) and by["16+"] == (1.0, 1)
     assert np.isnan(by["8-15"][0]) and by["8-15"][1] == 0 and st["recall_4_7px"] == 1.0
-    assert average_precision([0.5] * 4, [1, 0, 0, 0]) == 0.25 and average_precision([0.9, 0.1], [1, 0]) == 1.0
     assert perception_stats([_tiny_cache()._replace(person_px=None)])["recall_by_px"] is None
 
 

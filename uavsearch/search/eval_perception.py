@@ -34,6 +34,7 @@ from uavsearch.viz import pyplot, save_figure
 from uavsearch.world.settings import SETTINGS
 
 from .eval_search import parse_settings
+from .metrics import average_precision
 from .perception import load_perception
 from .view_cache import PARTS, get_view_cache
 
@@ -50,23 +51,6 @@ TARGETS: tuple[tuple[str, str, str, float], ...] = (
 
 def bin_name(lo: int, hi: int | None) -> str:
     return f"{lo}+" if hi is None else (f"{lo}" if lo == hi else f"{lo}-{hi}")
-
-
-def average_precision(scores, labels) -> float:
-    """Area under the precision-recall step curve: sum over score thresholds of (recall gain) x precision,
-    tied scores forming one threshold (sklearn's average_precision_score). NaN without positives."""
-    s = np.asarray(scores, dtype=np.float64).ravel()
-    y = np.asarray(labels).astype(bool).ravel()
-    n_pos = int(y.sum())
-    if n_pos == 0:
-        return float("nan")
-    order = np.argsort(-s, kind="stable")
-    s, y = s[order], y[order]
-    last = np.r_[np.flatnonzero(np.diff(s)), len(s) - 1]  # last index of each distinct score
-    tp = np.cumsum(y)[last]
-    precision = tp / (last + 1)
-    recall = tp / n_pos
-    return float(np.sum(np.diff(np.r_[0.0, recall]) * precision))
 
 
 def perception_stats(caches, threshold: float = THRESHOLD) -> dict:
