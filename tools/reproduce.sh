@@ -27,10 +27,13 @@
 #     search          Table II + Fig. 6, paper split, 10 test scenes per setting, evaluation seeds 0-4 x 10
 #                     episodes. measured: 229 s the first time (renders 750 views into cache/), 7 s after.
 #   full only:
-#     train_perception  stage 1, seed 1, 800 steps, occupied weight 4. estimate: ~30 min (README: 1594 s
-#                     on one thread) + ~3 min rendering 1320 views.
+#     lattice_views   every lattice view of the large split (1950 scenes x 25 positions = 48,750 views; stage
+#                     1 trains on the 37,500 of the training scenes, stage 2 reads all of them).
+#                     measured: 2613 s for train + val on the shared machine (load 3-9), ~1 s per scene idle.
+#     train_perception  stage 1, seed 1, 5000 steps of 32 crops on the large split's training lattice views.
+#                     measured: see docs/results.md (about 4 steps/s on two cores).
 #     view_caches     perception outputs of the 25 lattice views of every paper- and large-split scene for
-#                     the new stage 1. estimate: ~45 min (README: 1650 large-split scenes).
+#                     the new stage 1. estimate: ~10 min (about 12 ms of CPU per view).
 #     train_policy    stage 2, 5 fusions x 3 settings x training seeds 0, 1, 2 = 45 runs, 1200 iterations,
 #                     large split. estimate: 3 x (3 x 150 s + 12 x 60 s) = ~60 min serial, ~35 min --jobs 2.
 #     ship            (--ship only) copy into models/. seconds.
@@ -87,8 +90,11 @@ NEWPERC=$RUN/perception.pt
 STEPS=()
 add() { STEPS+=("$1|$2|$3|$4"); }
 
-add train_perception full "stage 1 (seed 1, 800 steps, occupied weight 4) -> $NEWPERC" \
-  "$UAV train perception --seed 1 --steps 800 --pos-weight 4 --runs-dir $RUN --out $NEWPERC --no-progress"
+add lattice_views full "render every lattice view of the large split into cache/lattice_views/ (resumable)" \
+  "$PY -c \"from uavsearch.search.view_cache import CacheKey, render_lattice_views
+[render_lattice_views(CacheKey(s, 'large', part), progress=False) for part in ('train', 'val', 'test') for s in (1, 2, 3)]\""
+add train_perception full "stage 1 (seed 1, 5000 steps, the large split's training lattice views) -> $NEWPERC" \
+  "$UAV train perception --seed 1 --runs-dir $RUN --out $NEWPERC --no-progress"
 add view_caches full "perception outputs of every paper- and large-split lattice view for $NEWPERC" \
   "$PY -c \"from uavsearch.search.perception import load_perception; from uavsearch.search.view_cache import get_view_cache
 net, _ = load_perception('$NEWPERC')

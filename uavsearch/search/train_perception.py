@@ -73,7 +73,7 @@ class Args(ScaleOutArgs):
     val_scenes: int = opt(10, "validation scenes per setting, every lattice position")
     data_dir: str | None = opt(None, "where lattice views are rendered and cached (default cache/, shared with the "
                                      "stage-2 view caches; a folder or an fsspec URL)")
-    steps: int = opt(1500, "optimiser steps")
+    steps: int = opt(5000, "optimiser steps (~4 per second on two idle cores: 21 min)")
     batch_size: int = opt(32, "crops per mini-batch (paper: 32 views)")
     crop: int = opt(128, "square crop side in pixels (a multiple of the net's stride; 0 = whole views)")
     lr: float = opt(2e-3, "Adam learning rate (cosine-decayed to 5% of it); from scratch, not fine-tuning")
@@ -85,7 +85,7 @@ class Args(ScaleOutArgs):
     augment: bool = opt(True, "random flips / 90-degree rotations of image + label image + person map")
     min_cell_px: float = opt(16.0, "cells with fewer pixels in the crop are not trained on")
     calibrate: bool = opt(True, "fold the validation-chosen logit shift into the classifier (module docstring)")
-    eval_every: int = opt(250, "steps between validations (and resumable checkpoints)")
+    eval_every: int = opt(500, "steps between validations (and resumable checkpoints)")
     threads: int = opt(2, "torch CPU threads")
     resume: str | None = opt(None, "a run directory to continue (its args are kept; --steps may grow)")
     out: str | None = opt(None, "also copy the best checkpoint here (it always stays in the run directory)")
