@@ -38,9 +38,8 @@ from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
-from uavsearch.parallel import ScaleOutArgs
-from uavsearch.paths import MODELS_DIR, RUNS_DIR
-from uavsearch.viz import pyplot
+from uavsearch.paths import MODELS_DIR
+from uavsearch.viz import pyplot, save_figure
 
 from .agents import checkpoint_path
 from .config import SearchConfig
@@ -49,13 +48,13 @@ from .policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search_
 from .reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, score_table
 from .search_loop import R_RE, Agent, CachedViews, classification_reward, run_search
 from .train_perception import copy_checkpoint, seed_everything
-from .train_policy import load_caches
+from .train_policy import RunArgs, load_caches, start_run
 
 FUSION = "learned"
 
 
 @dataclass
-class Args(ScaleOutArgs):
+class Args(RunArgs):
     setting: int = opt(2, "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)")
     split: str = opt("large", "scene split: trains on its train part, selects on its val part")
     perception: str = opt(str(MODELS_DIR / "perception.pt"), "frozen stage-1 checkpoint (builds the view caches)")
@@ -87,11 +86,6 @@ class Args(ScaleOutArgs):
     conv_layers: int = opt(3, "3x3 conv layers")
     hidden: int = opt(64, "FC head width")
     eval_every: int = opt(25, "policy-gradient iterations between validations")
-    threads: int = opt(1, "torch CPU threads")
-    cache_dir: str | None = opt(None, "view cache root (default cache/)")
-    runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
-    progress: bool = opt(True, "progress bar")
-    plot: bool = opt(True, "write learning_curve.png at the end")
 
 
 class TrainResult(NamedTuple):
@@ -183,9 +177,7 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
         a.set_xlabel("iteration (DAgger, then REINFORCE)")
         a.grid(alpha=0.3)
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def train(args: Args, caches=None) -> TrainResult:
@@ -201,13 +193,7 @@ def train(args: Args, caches=None) -> TrainResult:
         raise UavsearchError(f"{conf_path} holds no confidence network ({fusion} fusion); give a learned-fusion "
                              "checkpoint with --confidence")
     name = args.name or f"reactive_s{args.setting}"
-    stamp = int(time.time())
-    run_dir = Path(args.runs_dir) / f"{name}__{args.seed}__{stamp}"
-    while run_dir.exists():  # two runs started within the same second
-        stamp += 1
-        run_dir = Path(args.runs_dir) / f"{name}__{args.seed}__{stamp}"
-    run_dir.mkdir(parents=True)
-    (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
+    run_dir = start_run(args, name, args.seed)
 
     train_cache, val_cache = caches if caches is not None else load_caches(args)
     config = SearchConfig()
