@@ -65,14 +65,14 @@ class Args(RunArgs):
     name: str | None = opt(None, "run name (default reactive_s<setting>)")
     seed: int = opt(0, "seeds random, numpy, torch and the episode sampling")
     # 1. DAgger
-    dagger_iterations: int = opt(6, "DAgger iterations (rollout, aggregate, fit)")
-    dagger_episodes: int = opt(500, "episodes rolled out per DAgger iteration (scenes drawn with replacement)")
+    dagger_iterations: int = opt(8, "DAgger iterations (rollout, aggregate, fit)")
+    dagger_episodes: int = opt(1000, "episodes rolled out per DAgger iteration (scenes drawn with replacement)")
     beta_decay: float = opt(0.5, "teacher probability: 1 in the first iteration, times this per iteration")
     dagger_epochs: int = opt(3, "passes over the aggregate per DAgger iteration")
     batch_size: int = opt(256, "states per cross-entropy minibatch")
     lr: float = opt(1e-3, "Adam, imitation")
     # 2. REINFORCE
-    pg_iterations: int = opt(300, "policy-gradient iterations after DAgger")
+    pg_iterations: int = opt(1000, "policy-gradient iterations after DAgger")
     scenes_per_batch: int = opt(32, "training scenes per policy-gradient batch (drawn with replacement)")
     episodes_per_scene: int = opt(4, "episodes per scene per policy-gradient batch")
     lr_pg: float = opt(3e-4, "Adam, policy gradient")
