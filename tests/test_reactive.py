@@ -15,7 +15,8 @@ from uavsearch.search.config import SearchConfig
 from uavsearch.search.perception import ConfidenceNet
 from uavsearch.search.policy import (ArgmaxPolicy, PolicyNet, RandomPolicy, load_search_model, round_trip_half,
                                      save_search_model)
-from uavsearch.search.reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, action_mask
+from uavsearch.search.reactive import (LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, action_mask,
+                                      mirror_states)
 from uavsearch.search.search_loop import (Agent, CachedViews, Observation, PolicyInput, classification_reward,
                                           lattice_moves, run_search)
 from uavsearch.search.train_reactive import Args, DaggerMixture, add_train_reactive_parser, imitation_loss, train
@@ -74,6 +75,34 @@ def test_mask_allows_a_revisit_only_when_no_new_position_is_reachable():
     assert action_mask(inp(0, [0, 1, 5]), MOVES).tolist() == [[False, True, False, True]]
     # from the centre with north visited: east, west, south
     assert action_mask(inp(12, [12, 7]), MOVES).tolist() == [[False, True, True, True]]
+
+
+@pytest.mark.parametrize("east_west,north_south", [(True, False), (False, True), (True, True)])
+def test_a_mirrored_world_gives_the_mirrored_state_and_moves(east_west, north_south):
+    cache = synthetic_cache(2)
+    conf = _conf()
+    rec = _Recorder(RandomPolicy())
+    run_search(CachedViews(cache, [0, 1, 1]), Agent("learned", rec, conf), generator=torch.Generator().manual_seed(2))
+
+    def mirror_index(size):  # row-major from the NW corner: columns run west -> east, rows north -> south
+        rc = torch.arange(size * size)
+        r, c = rc // size, rc % size
+        return (size - 1 - r if north_south else r) * size + (size - 1 - c if east_west else c)
+
+    cells, lat = mirror_index(10), mirror_index(5)
+    torch.manual_seed(0)
+    net = ReactivePolicyNet()
+    inp = rec.seen[2]
+    mirrored = inp._replace(fused=inp.fused[:, cells], cells_in_view=inp.cells_in_view[:, cells],
+                            lattice_idx=lat[inp.lattice_idx], visited=inp.visited[:, lat],
+                            view_positions=lat[inp.view_positions], view_probs=inp.view_probs[..., cells],
+                            view_valid=inp.view_valid[..., cells], view_scores=inp.view_scores[..., cells])
+    a = torch.tensor([0, 1, 3])
+    state, mask, moves = mirror_states(net.state(inp), net.mask(inp), a, CONFIG, east_west, north_south)
+    assert torch.allclose(state, net.state(mirrored), atol=1e-5)
+    assert torch.equal(mask, net.mask(mirrored))
+    # a move and its mirror image reach mirror-image positions
+    assert torch.equal(lat[MOVES[inp.lattice_idx, a]], MOVES[lat[inp.lattice_idx], moves])
 
 
 def test_policy_input_carries_the_episode_so_far():
@@ -205,7 +234,7 @@ def test_dagger_lowers_the_imitation_loss_and_a_run_is_reproducible(tmp_path):
         before = float(imitation_loss(fresh, X, M, Y)[0])
     save_search_model(tmp_path / "c.pt", "learned", fresh, conf)
     res = train(_tiny(tmp_path, confidence=str(tmp_path / "c.pt"), dagger_iterations=3, dagger_epochs=6,
-                      pg_iterations=0, plot=False), caches=(train_cache, val_cache))
+                      pg_iterations=0, mirror=False, plot=False), caches=(train_cache, val_cache))
     _, net, _, extra = load_search_model(res.checkpoint)
     with torch.no_grad():
         after = float(imitation_loss(net, X, M, Y)[0])

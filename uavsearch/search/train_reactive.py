@@ -7,7 +7,8 @@ position) are computed once, and every episode is a few gathers (search_loop.run
 1. DAgger (`dagger_iterations`): roll out a mixture, per episode and step the teacher
    (reactive.LabelGreedyTeacher, one-step lookahead on the labels) with probability beta (1, then times
    `beta_decay` per iteration) else the net (sampled); keep every (state, teacher move); fit the net to the
-   aggregate by cross-entropy (`dagger_epochs` passes per iteration).
+   aggregate by cross-entropy (`dagger_epochs` passes per iteration), each minibatch mirrored east-west and
+   / or north-south at random (`mirror`; reactive.mirror_states): 500 scenes are then 2000.
 2. REINFORCE (`pg_iterations`) with a PER-STEP reward: after each new view, the change of N_tp - N_fp of the
    learned-fusion map (plus R_re per revisit). The return to go of each move is baselined by the COVERAGE
    ROUTE's return to go on the same scene from the same step (policy.CoverageRoute, computed once per
@@ -45,7 +46,7 @@ from .agents import checkpoint_path
 from .config import SearchConfig
 from .eval_search import evaluate_agent
 from .policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search_model
-from .reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, score_table
+from .reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
 from .search_loop import R_RE, Agent, CachedViews, classification_reward, run_search
 from .train_perception import copy_checkpoint, seed_everything
 from .train_policy import RunArgs, load_caches, start_run
@@ -71,6 +72,7 @@ class Args(RunArgs):
     dagger_epochs: int = opt(3, "passes over the aggregate per DAgger iteration")
     batch_size: int = opt(256, "states per cross-entropy minibatch")
     lr: float = opt(1e-3, "Adam, imitation")
+    mirror: bool = opt(True, "imitate on randomly mirrored states too (east-west, north-south, moves swapped alike)")
     # 2. REINFORCE
     pg_iterations: int = opt(1000, "policy-gradient iterations after DAgger")
     scenes_per_batch: int = opt(32, "training scenes per policy-gradient batch (drawn with replacement)")
@@ -136,8 +138,13 @@ class DaggerMixture:
         return torch.where(use_teacher, a_teacher, a_net), None, None
 
 
-def imitation_loss(net, states, masks, targets) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cross-entropy of the net's masked logits against the teacher's moves, and the agreement (argmax)."""
+def imitation_loss(net, states, masks, targets, mirror: torch.Generator | None = None,
+                   config: SearchConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cross-entropy of the net's masked logits against the teacher's moves, and the agreement (argmax);
+    with `mirror` (a generator) the batch is first mirrored east-west and / or north-south at random."""
+    if mirror is not None:
+        ew, ns = (torch.rand(2, generator=mirror) < 0.5).tolist()
+        states, masks, targets = mirror_states(states, masks, targets, config or SearchConfig(), ew, ns)
     logits = net(states, masks)
     return F.cross_entropy(logits, targets), (logits.argmax(-1) == targets).float().mean()
 
@@ -268,7 +275,7 @@ def train(args: Args, caches=None) -> TrainResult:
             perm = torch.randperm(len(Y), generator=gen)
             for j in range(0, len(Y), args.batch_size):
                 b = perm[j:j + args.batch_size]
-                loss, acc = imitation_loss(net, X[b], M[b], Y[b])
+                loss, acc = imitation_loss(net, X[b], M[b], Y[b], gen if args.mirror else None, config)
                 opt_il.zero_grad()
                 loss.backward()
                 opt_il.step()
@@ -302,7 +309,7 @@ def train(args: Args, caches=None) -> TrainResult:
         loss_il = agreement = None
         if X is not None and args.imitation_coef > 0:
             b = torch.randint(len(Y), (args.batch_size,), generator=gen)
-            loss_il, agreement = imitation_loss(net, X[b], M[b], Y[b])
+            loss_il, agreement = imitation_loss(net, X[b], M[b], Y[b], gen if args.mirror else None, config)
             loss = loss + args.imitation_coef * loss_il
         opt_pg.zero_grad()
         loss.backward()
