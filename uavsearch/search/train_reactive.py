@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -203,6 +204,10 @@ def train(args: Args, caches=None) -> TrainResult:
     run_dir = start_run(args, name, args.seed)
 
     train_cache, val_cache = caches if caches is not None else load_caches(args)
+    tag = conf_extra.get("perception_tag") if isinstance(conf_extra, dict) else None
+    if tag and tag != train_cache.perception_tag:
+        print(f"uavsearch: warning: {conf_path}'s confidence net was trained on perception {tag}, the view cache "
+              f"holds perception {train_cache.perception_tag}", file=sys.stderr)
     config = SearchConfig()
     T, S = config.budget_T, train_cache.num_scenes
     train_scores, val_scores = score_table(train_cache, conf), score_table(val_cache, conf)
@@ -228,8 +233,7 @@ def train(args: Args, caches=None) -> TrainResult:
     ckpt = run_dir / "model.pt"
     csv_f = (run_dir / "metrics.csv").open("w", newline="")
     writer = None
-    meta = {"args": asdict(args), "confidence": str(conf_path), "perception_tag": train_cache.perception_tag,
-            "confidence_perception_tag": conf_extra.get("perception_tag") if isinstance(conf_extra, dict) else None}
+    meta = {"args": asdict(args), "confidence": str(conf_path), "perception_tag": train_cache.perception_tag}
 
     def validate(row: dict, it: int) -> None:
         nonlocal best, best_key
@@ -249,6 +253,7 @@ def train(args: Args, caches=None) -> TrainResult:
             writer = csv.DictWriter(csv_f, fieldnames=list(row))
             writer.writeheader()
         writer.writerow(row)
+        csv_f.flush()
 
     def blank(it: int, phase: str) -> dict:
         return {"iteration": it, "phase": phase, "losses/imitation": None, "losses/policy": None,
