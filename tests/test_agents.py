@@ -17,6 +17,7 @@ from uavsearch.search.agents import POLICIES, build_agent, checkpoint_path, need
 from uavsearch.search.config import SearchConfig
 from uavsearch.search.fusion import FUSION_METHODS, FusionMethod
 from uavsearch.search.policy import save_search_model
+from uavsearch.search.reactive import ReactivePolicyNet
 from uavsearch.search.search_loop import CachedViews, run_search
 
 
@@ -25,6 +26,7 @@ def _ship(models, setting=2, cell_dim=6, global_dim=16):
     for f in FUSION_METHODS:
         a = new_agent(f, SearchConfig(), global_dim, cell_dim)
         save_search_model(checkpoint_path(setting, f, models), f, a.policy, a.confidence)
+        save_search_model(checkpoint_path(setting, f, models, policy="reactive"), f, ReactivePolicyNet(), a.confidence)
 
 
 @pytest.mark.parametrize("policy", list(POLICIES))
@@ -32,7 +34,7 @@ def _ship(models, setting=2, cell_dim=6, global_dim=16):
 def test_every_registered_pair_builds_and_runs(tmp_path, fusion, policy):
     _ship(tmp_path)
     config = SearchConfig()
-    loaded = build_agent(fusion, policy, config, checkpoint=checkpoint_path(2, fusion, tmp_path),
+    loaded = build_agent(fusion, policy, config, checkpoint=checkpoint_path(2, fusion, tmp_path, policy=policy),
                          confidence_checkpoint=checkpoint_path(2, "learned", tmp_path), scores_net=True)
     assert (loaded.agent.confidence is not None) == needs_confidence(fusion)
     assert loaded.scores_net is not None  # the learned checkpoint's net, for logging scores

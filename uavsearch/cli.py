@@ -217,11 +217,13 @@ def _add_train_parser(sub) -> None:
     # lazy: torch (2-5 s); built only when `train` is the command (build_parser)
     from .search.train_perception import add_train_perception_parser
     from .search.train_policy import add_train_policy_parser
+    from .search.train_reactive import add_train_reactive_parser
 
     train = sub.add_parser("train", help=TRAIN_HELP)
-    tsub = train.add_subparsers(dest="train_cmd", required=True, metavar="{perception,policy}")
+    tsub = train.add_subparsers(dest="train_cmd", required=True, metavar="{perception,policy,reactive}")
     add_train_perception_parser(tsub)
     add_train_policy_parser(tsub)
+    add_train_reactive_parser(tsub)
 
 
 def _add_eval_parser(sub) -> None:

@@ -152,7 +152,7 @@ class Mission(_Strict):
     search: SearchSection = SearchSection()
     fusion: str = "learned"  # a fusion method of the agent registry (search/agents.py)
     policy: str = "learned"  # a policy of the agent registry
-    checkpoint: str | None = None  # default: models/search_s<setting>_<fusion>.pt
+    checkpoint: str | None = None  # default: models/search_s<setting>_<fusion>.pt (_<policy>.pt: agents.checkpoint_path)
     perception: str | None = None  # default: models/perception.pt
     policy_seed: int = Field(0, ge=0)
     greedy_policy: bool = False  # the learned policy takes its most likely action instead of sampling
@@ -181,7 +181,8 @@ class Mission(_Strict):
             raise ValueError("scene: give a seed or a spec file")
         if s.occupied_cells is not None and s.setting is not None and "setting" in s.model_fields_set:
             raise ValueError("scene: give setting OR occupied_cells, not both")
-        if _checks_registry(info) and _registry().needs_confidence(self.fusion) and self.policy != "learned" and self.checkpoint is None and s.setting is None:
+        if _checks_registry(info) and _registry().needs_confidence(self.fusion) and \
+                not _registry().loads_checkpoint(self.policy) and self.checkpoint is None and s.setting is None:
             raise ValueError(f"{self.fusion} fusion needs a checkpoint (no setting to pick a shipped one)")
         off = untrained_settings(self.search)
         if off and not self.search.allow_untrained:
@@ -227,7 +228,9 @@ class Mission(_Strict):
     def checkpoint_path(self) -> Path:
         if self.checkpoint:
             return self._resolve(self.checkpoint)
-        return _registry().checkpoint_path(self.setting_for_models, self.fusion)
+        agents = _registry()
+        trained = self.policy in agents.POLICIES and agents.loads_checkpoint(self.policy)
+        return agents.checkpoint_path(self.setting_for_models, self.fusion, policy=self.policy if trained else "learned")
 
     @property
     def perception_path(self) -> Path:

@@ -5,8 +5,9 @@ log) and training all build their agents here, so a fusion method or a policy is
 
 - fusion methods: `FUSION_METHODS` in fusion.py (kernel and the inputs it needs). A method
   whose `needs` include "scores" needs a confidence net (learned fusion's, from a search checkpoint).
-- policies: `POLICIES` below. "learned" loads its net from a search checkpoint (search_s<K>_<fusion>.pt,
-  trained with that fusion); the others are built from the search config.
+- policies: `POLICIES` below. "learned" (the paper's PolicyNet) loads its net from a search checkpoint
+  (search_s<K>_<fusion>.pt, trained with that fusion), "reactive" (reactive.ReactivePolicyNet) from
+  search_s<K>_<fusion>_reactive.pt; the others are built from the search config.
 
 Adding a fusion method is one kernel and one entry in fusion.py's table; adding a policy is one entry here.
 """
@@ -32,14 +33,18 @@ from .view_cache import perception_tag
 
 
 class PolicyKind(NamedTuple):
-    """How a policy is made: from the config, or (build None) loaded from a search checkpoint."""
+    """How a policy is made: from the config, or (build None) loaded from a search checkpoint whose net is of
+    kind `net` (policy.POLICY_NETS)."""
 
     build: Callable[[SearchConfig], Policy] | None
     description: str
+    net: str | None = None
 
 
 POLICIES: dict[str, PolicyKind] = {
-    "learned": PolicyKind(None, "the REINFORCE view-selection net of a search checkpoint"),
+    "learned": PolicyKind(None, "the REINFORCE view-selection net of a search checkpoint", "paper"),
+    "reactive": PolicyKind(None, "a conv net on the map of what each view said (DAgger + REINFORCE; beyond the "
+                                 "paper)", "reactive"),
     "random": PolicyKind(lambda config: RandomPolicy(len(config.actions)), "uniform random moves"),
     "coverage": PolicyKind(CoverageRoute, "a fixed geometric route (beyond the paper)"),
     "greedy": PolicyKind(GreedyUncertainty, "toward the most uncertain cells (beyond the paper)"),
@@ -59,9 +64,16 @@ def check_names(fusion: str | None = None, policy: str | None = None) -> None:
         raise UavsearchError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
 
 
-def checkpoint_path(setting: int, fusion: str, models_dir=None) -> Path:
-    """Where the policy trained with `fusion` for `setting` lives (default: the shipped models/)."""
-    return Path(models_dir or MODELS_DIR) / f"search_s{int(setting)}_{fusion}.pt"
+def checkpoint_path(setting: int, fusion: str, models_dir=None, policy: str = "learned") -> Path:
+    """Where `policy` trained with `fusion` for `setting` lives (default: the shipped models/):
+    search_s<K>_<fusion>.pt for the paper's "learned" policy, search_s<K>_<fusion>_<policy>.pt otherwise."""
+    suffix = "" if policy == "learned" else f"_{policy}"
+    return Path(models_dir or MODELS_DIR) / f"search_s{int(setting)}_{fusion}{suffix}.pt"
+
+
+def loads_checkpoint(policy: str) -> bool:
+    """Whether the policy's net comes from a search checkpoint (it is trained) rather than the config."""
+    return POLICIES[policy].build is None
 
 
 class LoadedAgent(NamedTuple):
@@ -110,6 +122,9 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
         if trained_with != fusion:
             raise error(f"{where}checkpoint {checkpoint} holds a policy trained with {trained_with!r} fusion, "
                         f"not {fusion!r}")
+        if net.KIND != kind.net:
+            raise error(f"{where}checkpoint {checkpoint} holds a {net.KIND!r} policy net, not the {policy!r} "
+                        f"policy's {kind.net!r}")
         if net.cfg.num_actions != len(config.actions):
             raise error(f"{where}checkpoint has {net.cfg.num_actions} actions, search.actions has "
                         f"{len(config.actions)}")
@@ -142,4 +157,4 @@ def new_agent(fusion: str, config: SearchConfig, global_dim: int, cell_dim: int,
 
 
 __all__ = ["FUSION_METHODS", "POLICIES", "LoadedAgent", "PolicyKind", "build_agent", "check_names",
-           "checkpoint_path", "needs_confidence", "new_agent"]
+           "checkpoint_path", "loads_checkpoint", "needs_confidence", "new_agent"]

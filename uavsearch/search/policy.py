@@ -31,7 +31,8 @@ from uavsearch.errors import UavsearchError
 
 from .config import SearchConfig
 from .perception import EMBED_DIM, ConfidenceNet, ImageEmbedding
-from .search_loop import PolicyInput, lattice_cell_distances, lattice_moves, start_index
+from .reactive import ReactiveConfig, ReactivePolicyNet
+from .search_loop import PolicyInput, lattice_cell_distances, lattice_moves, sample_actions, start_index
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,8 @@ class PolicyConfig:
 class PolicyNet(nn.Module):
     """Eq. 8-9 (see the module docstring)."""
 
+    KIND = "paper"  # the checkpoint's policy kind (save_search_model)
+
     def __init__(self, cfg: PolicyConfig):
         super().__init__()
         self.cfg = cfg
@@ -77,21 +80,13 @@ class PolicyNet(nn.Module):
         return self.action(self.state(torch.cat(parts, dim=-1)))
 
     def act(self, inp: PolicyInput, generator: torch.Generator | None = None, greedy: bool = False):
-        logits = self.logits(inp)
-        logp_all = torch.log_softmax(logits, dim=-1)
-        if greedy:
-            a = logits.argmax(-1)
-        else:
-            a = torch.multinomial(logp_all.exp().detach(), 1, generator=generator).squeeze(-1)
-        logp = logp_all.gather(-1, a.unsqueeze(-1)).squeeze(-1)
-        entropy = -(logp_all.exp() * logp_all).sum(-1)
-        return a, logp, entropy
+        return sample_actions(self.logits(inp), generator, greedy)
 
 
 class ArgmaxPolicy:
-    """Evaluate a PolicyNet with its most likely action instead of sampling."""
+    """Evaluate a learned policy net (PolicyNet, ReactivePolicyNet) with its most likely action instead of sampling."""
 
-    def __init__(self, net: PolicyNet):
+    def __init__(self, net: nn.Module):
         self.net = net
 
     def act(self, inp: PolicyInput, generator=None):
@@ -163,10 +158,15 @@ class GreedyUncertainty:
 
 
 # --------------------------------------------------------------------------------------------------
-# Checkpoints: one file per (setting, fusion) holds the policy and, for learned fusion, the confidence net
+# Checkpoints: one file per (setting, fusion, policy) holds the policy and, for learned fusion, the confidence net
 
 
 FORMAT = "uavsearch-search-model/1"
+# policy kind stored in a checkpoint -> (net, its config); files without a kind hold the paper's PolicyNet
+POLICY_NETS: dict[str, tuple[type[nn.Module], type]] = {
+    PolicyNet.KIND: (PolicyNet, PolicyConfig),
+    ReactivePolicyNet.KIND: (ReactivePolicyNet, ReactiveConfig),
+}
 
 
 def _half(sd: dict) -> dict:
@@ -174,7 +174,7 @@ def _half(sd: dict) -> dict:
     return {k: (v.detach().half() if v.is_floating_point() else v.detach()).clone() for k, v in sd.items()}
 
 
-def save_search_model(path, fusion: str, policy: PolicyNet, confidence: ConfidenceNet | None,
+def save_search_model(path, fusion: str, policy: PolicyNet | ReactivePolicyNet, confidence: ConfidenceNet | None,
                       extra: dict | None = None) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -183,14 +183,14 @@ def save_search_model(path, fusion: str, policy: PolicyNet, confidence: Confiden
         mlp = confidence.mlp
         conf = {"in_dim": confidence.in_dim, "hidden": [mlp[0].out_features, mlp[3].out_features],
                 "dropout": float(mlp[2].p), "state_dict": _half(confidence.state_dict())}
-    torch.save({"format": FORMAT, "fusion": fusion, "policy_config": asdict(policy.cfg),
+    torch.save({"format": FORMAT, "fusion": fusion, "policy_kind": policy.KIND, "policy_config": asdict(policy.cfg),
                 "policy_state": _half(policy.state_dict()), "confidence": conf,
                 "extra": json.loads(json.dumps(extra or {}, default=str))}, path)
     return path
 
 
-def load_search_model(path) -> tuple[str, PolicyNet, ConfidenceNet | None, dict]:
-    """(fusion, policy net, confidence net or None, extra metadata), in eval mode."""
+def load_search_model(path) -> tuple[str, PolicyNet | ReactivePolicyNet, ConfidenceNet | None, dict]:
+    """(fusion, policy net (its KIND says which), confidence net or None, extra metadata), in eval mode."""
     path = Path(path)
     if not path.is_file():
         raise UavsearchError(f"search model {path} not found (train one: uavsearch train policy)")
@@ -198,7 +198,8 @@ def load_search_model(path) -> tuple[str, PolicyNet, ConfidenceNet | None, dict]
         ck = torch.load(path, map_location="cpu", weights_only=True)
         if ck.get("format") != FORMAT:
             raise KeyError("format")
-        policy = PolicyNet(PolicyConfig(**ck["policy_config"]))
+        net_cls, cfg_cls = POLICY_NETS[ck.get("policy_kind", PolicyNet.KIND)]
+        policy = net_cls(cfg_cls(**ck["policy_config"]))
         policy.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ck["policy_state"].items()})
         conf = None
         if ck["confidence"] is not None:
@@ -222,5 +223,5 @@ def round_trip_half(module: nn.Module) -> nn.Module:
     return module
 
 
-__all__ = ["ArgmaxPolicy", "CoverageRoute", "GreedyUncertainty", "PolicyConfig", "PolicyNet", "RandomPolicy",
-           "coverage_route", "load_search_model", "round_trip_half", "save_search_model"]
+__all__ = ["POLICY_NETS", "ArgmaxPolicy", "CoverageRoute", "GreedyUncertainty", "PolicyConfig", "PolicyNet",
+           "RandomPolicy", "coverage_route", "load_search_model", "round_trip_half", "save_search_model"]

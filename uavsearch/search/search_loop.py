@@ -196,12 +196,34 @@ class PolicyInput(NamedTuple):
     visited: torch.Tensor  # (B, P) bool, positions visited so far
     step: int  # t, 0 for the start view
     budget_T: int
+    # the episode so far, view by view (run_search fills them; a policy that reacts to what each view said
+    # reads them, e.g. reactive.ReactivePolicyNet)
+    view_positions: torch.Tensor | None = None  # (B, t+1) long lattice index of views 0..t
+    view_probs: torch.Tensor | None = None  # (B, t+1, N) each view's p(y=1)
+    view_valid: torch.Tensor | None = None  # (B, t+1, N) bool, the view measured the cell
+    view_scores: torch.Tensor | None = None  # (B, t+1, N) confidence scores (detached), None without learned fusion
 
 
 class Policy(Protocol):
     def act(self, inp: PolicyInput, generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor | None,
                                                                                  torch.Tensor | None]:
         """(actions (B,) long, log p(a) (B,) or None, entropy (B,) or None)."""
+
+
+def sample_actions(logits: torch.Tensor, generator: torch.Generator | None = None, greedy: bool = False):
+    """What a learned policy's act() returns from its (B, A) logits: (actions, log p(a), entropy).
+
+    Sampled from the softmax with the caller's generator, or its argmax with `greedy`; masked moves carry a
+    large finite negative logit (never -inf, so the entropy stays finite).
+    """
+    logp_all = torch.log_softmax(logits, dim=-1)
+    if greedy:
+        a = logits.argmax(-1)
+    else:
+        a = torch.multinomial(logp_all.exp().detach(), 1, generator=generator).squeeze(-1)
+    logp = logp_all.gather(-1, a.unsqueeze(-1)).squeeze(-1)
+    entropy = -(logp_all.exp() * logp_all).sum(-1)
+    return a, logp, entropy
 
 
 class Agent(NamedTuple):
@@ -277,7 +299,10 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
         maps.append(fused)
         if t == T - 1:
             break
-        inp = PolicyInput(o.global_feature, o.valid.float(), fused.detach().float(), idx, visited.clone(), t, T)
+        view_scores = torch.stack(scores, 1).detach() if with_scores else None
+        inp = PolicyInput(o.global_feature, o.valid.float(), fused.detach().float(), idx, visited.clone(), t, T,
+                          torch.stack(positions, 1), torch.stack([v.log_probs[..., 1].exp() for v in obs], 1),
+                          torch.stack([v.valid for v in obs], 1), view_scores)
         a, lp, ent = agent.policy.act(inp, generator)
         actions.append(a)
         if lp is not None:
@@ -298,4 +323,4 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
 
 __all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
            "R_FP", "R_RE", "R_TP", "classification_reward", "fuse_views", "lattice_cell_areas",
-           "lattice_cell_distances", "lattice_moves", "run_search", "start_index"]
+           "lattice_cell_distances", "lattice_moves", "run_search", "sample_actions", "start_index"]

@@ -56,7 +56,18 @@ from .view_cache import get_view_cache
 
 
 @dataclass
-class Args(ScaleOutArgs):
+class RunArgs(ScaleOutArgs):
+    """How a stage-2 training command runs and reports (train_policy, train_reactive)."""
+
+    threads: int = opt(1, "torch CPU threads")
+    cache_dir: str | None = opt(None, "view cache root (default cache/)")
+    runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
+    progress: bool = opt(True, "progress bar")
+    plot: bool = opt(True, "write learning_curve.png at the end")
+
+
+@dataclass
+class Args(RunArgs):
     setting: int = opt(2, "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)")
     fusion: str = opt("learned", "fusion the policy is trained with and rewarded through",
                       choices=tuple(FUSION_METHODS))
@@ -86,11 +97,6 @@ class Args(ScaleOutArgs):
     state_extras: bool = opt(True, "position / visited / step in the policy state (see policy.py)")
     eval_every: int = opt(25, "iterations between validations")
     eval_episodes: int = opt(8, "episodes per validation scene")
-    threads: int = opt(1, "torch CPU threads")
-    cache_dir: str | None = opt(None, "view cache root (default cache/)")
-    runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
-    progress: bool = opt(True, "progress bar")
-    plot: bool = opt(True, "write learning_curve.png at the end")
 
 
 class TrainResult(NamedTuple):
@@ -110,6 +116,18 @@ def check_args(args: Args) -> None:
         raise UavsearchError("the loo baseline needs --episodes-per-scene >= 2")
     if min(args.iterations, args.scenes_per_batch, args.episodes_per_scene, args.eval_every, args.eval_episodes) < 1:
         raise UavsearchError("iterations, batch sizes, eval_every and eval_episodes must be positive")
+
+
+def start_run(args: RunArgs, name: str, seed: int) -> Path:
+    """runs/<name>__<seed>__<unix time>/, new, with args.json written first."""
+    stamp = int(time.time())
+    run_dir = Path(args.runs_dir) / f"{name}__{seed}__{stamp}"
+    while run_dir.exists():  # two runs started within the same second
+        stamp += 1
+        run_dir = Path(args.runs_dir) / f"{name}__{seed}__{stamp}"
+    run_dir.mkdir(parents=True)
+    (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
+    return run_dir
 
 
 def load_caches(args: Args):
@@ -194,13 +212,7 @@ def train(args: Args, caches=None) -> TrainResult:
     seed_everything(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
     name = args.name or f"policy_s{args.setting}_{args.fusion}"
-    stamp = int(time.time())
-    run_dir = Path(args.runs_dir) / f"{name}__{args.seed}__{stamp}"
-    while run_dir.exists():  # two runs started within the same second
-        stamp += 1
-        run_dir = Path(args.runs_dir) / f"{name}__{args.seed}__{stamp}"
-    run_dir.mkdir(parents=True)
-    (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
+    run_dir = start_run(args, name, args.seed)
 
     train_cache, val_cache = caches if caches is not None else load_caches(args)
     config = SearchConfig()
