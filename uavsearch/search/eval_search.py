@@ -8,6 +8,8 @@ agents.build_agent from its (fusion, policy) names:
     learned confidence fusion + random   the paper's fusion, uniform random moves
     average + policy / bayes rule + policy / by grid size + policy
     learned confidence fusion + policy   the paper's method
+    ours, reactive                       learned fusion + the reactive conv policy (reactive.py: a map-shaped
+                                         state, DAgger from a label-peeking teacher, then REINFORCE)
     oracle fusion + policy
     learned fusion + coverage route      beyond the paper: a fixed geometric route (policy.CoverageRoute)
     learned fusion + greedy uncertainty  beyond the paper: toward the most uncertain cells
@@ -71,6 +73,7 @@ ROWS: tuple[tuple[str, str, str, str], ...] = (
     ("bayes_policy", "bayes rule + policy", "bayes", "learned"),
     ("size_policy", "by grid size + policy", "size", "learned"),
     ("learned_policy", "(ours) learned confidence fusion + policy", "learned", "learned"),
+    ("learned_reactive", "ours, reactive: learned confidence fusion + reactive policy", "learned", "reactive"),
     ("oracle_policy", "oracle fusion + policy", "oracle", "learned"),
     ("learned_coverage", "learned confidence fusion + coverage route", "learned", "coverage"),
     ("learned_greedy", "learned confidence fusion + greedy uncertainty", "learned", "greedy"),
@@ -411,12 +414,13 @@ def fig6_figure(results: dict[int, dict[str, dict]]):
     fig, axes = pyplot().subplots(2, len(settings), figsize=(max(4.6 * len(settings), 8.0), 7.8), squeeze=False,
                                   layout="constrained")
     labels = {k: lab for k, lab, _, _ in ROWS}
-    styles = {"single_view": ":", "oracle_random": "--", "oracle_policy": "--", "learned_policy": "-"}
+    styles = {"single_view": ":", "oracle_random": "--", "oracle_policy": "--", "learned_policy": "-",
+              "learned_reactive": "-"}
     for j, s in enumerate(settings):
         for key, r in results[s].items():
             T = r["acc"].shape[-1]
             x = np.arange(1, T + 1)
-            lw = 2.6 if key == "learned_policy" else 1.3
+            lw = 2.6 if key in ("learned_policy", "learned_reactive") else 1.3
             for i, (name, scale) in enumerate((("acc", 100.0), ("f1", 1.0))):
                 axes[i, j].plot(x, r[name].mean((0, 1)) * scale, styles.get(key, "-"), marker="o", ms=3, lw=lw,
                                 label=labels[key])
