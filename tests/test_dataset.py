@@ -95,6 +95,24 @@ def test_a_different_spec_in_the_same_directory_is_refused(tiny_root):
         load_views(tiny_root / "nowhere")
 
 
+def test_a_set_of_an_older_format_is_rendered_again_in_place(tiny_root, tmp_path):
+    import shutil
+
+    root = tmp_path / "old"
+    shutil.copytree(tiny_root, root)
+    man = json.loads((root / "manifest.json").read_text())
+    man["format"] = "uavsearch-views/1"  # as an older version of this code wrote it
+    for entry in man["shards"].values():
+        entry["tag"] = "older-renderer"
+    (root / "manifest.json").write_text(json.dumps(man))
+    generate_views(SPEC, root, workers=1, progress=False)
+    new = json.loads((root / "manifest.json").read_text())
+    assert new["format"] == "uavsearch-views/2"
+    assert all(e["tag"] != "older-renderer" for e in new["shards"].values())
+    with np.load(shard_path(root, S0, K0)) as z, np.load(shard_path(tiny_root, S0, K0)) as ref:
+        assert np.array_equal(z["images"], ref["images"]) and "person_frac" in z.files
+
+
 def test_stage1_smoke_trains_resumes_and_writes_a_run(tmp_path):
     from uavsearch.search.perception import load_perception
     from uavsearch.search.train_perception import Args, train

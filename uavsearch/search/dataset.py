@@ -204,9 +204,10 @@ def _manifest(spec: ViewSetSpec) -> dict:
 
 
 def _comparable(manifest: dict) -> dict:
-    """What must match for shards to be shared: everything but the set's name, scene list and shards."""
+    """What must match for shards to be shared: everything but the set's name, scene list and shards, and
+    the format (a shard of an older format carries an older render tag, so it is rendered again in place)."""
     spec = {k: v for k, v in manifest.get("spec", {}).items() if k not in ("name", "scenes")}
-    return {**{k: v for k, v in manifest.items() if k != "shards"}, "spec": spec}
+    return {**{k: v for k, v in manifest.items() if k not in ("shards", "format")}, "spec": spec}
 
 
 def _root_of(store: Store):
