@@ -36,7 +36,12 @@
 #                     the new stage 1. estimate: ~10 min (about 12 ms of CPU per view).
 #     train_policy    stage 2, 5 fusions x 3 settings x training seeds 0, 1, 2 = 45 runs, 1200 iterations,
 #                     large split. estimate: 3 x (3 x 150 s + 12 x 60 s) = ~60 min serial, ~35 min --jobs 2.
+#     train_reactive  the reactive policy (DAgger + REINFORCE), settings 1-3 x training seeds 0, 1, 2, on the
+#                     frozen confidence net of the same seed's learned-fusion run. measured: ~8 min per run
+#                     on the shared machine (two at once).
 #     ship            (--ship only) copy into models/. seconds.
+#     perception      stage-1 targets on every lattice view of the large split's test scenes
+#                     (results/perception/). measured: 12 s (after view_caches).
 #     search_large    Table II + Fig. 6 on the large split's 100 test scenes per setting (seeds 0-4).
 #                     estimate: ~8 min rendering 7500 views the first time (shipped perception), 35 s after.
 #     flight          flight vs teleport, settings 1-3, the 10 paper test scenes each, missions/default.yaml
@@ -106,14 +111,23 @@ for seed in $SEEDS; do for s in $SETTINGS; do for f in $FUSIONS; do
 done; done; done
 add train_policy full "stage 2: 5 fusions x settings 1-3 x training seeds 0-2 -> $RUN/seed<S>/ ($JOBS in parallel)" \
   "printf '%s' \"\$TRAIN_CMDS\" | xargs -P $JOBS -I{} sh -c '{}'"
+REACTIVE_CMDS=""
+for seed in $SEEDS; do for s in $SETTINGS; do
+  REACTIVE_CMDS+="$UAV train reactive --setting $s --seed $seed --perception $NEWPERC --confidence $RUN/seed$seed/search_s${s}_learned.pt --runs-dir $RUN/reactive_runs --progress false --out $RUN/seed$seed/search_s${s}_learned_reactive.pt
+"
+done; done
+add train_reactive full "the reactive policy: settings 1-3 x training seeds 0-2 -> $RUN/seed<S>/ ($JOBS in parallel)" \
+  "printf '%s' \"\$REACTIVE_CMDS\" | xargs -P $JOBS -I{} sh -c '{}'"
 add ship ship "copy $NEWPERC and $RUN/seed0/search_s*_*.pt into models/" \
   "cp $NEWPERC models/perception.pt && cp $RUN/seed0/search_s*_*.pt models/"
 add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \
   "$UAV eval single-view --checkpoint models/perception.pt --scenes-per-pair 80 --views-per-scene 3 --seed 0 --out results/single_view --no-progress"
+add perception full "stage-1 targets on the large split's test views, models/perception.pt -> results/perception/" \
+  "$UAV eval perception --split large --part test --perception models/perception.pt --out results/perception --no-progress"
 add search quick "Table II + Fig. 6, paper split, models/ -> results/search/" \
   "$UAV eval search --setting all --split paper --perception models/perception.pt --models-dir models $EVAL --out results/search"
 add search_large full "Table II + Fig. 6, large split (100 test scenes), models/ -> results/search_large/" \
-  "$UAV eval search --setting all --split large --perception models/perception.pt --models-dir models $EVAL --out results/search_large"
+  "$UAV eval search --setting all --split large --perception models/perception.pt --models-dir models $EVAL --out results/search_large && $PY tools/route_diversity.py --out results/search_large/routes.md"
 FLIGHT_CMD=""
 for s in $SETTINGS; do
   FLIGHT_CMD+="rm -rf $RUN/flight_s$s && $UAV eval search --vehicle mavlink --setting $s --split paper --speed max --no-progress --out $RUN/flight_s$s && mkdir -p results/flight && cp $RUN/flight_s$s/flight_vs_teleport.md results/flight/flight_vs_teleport_s$s.md && "
@@ -154,7 +168,11 @@ if [ "$DRY" = 1 ]; then
   for st in "${selected[@]}"; do
     i=$((i + 1)); IFS='|' read -r name _ what cmd <<<"$st"
     echo "[$i/$n] $name: $what"
-    if [ "$name" = train_policy ]; then printf '  %s' "$TRAIN_CMDS" | sed 's/^/  /' | sed '1s/^  //'; else echo "  $cmd"; fi
+    case "$name" in
+      train_policy) printf '%s' "$TRAIN_CMDS" | sed 's/^/  /' ;;
+      train_reactive) printf '%s' "$REACTIVE_CMDS" | sed 's/^/  /' ;;
+      *) echo "  $cmd" ;;
+    esac
   done
   for s in "${skipped[@]}"; do echo "skip: $s"; done
   exit 0
@@ -169,7 +187,7 @@ for st in "${selected[@]}"; do
   i=$((i + 1)); IFS='|' read -r name _ what cmd <<<"$st"
   echo "[$i/$n] $name: $what (elapsed $(elapsed))"
   t0=$(date +%s)
-  TRAIN_CMDS="$TRAIN_CMDS" bash -c "set -euo pipefail; $cmd" || { echo "reproduce.sh: step $name failed (elapsed $(elapsed))" >&2; exit 1; }
+  TRAIN_CMDS="$TRAIN_CMDS" REACTIVE_CMDS="$REACTIVE_CMDS" bash -c "set -euo pipefail; $cmd" || { echo "reproduce.sh: step $name failed (elapsed $(elapsed))" >&2; exit 1; }
   echo "[$i/$n] $name done in $(( $(date +%s) - t0 )) s (elapsed $(elapsed))"
 done
 

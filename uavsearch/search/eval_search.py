@@ -80,6 +80,9 @@ ROWS: tuple[tuple[str, str, str, str], ...] = (
 )
 NON_ORACLE = [r[0] for r in ROWS if r[2] != "oracle"]
 LABELS = {key: label for key, label, _, _ in ROWS}
+# The reactive policy is trained to act on its most likely move (DAgger, then checkpoints chosen by their argmax
+# moves), so it is evaluated that way; the paper's policy samples, as in the paper (or --argmax for all).
+ARGMAX_POLICIES = ("reactive",)
 REFERENCES = ("learned_coverage", "learned_greedy")  # the fixed baselines every row is paired with
 model_path = checkpoint_path  # where the shipped policy trained with a fusion for a setting lives
 
@@ -152,7 +155,7 @@ def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = 
     in `models_dir`."""
     return {key: build_agent(fusion, policy, config, checkpoint=policy_checkpoint(setting, fusion, policy, models_dir),
                              confidence_checkpoint=checkpoint_path(setting, "learned", models_dir),
-                             greedy=argmax).agent
+                             greedy=argmax or policy in ARGMAX_POLICIES).agent
             for key, _, fusion, policy in ROWS if keys is None or key in keys}
 
 
