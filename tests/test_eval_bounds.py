@@ -132,7 +132,7 @@ def test_eval_search_leaves_out_rows_without_checkpoints_and_writes_the_comparis
                                episodes=1, seeds=1, bootstrap=50, progress=False), caches={2: synthetic_cache(2)})
     assert set(res["results"][2]) == {"single_view", "oracle_random"}
     assert "route bounds skipped" in (tmp_path / "none" / "table2.md").read_text()
-    assert len(res["notices"]) == 8
+    assert len(res["notices"]) == 9
 
 
 def test_person_px_is_optional_in_the_cache_file(tmp_path):

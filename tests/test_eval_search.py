@@ -19,7 +19,9 @@ from uavsearch.search.eval_search import (
     model_path,
     summarise,
 )
+from uavsearch.search.agents import checkpoint_path
 from uavsearch.search.perception import ConfidenceNet
+from uavsearch.search.reactive import ReactivePolicyNet
 from uavsearch.search.policy import PolicyConfig, PolicyNet, RandomPolicy, save_search_model
 from uavsearch.search.search_loop import Agent
 
@@ -30,6 +32,9 @@ def _models(tmp_path, settings=(2,), cell_dim=6, global_dim=16):
         for fusion in ("learned", "average", "bayes", "size", "oracle"):
             conf = ConfidenceNet(cell_dim) if fusion == "learned" else None
             save_search_model(model_path(s, fusion, tmp_path), fusion, PolicyNet(PolicyConfig(global_dim)), conf)
+            if fusion == "learned":  # the reactive row: its own net on the same confidence net
+                save_search_model(checkpoint_path(s, fusion, tmp_path, policy="reactive"), fusion,
+                                  ReactivePolicyNet(), conf)
     return tmp_path
 
 
