@@ -100,9 +100,21 @@ def test_seed_spread_table(tmp_path):
                        timeout=120)
     assert r.returncode == 0, r.stderr
     text = out.read_text()
-    assert "| search | 97.19 / 0.276 (0.250; 16%)" in text
-    assert "| search_large | 97.20 / 0.313 (0.317; 17%)" in text
-    assert "| mean ± std | 97.19 ± 0.00 / 0.294 ± 0.019 (gap 16-17%)" in text
+    import csv
+
+    from uavsearch.search.eval_search import gap_closure
+
+    first = {}
+    for name in ("search", "search_large"):  # each folder's row, setting 1, as its CSV says
+        with (ROOT / "results" / name / "table2.csv").open() as f:
+            rows = [{k: (v if k in ("method", "key") else float(v)) for k, v in r.items()} for r in csv.DictReader(f)]
+        by = {r["key"]: r for r in rows}
+        first[name] = (by["learned_policy"]["s1_aacc"], by["learned_policy"]["s1_af1"])
+        assert (f"| {name} | {first[name][0]:.2f} / {first[name][1]:.3f} ({by['learned_coverage']['s1_af1']:.3f}; "
+                f"{100 * gap_closure(rows, 1):.0f}%)") in text
+    af1 = [f for _, f in first.values()]
+    assert f"| mean ± std | {sum(a for a, _ in first.values()) / 2:.2f} ± " in text
+    assert f" / {sum(af1) / 2:.3f} ± {abs(af1[0] - af1[1]) / 2:.3f} (gap " in text
     assert not ABSOLUTE.search(text)
 
 
