@@ -10,8 +10,7 @@ cannot be told apart, although both ran on the same scenes. Here:
   A^(T-1) move sequences from the start (256 for the paper), run in batch through search_loop.run_search
   with `FixedRoutes`. No policy that moves on the same lattice with the same fusion beats it on a scene.
   Also the best single route for all scenes, and the coverage route's own per-scene AF1 from the same runs.
-- `label_greedy_af1`: a second bound, a greedy that peeks at the labels (reactive.LabelGreedyTeacher);
-  skipped with a note where that module is not installed.
+- `label_greedy_af1`: a second bound, a greedy that peeks at the labels (reactive.LabelGreedyTeacher).
 - `hidden_shares`: how hard the testbed is before any policy: the share of occupied cells whose person
   shows no pixel from the start view (and from every lattice position).
 """
@@ -30,6 +29,7 @@ from .agents import needs_confidence
 from .config import SearchConfig
 from .metrics import map_f1
 from .policy import coverage_route
+from .reactive import LabelGreedyTeacher
 from .search_loop import Agent, CachedViews, run_search, start_index
 
 RESAMPLES = 10_000
@@ -158,18 +158,14 @@ def route_bounds(cache, confidence=None, config: SearchConfig | None = None, fus
 
 
 @torch.no_grad()
-def label_greedy_af1(cache, confidence, config: SearchConfig | None = None, seed: int = 0) -> tuple[np.ndarray | None, str]:
-    """((S,) final AF1 of the label-peeking greedy with learned fusion, one episode per scene, or None; a note)."""
-    try:
-        from .reactive import LabelGreedyTeacher  # lazy: optional, another module's policy
-    except ImportError as e:
-        return None, f"label-peeking greedy bound skipped (uavsearch.search.reactive.LabelGreedyTeacher: {e})"
+def label_greedy_af1(cache, confidence, config: SearchConfig | None = None, seed: int = 0) -> np.ndarray:
+    """(S,) final AF1 of the label-peeking greedy with learned fusion, one episode per scene."""
     config = config or SearchConfig()
     rows = np.arange(cache.num_scenes)
     teacher = LabelGreedyTeacher(cache, rows, confidence, config)
     ep = run_search(CachedViews(cache, rows, config, confidence), Agent("learned", teacher, confidence),
                     config.budget_T, generator=torch.Generator().manual_seed(int(seed)))
-    return map_f1(ep.maps[:, -1].numpy(), ep.labels.numpy()), ""
+    return map_f1(ep.maps[:, -1].numpy(), ep.labels.numpy())
 
 
 def hidden_shares(cache, config: SearchConfig | None = None) -> tuple[float, float] | None:

@@ -31,10 +31,9 @@ from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.viz import pyplot, save_figure
-from uavsearch.world.settings import SETTINGS
+from uavsearch.world.settings import SETTINGS, parse_settings
 
-from .eval_search import parse_settings
-from .metrics import average_precision
+from .metrics import average_precision, rate_by_bin
 from .perception import load_perception
 from .view_cache import PARTS, get_view_cache
 
@@ -75,10 +74,10 @@ def perception_stats(caches, threshold: float = THRESHOLD) -> dict:
              "recall_by_px": None}
     if all(c.person_px is not None for c in caches):
         px = np.concatenate([c.person_px.numpy() for c in caches])
-        by = {}
-        for lo, hi in PX_BINS:
-            m = y & valid & (px >= lo) & (px <= (np.iinfo(px.dtype).max if hi is None else hi))
-            by[bin_name(lo, hi)] = (float(fires[m].mean()) if m.any() else float("nan"), int(m.sum()))
+        seen = y & valid
+        edges = [lo for lo, _ in PX_BINS] + [max(int(px.max()), PX_BINS[-1][0]) + 1]  # [lo, next lo): last open-ended
+        rates, counts = rate_by_bin(px[seen], fires[seen], edges)
+        by = {bin_name(lo, hi): (float(r), int(n)) for (lo, hi), r, n in zip(PX_BINS, rates, counts)}
         stats["recall_by_px"] = by
         stats["recall_4_7px"] = by["4-7"][0]
     else:

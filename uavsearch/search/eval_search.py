@@ -27,8 +27,8 @@ with a one-line notice. Beside the table (bounds.py):
 - the share of the single-view -> oracle fusion + policy AF1 gap each row closes;
 - bounds and difficulty per setting: single-view AF1, the occupied cells hidden from the start view
   (and from every view), the hindsight-best route (the best of all move sequences per scene, learned
-  fusion), the best single fixed route, hindsight-best minus coverage, and the label-peeking greedy where
-  installed (table2_bounds.csv).
+  fusion), the best single fixed route, hindsight-best minus coverage, and the label-peeking greedy
+  (table2_bounds.csv).
 
 Everything goes through search_loop.run_search over cached perception outputs (view_cache.py); the same
 loop flies a vehicle (search_loop.LiveViews), and agents.build_agent builds the agents of both.
@@ -51,7 +51,7 @@ from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import MODELS_DIR, display_path
-from uavsearch.world.settings import SETTINGS
+from uavsearch.world.settings import SETTINGS, parse_settings
 from uavsearch.viz import pyplot, save_figure
 
 from .agents import POLICIES, build_agent, checkpoint_path, needs_confidence
@@ -176,19 +176,6 @@ class EvalArgs(ScaleOutArgs):
     progress: bool = opt(True, "progress bars")
 
 
-def parse_settings(text: str) -> list[int]:
-    """--setting 1 | 2 | 3 | all as a list of paper settings, or a one-line error."""
-    if text == "all":
-        return sorted(SETTINGS)
-    try:
-        settings = [int(text)]
-    except ValueError:
-        raise UavsearchError(f"--setting must be 1, 2, 3 or all, not {text!r}") from None
-    if settings[0] not in SETTINGS:
-        raise UavsearchError(f"unknown setting {settings[0]}; valid: {sorted(SETTINGS)} or all")
-    return settings
-
-
 def evaluate_setting(setting: int, cache, args: EvalArgs, keys=None) -> dict[str, dict]:
     """{row key: {"acc": (seeds, E, T), "f1": ..., "revisit": (seeds,), "scenes": S}} on one setting's cache,
     for the rows `keys` (default every row)."""
@@ -288,11 +275,7 @@ def setting_bounds(setting: int, cache, res: dict[str, dict], args: EvalArgs) ->
         b.update(coverage_af1=float(rb.coverage.mean()), best_fixed_af1=rb.best_fixed,
                  best_fixed_route=" ".join(config.actions[a].removeprefix("Move") for a in rb.best_fixed_route),
                  hindsight_best_af1=float(rb.best.mean()), hindsight_minus_coverage=m, ci_low=lo, ci_high=hi)
-        greedy, note = label_greedy_af1(cache, confidence, config)
-        if greedy is None:
-            b["notes"].append(note)
-        else:
-            b["label_greedy_af1"] = float(greedy.mean())
+        b["label_greedy_af1"] = float(label_greedy_af1(cache, confidence, config).mean())
     return b
 
 

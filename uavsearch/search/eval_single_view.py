@@ -34,7 +34,7 @@ from uavsearch.viz import pyplot, save_figure
 from .config import SearchConfig, lattice_positions
 
 from .dataset import DATA_DIR, ViewSetSpec, generate_views, load_views
-from .metrics import average_metrics, cell_correct
+from .metrics import average_metrics, cell_correct, rate_by_bin
 from .perception import load_perception
 from .train_perception import predict_views
 
@@ -146,23 +146,13 @@ def _validation_line(extra: dict) -> list[str]:
                 f"recall {val['eval/recall']:.3f}, AF1 {val['eval/af1']:.3f}."]
 
 
-def _binned(x: np.ndarray, ok: np.ndarray, edges: np.ndarray):
-    idx = np.digitize(x, edges) - 1
-    acc, n = [], []
-    for b in range(len(edges) - 1):
-        m = idx == b
-        n.append(int(m.sum()))
-        acc.append(float(ok[m].mean()) if m.any() else np.nan)
-    return np.array(acc), np.array(n)
-
-
 def _plot_fig4(area, correct, dist, person_px, correct_pos, path: Path) -> Path:
     return save_figure(fig4_figure(area, correct, dist, person_px, correct_pos), path)
 
 
 def fig4_figure(area, correct, dist, person_px, correct_pos):
     fig, (a, c, b) = pyplot().subplots(1, 3, figsize=(15, 4), layout="constrained")
-    acc, n = _binned(area, correct, AREA_BINS)
+    acc, n = rate_by_bin(area, correct, AREA_BINS)
     centres = (AREA_BINS[:-1] + AREA_BINS[1:]) / 2
     a2 = a.twinx()
     a2.bar(centres, n, width=16, color="0.85", zorder=0)
@@ -180,7 +170,7 @@ def fig4_figure(area, correct, dist, person_px, correct_pos):
     # Nadir camera over flat ground: F_size is ~196 px for every whole cell, so also show what does vary
     # between views: how far off-nadir the cell is (parallax, occlusion by buildings and trees).
     edges = np.arange(0.0, 50.0 + 1e-9, 5.0)
-    acc3, n3 = _binned(dist, correct, edges)
+    acc3, n3 = rate_by_bin(dist, correct, edges)
     mids = (edges[:-1] + edges[1:]) / 2
     ok3 = ~np.isnan(acc3)
     c.plot(mids[ok3], acc3[ok3], "o-", color="C2")
@@ -191,7 +181,7 @@ def fig4_figure(area, correct, dist, person_px, correct_pos):
     c.set_ylim(0.5, 1.0)
     c.set_title("accuracy vs off-nadir distance (n per bin)")
     c.grid(alpha=0.3)
-    acc2, n2 = _binned(person_px, correct_pos, PERSON_PX_BINS)
+    acc2, n2 = rate_by_bin(person_px, correct_pos, PERSON_PX_BINS)
     labels = ["0", "1", "2", "3-4", "5-8", "9-16", "17+"]
     b.bar(range(len(labels)), np.nan_to_num(acc2), color="C1")
     for i, (v, k) in enumerate(zip(acc2, n2)):

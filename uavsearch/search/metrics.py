@@ -90,3 +90,16 @@ def average_precision(scores, labels) -> float:
     precision_at = np.cumsum(hits) / np.arange(1, len(hits) + 1)
     return float(precision_at[hits].mean())
 
+
+def rate_by_bin(x, ok, edges) -> tuple[np.ndarray, np.ndarray]:
+    """(share of `ok` among the items whose `x` falls in each [edges[i], edges[i+1]) bin, items per bin);
+    NaN for an empty bin. E.g. recall of occupied cells by visible person pixels."""
+    x, ok, edges = np.asarray(x), np.asarray(ok), np.asarray(edges)
+    idx = np.digitize(x, edges) - 1
+    rates, counts = [], []
+    for b in range(len(edges) - 1):
+        m = idx == b
+        counts.append(int(m.sum()))
+        rates.append(float(ok[m].mean()) if m.any() else np.nan)
+    return np.array(rates), np.array(counts)
+

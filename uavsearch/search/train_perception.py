@@ -52,7 +52,7 @@ from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs, Store
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
 from uavsearch.viz import pyplot, save_figure
-from uavsearch.world.settings import SETTINGS
+from uavsearch.world.settings import parse_settings
 
 from .config import SearchConfig, lattice_positions
 from .dataset import ViewSet, concat_views, load_views
@@ -270,17 +270,6 @@ def curves_figure(rows: list[dict]):
     return fig
 
 
-def _settings(args: Args) -> list[int]:
-    try:
-        out = [int(x) for x in str(args.settings).split(",") if x.strip()]
-    except ValueError:
-        raise UavsearchError(f"--settings must be comma-separated setting ids, not {args.settings!r}") from None
-    unknown = [x for x in out if x not in SETTINGS]
-    if unknown or not out:
-        raise UavsearchError(f"unknown setting(s) {unknown or args.settings}; valid: {sorted(SETTINGS)}")
-    return out
-
-
 def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     """Render (or reuse) the lattice views of the chosen scenes; returns (train, val, start-view index).
     The renders are the stage-2 view caches' own (view_cache.render_lattice_views): made once for both."""
@@ -289,7 +278,7 @@ def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     sets = {}
     for part, n in (("train", args.train_scenes), ("val", args.val_scenes)):
         loaded = []
-        for setting in _settings(args):
+        for setting in parse_settings(args.settings, "--settings"):
             key = CacheKey(setting, args.split, part)
             scenes = key.scenes()
             if not 1 <= n <= len(scenes):

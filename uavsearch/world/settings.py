@@ -60,6 +60,20 @@ def density_scenes() -> list[tuple[int, int]]:
     return out
 
 
+def parse_settings(text: str, flag: str = "--setting") -> list[int]:
+    """A command line's settings: "all", one id, or comma-separated ids (e.g. "1,3"), or a one-line error."""
+    if str(text).strip() == "all":
+        return sorted(SETTINGS)
+    try:
+        out = [int(x) for x in str(text).split(",") if x.strip()]
+    except ValueError:
+        raise SceneError(f"{flag} must be 1, 2, 3 or all, not {text!r}") from None
+    bad = [x for x in out if x not in SETTINGS]
+    if bad or not out:
+        raise SceneError(f"unknown setting {bad[0] if bad else text!r}; valid: {sorted(SETTINGS)} or all")
+    return out
+
+
 def resolve_k(setting_or_k: int | str, *, is_setting: bool = True) -> int:
     """K for a setting id (default), or K itself (is_setting=False) after a range check."""
     try:
@@ -86,4 +100,5 @@ def all_seed_sets() -> dict[str, list[int]]:
     return out
 
 
-__all__ = ["SETTINGS", "PARTS", "scene_seeds", "density_scenes", "resolve_k", "splits", "all_seed_sets"]
+__all__ = ["SETTINGS", "PARTS", "scene_seeds", "density_scenes", "parse_settings", "resolve_k", "splits",
+           "all_seed_sets"]
