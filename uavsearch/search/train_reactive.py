@@ -168,14 +168,14 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
     it = [r["iteration"] for r in rows]
     ev = [r for r in rows if r["eval/af1_vs_coverage"] is not None]
     pg = [r for r in rows if r["phase"] == "pg"]
-    fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8), layout="constrained")
     ax[0].plot(it, [r["losses/imitation"] for r in rows], lw=0.8, label="imitation loss")
     ax[0].plot(it, [r["charts/teacher_agreement"] for r in rows], lw=0.8, label="agrees with the teacher")
-    ax[0].set_title("imitation (DAgger, then the REINFORCE term)")
+    ax[0].set_title("imitation of the teacher")
     ax[0].legend(fontsize=8)
     ax[1].plot([r["iteration"] for r in ev], [r["eval/af1_vs_coverage"] for r in ev], "o-")
     ax[1].axhline(0.0, color="k", lw=0.6)
-    ax[1].set_title("validation AF1 - coverage route AF1 (argmax)")
+    ax[1].set_title("validation: AF1 - coverage AF1 (argmax)")
     ax[2].plot([r["iteration"] for r in pg], [r["charts/advantage_vs_coverage"] for r in pg], lw=0.8,
                label="return - coverage return (per episode)")
     ax[2].plot([r["iteration"] for r in pg], [r["charts/entropy"] for r in pg], lw=0.8, label="entropy (nats)")
