@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from synthetic_views import synthetic_cache
+from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import MissionError, UavsearchError
-from uavsearch.logs.replay import _fuse_all
-from uavsearch.missions import mission_from_dict
+from uavsearch.replay.replay import _fuse_all
+from uavsearch.fly.missions import mission_from_dict
 from uavsearch.search import fusion
 from uavsearch.search.agents import POLICIES, build_agent, checkpoint_path, needs_confidence, new_agent
 from uavsearch.search.config import SearchConfig

@@ -11,9 +11,9 @@ from pymavlink.dialects.v20 import common as M
 from uavsearch.errors import MissionError
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
 from uavsearch.geometry import CameraIntrinsics
-from uavsearch.missions import TRAINED_CAMERA, load_mission, mission_from_dict
+from uavsearch.fly.missions import TRAINED_CAMERA, load_mission, mission_from_dict
 
-from mavlink_client import Client
+from uavsearch.testing.mavlink_client import Client
 
 WIDE = {"hfov_deg": 75, "width_px": 320, "height_px": 240}
 
@@ -73,7 +73,7 @@ def test_replay_draws_the_grid_with_the_flights_camera(tmp_path):
     import numpy as np
 
     from uavsearch.logs.flight_log import FlightLogWriter
-    from uavsearch.logs.replay import replay_run_dir
+    from uavsearch.replay.replay import replay_run_dir
 
     mission = mission_from_dict({"camera": WIDE, "search": {"allow_untrained": True}, "fusion": "average",
                                  "policy": "random"})

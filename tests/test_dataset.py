@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from uavsearch.errors import UavsearchError
-from uavsearch.search.dataset import (
+from uavsearch.search.data.dataset import (
     ViewSetSpec,
     generate_views,
     load_views,
@@ -115,7 +115,7 @@ def test_a_set_of_an_older_format_is_rendered_again_in_place(tiny_root, tmp_path
 
 def test_stage1_smoke_trains_resumes_and_writes_a_run(tmp_path):
     from uavsearch.search.perception import load_perception
-    from uavsearch.search.train_perception import Args, train
+    from uavsearch.search.train.perception import Args, train
 
     args = Args(exp_name="smoke", seed=3, settings="2", train_scenes=1, val_scenes=1, data_dir=str(tmp_path / "cache"),
                 workers=1, steps=4, batch_size=4, eval_every=2, out=str(tmp_path / "p.pt"),
@@ -143,7 +143,7 @@ def test_stage1_smoke_trains_resumes_and_writes_a_run(tmp_path):
 
 
 def test_table1_scenes_are_balanced_per_density_pair_and_disjoint_from_training():
-    from uavsearch.search.eval_single_view import PAPER_TABLE1, density_test_scenes
+    from uavsearch.search.evaluate.single_view import PAPER_TABLE1, density_test_scenes
 
     scenes, pairs = density_test_scenes(4)
     assert len(scenes) == 24

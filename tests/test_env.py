@@ -1,18 +1,21 @@
 """The teleport environment: gymnasium conformance, determinism, lattice moves and revisits."""
 
+import os
+import subprocess
+import sys
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 
-import uavsearch  # noqa: F401  (registers the env)
 from uavsearch.errors import SceneError
 from uavsearch.search.config import SearchConfig, lattice_index, lattice_positions
 from uavsearch.search.env import ActiveSearchEnv
 from uavsearch.search.perception import PerceptionConfig, PerceptionNet
 from uavsearch.search.search_loop import R_RE, Agent, LiveViews, run_search
-from uavsearch.search.train_policy import Args, returns
+from uavsearch.search.train.policy import Args, returns
 from uavsearch.search.views import TeleportVehicle
 from uavsearch.world.scene import generate_scene
 
@@ -38,7 +41,7 @@ def test_lattice_is_the_paper_one():
 
 
 def test_check_env_passes():
-    e = gym.make("uavsearch/ActiveSearch-v0", setting=1)
+    e = gym.make("uavsearch.envs:uavsearch/ActiveSearch-v0", setting=1)
     check_env(e.unwrapped, skip_render_check=True)
     e.close()
 
@@ -140,3 +143,16 @@ def test_env_and_search_loop_agree_step_for_step(env, actions):
     assert float(r_cls[0]) == 0.0
     per_move = (R[0] - torch.cat([R[0, 1:], torch.zeros(1)])).tolist()
     assert per_move == pytest.approx(env_r, abs=0) and sum(env_r) == R_RE * sum(env_rev)
+
+
+def test_gymnasium_finds_the_env_by_module_id_and_plain_import_skips_gymnasium():
+    """A fresh interpreter: gymnasium's `module:id` form imports the registering module itself, and
+    `import uavsearch` alone never loads gymnasium (the vehicle's processes don't need it)."""
+    env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "HOME": os.environ.get("HOME", "/tmp")}
+    code = ("import sys, uavsearch; assert 'gymnasium' not in sys.modules, 'uavsearch imports gymnasium'\n"
+            "import gymnasium as gym\n"
+            "e = gym.make('uavsearch.envs:uavsearch/ActiveSearch-v0', setting=1)\n"
+            "print(type(e.unwrapped).__name__, e.action_space)")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["ActiveSearchEnv", "Discrete(4)"]

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from synthetic_views import synthetic_cache
+from uavsearch.testing.synthetic_views import synthetic_cache
 from test_eval_search import _models
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import npz_bytes
-from uavsearch.search.bounds import (
+from uavsearch.search.evaluate.bounds import (
     FixedRoutes,
     all_routes,
     bootstrap_ci,
@@ -24,18 +24,19 @@ from uavsearch.search.bounds import (
     scene_af1,
 )
 from uavsearch.search.config import SearchConfig
-from uavsearch.search.eval_perception import (
+from uavsearch.search.evaluate.perception import (
     EvalArgs as PerceptionArgs,
     add_eval_perception_parser,
     eval_perception,
     perception_stats,
     targets_figure,
 )
-from uavsearch.search.eval_search import EvalArgs, eval_search, evaluate_agent
+from uavsearch.search.evaluate.search import EvalArgs, eval_search
+from uavsearch.search.scoring import evaluate_agent
 from uavsearch.search.perception import ConfidenceNet
 from uavsearch.search.policy import CoverageRoute, RandomPolicy
 from uavsearch.search.search_loop import Agent, CachedViews, run_search
-from uavsearch.search.view_cache import FORMAT, ViewCache, load_view_cache
+from uavsearch.search.data.view_cache import FORMAT, ViewCache, load_view_cache
 from uavsearch.viz import overflow_in, pyplot
 
 CONFIG = SearchConfig()

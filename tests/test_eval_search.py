@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from synthetic_views import synthetic_cache
+from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
-from uavsearch.search.eval_search import (
+from uavsearch.search.evaluate.search import (
     ROWS,
     EvalArgs,
     add_eval_search_parser,

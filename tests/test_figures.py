@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from uavsearch.geometry import CameraIntrinsics, Grid, camera_pose_from_vehicle
-from uavsearch.logs.replay import ReplayData, frame_figure, maps_figure, metrics_figure, trajectory_figure
-from uavsearch.search.eval_search import ROWS, fig6_figure
-from uavsearch.search.eval_single_view import fig4_figure
-from uavsearch.search.train_perception import curves_figure
+from uavsearch.replay.replay import ReplayData, frame_figure, maps_figure, metrics_figure, trajectory_figure
+from uavsearch.search.evaluate.search import ROWS, fig6_figure
+from uavsearch.search.evaluate.single_view import fig4_figure
+from uavsearch.search.train.perception import curves_figure
 from uavsearch.viz import overflow_in, pyplot, scene_figure
 from uavsearch.world.scene import generate_scene
 

@@ -9,7 +9,7 @@ import yaml
 
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
 from uavsearch.search.config import SearchConfig
-from uavsearch.search.mavlink_vehicle import FlightError, FlightSettings, MavlinkVehicle
+from uavsearch.fly.vehicle import FlightError, FlightSettings, MavlinkVehicle
 
 
 def test_client_names_the_port_it_listens_on():
@@ -29,8 +29,8 @@ def test_bad_host_is_one_line_without_library_prints(capfd):
 
 
 def test_bad_url_leaves_no_run_folder(tmp_path):
-    from uavsearch.missions import load_mission
-    from uavsearch.search.mission_controller import fly
+    from uavsearch.fly.missions import load_mission
+    from uavsearch.fly.mission_controller import fly
 
     with pytest.raises(FlightError):
         fly(load_mission(), connect="udpin:nosuchhost.invalid:14540", out=tmp_path / "run", progress=lambda s: None)

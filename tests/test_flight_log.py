@@ -11,7 +11,7 @@ from pymavlink import mavutil
 from uavsearch.errors import LogError
 from uavsearch.flight.sitl_process import free_udp_port
 from uavsearch.logs.flight_log import FlightLogWriter, read_flight_log
-from uavsearch.logs.replay import read_tlog
+from uavsearch.replay.replay import read_tlog
 from uavsearch.logs.tlog import TlogWriter
 
 M = mavutil.mavlink

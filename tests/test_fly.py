@@ -197,7 +197,7 @@ def test_killed_mid_air_leaves_a_readable_log(tmp_path):
     import time
 
     from uavsearch.logs.flight_log import read_flight_log
-    from uavsearch.logs.replay import read_tlog
+    from uavsearch.replay.replay import read_tlog
 
     mission = _mission(tmp_path)
     mission["search"]["budget_T"] = 5
@@ -242,7 +242,7 @@ def test_a_step_that_does_not_settle_fails_cleanly_and_lands(tmp_path):
 
 def test_flown_search_opens_as_a_plan(flown):
     """Every flight leaves flown.plan: take off, each view with a photo, then the end action, in QGC's format."""
-    from uavsearch.plan_files import load_plan, mission_items
+    from uavsearch.fly.plan_files import load_plan, mission_items
 
     _, run, _ = flown
     steps = [json.loads(x) for x in (run / "search.jsonl").read_text().splitlines()[1:]]

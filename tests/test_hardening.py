@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from mavlink_client import Client
+from uavsearch.testing.mavlink_client import Client
 from uavsearch.flight.sitl_process import SitlProcess
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
@@ -241,7 +241,7 @@ def test_unwritable_out_is_one_line(tmp_path):
 
 
 def test_mission_outside_what_the_models_were_trained_for_is_refused(tmp_path):
-    from uavsearch.missions import TRAINED_FOR, load_mission
+    from uavsearch.fly.missions import TRAINED_FOR, load_mission
     from uavsearch.search.config import SearchConfig
 
     assert TRAINED_FOR == {"altitude_m": SearchConfig().altitude_m, "step_m": SearchConfig().step_m}

@@ -95,9 +95,18 @@ def test_package_import_graph_is_acyclic():
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
+# Folders whose sub-folders are rooms of their own (search/data, search/train, search/evaluate).
+SPLIT_ROOMS = ("uavsearch.search",)
+
+
 def _room(module: str) -> str:
-    """A module's room: uavsearch.search.x -> uavsearch.search; uavsearch.cli -> uavsearch.cli."""
-    return ".".join(module.split(".")[:2])
+    """A module's room: uavsearch.search.x -> uavsearch.search; uavsearch.search.train.x -> uavsearch.search.train;
+    uavsearch.flight.mavlink.x -> uavsearch.flight; uavsearch.cli -> uavsearch.cli."""
+    parts = module.split(".")
+    room = ".".join(parts[:2])
+    if room in SPLIT_ROOMS and len(parts) > 2 and (PKG_DIR.joinpath(*parts[1:3])).is_dir():
+        return ".".join(parts[:3])
+    return room
 
 
 def re_entries(graph: dict[str, set[str]]) -> list[tuple[str, str, str]]:
@@ -129,3 +138,63 @@ def test_no_import_leaves_a_room_and_comes_back():
     bad = re_entries(import_graph())
     assert not bad, "imports that leave a room and lead back into it: " + "; ".join(
         f"{a} -> {b} -> ... -> {c}" for a, b, c in bad)
+
+
+def reaches(graph: dict[str, set[str]], start: str) -> set[str]:
+    """Every module that `start`'s imports lead to."""
+    seen, stack = set(), [start]
+    while stack:
+        for x in graph[stack.pop()]:
+            if x not in seen:
+                seen.add(x)
+                stack.append(x)
+    return seen
+
+
+def test_rooms_of_sub_folders():
+    assert _room("uavsearch.search.train.policy") == "uavsearch.search.train"
+    assert _room("uavsearch.search.policy") == "uavsearch.search"
+    assert _room("uavsearch.search.data") == "uavsearch.search.data"
+    assert _room("uavsearch.flight.mavlink.links") == "uavsearch.flight"
+
+
+# What each room must never reach, directly or through others: the rooms that stand above it. Training and
+# evaluation both build on the loop and never on each other; the loop knows nothing of its data, trainers,
+# evaluations, of flying or of logs; the recorder knows nothing of what it records.
+NEVER_REACHES = {
+    "uavsearch.search": ("uavsearch.search.data", "uavsearch.search.train", "uavsearch.search.evaluate",
+                         "uavsearch.fly", "uavsearch.logs", "uavsearch.replay", "uavsearch.cli"),
+    "uavsearch.search.data": ("uavsearch.search.train", "uavsearch.search.evaluate", "uavsearch.fly",
+                              "uavsearch.replay", "uavsearch.cli"),
+    "uavsearch.search.train": ("uavsearch.search.evaluate", "uavsearch.fly", "uavsearch.replay", "uavsearch.cli"),
+    "uavsearch.search.evaluate": ("uavsearch.search.train", "uavsearch.fly", "uavsearch.replay", "uavsearch.cli"),
+    "uavsearch.flight": ("uavsearch.search", "uavsearch.fly", "uavsearch.logs", "uavsearch.replay", "uavsearch.cli"),
+    "uavsearch.world": ("uavsearch.flight", "uavsearch.search", "uavsearch.fly", "uavsearch.logs",
+                        "uavsearch.replay", "uavsearch.cli"),
+    "uavsearch.logs": ("uavsearch.search", "uavsearch.fly", "uavsearch.replay", "uavsearch.cli"),
+    "uavsearch.fly": ("uavsearch.replay", "uavsearch.cli"),
+    "uavsearch.replay": ("uavsearch.cli",),
+}
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    bad = []
+    for mod in sorted(graph):
+        banned = NEVER_REACHES.get(_room(mod), ())
+        for dep in sorted(reaches(graph, mod)):
+            if _room(dep) in banned:
+                bad.append(f"{mod} -> ... -> {dep}")
+                break
+    return bad
+
+
+def test_upward_imports_are_found():
+    g = {"uavsearch.search.train.a": {"uavsearch.search.b"}, "uavsearch.search.b": {"uavsearch.search.evaluate.c"},
+         "uavsearch.search.evaluate.c": set()}
+    assert upward_imports(g) == ["uavsearch.search.b -> ... -> uavsearch.search.evaluate.c",
+                                 "uavsearch.search.train.a -> ... -> uavsearch.search.evaluate.c"]
+
+
+def test_no_room_imports_a_room_above_it():
+    bad = upward_imports(import_graph())
+    assert not bad, "imports of a room that stands above: " + "; ".join(bad)

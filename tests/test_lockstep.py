@@ -7,7 +7,7 @@ import time
 import pytest
 from pymavlink import mavutil
 
-from mavlink_client import Client
+from uavsearch.testing.mavlink_client import Client
 from uavsearch.flight.lockstep import MAV_CMD_SIM_ADVANCE
 from uavsearch.flight.sitl_process import SitlProcess
 

@@ -6,7 +6,7 @@ import math
 import pytest
 from pymavlink import mavutil
 
-from mavlink_client import NAN, Client
+from uavsearch.testing.mavlink_client import NAN, Client
 from uavsearch.flight.sitl_process import SitlProcess
 
 M = mavutil.mavlink

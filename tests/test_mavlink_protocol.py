@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pymavlink import mavutil
 
-from mavlink_client import NAN, Client
+from uavsearch.testing.mavlink_client import NAN, Client
 from uavsearch.flight.sitl_process import SitlProcess
 
 M = mavutil.mavlink

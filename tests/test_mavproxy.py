@@ -21,7 +21,7 @@ import time
 
 import pytest
 
-from mavlink_client import Client
+from uavsearch.testing.mavlink_client import Client
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
 
 needs_mavproxy = pytest.mark.skipif(importlib.util.find_spec("MAVProxy") is None,

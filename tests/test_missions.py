@@ -3,7 +3,7 @@
 import pytest
 
 from uavsearch.errors import MissionError
-from uavsearch.missions import DEFAULT_MISSION, load_mission, mission_from_dict
+from uavsearch.fly.missions import DEFAULT_MISSION, load_mission, mission_from_dict
 from uavsearch.paths import MISSIONS_DIR
 
 
@@ -88,8 +88,8 @@ def test_read_without_the_registry_imports_no_torch_and_checks_names_later(tmp_p
     import subprocess
     import sys
 
-    code = ("import sys; from uavsearch.missions import load_mission; "
-            "from uavsearch.search.mission_controller import fly; "
+    code = ("import sys; from uavsearch.fly.missions import load_mission; "
+            "from uavsearch.fly.mission_controller import fly; "
             "m = load_mission(check_registry=False).with_overrides(check_registry=False, **{'scene.seed': 4}); "
             "print(m.scene.seed, 'torch' in sys.modules, 'scipy' in sys.modules, 'gymnasium' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()

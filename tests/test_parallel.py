@@ -15,7 +15,7 @@ import torch
 
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, Store, map_scenes, npz_bytes
-from uavsearch.search.dataset import (
+from uavsearch.search.data.dataset import (
     ViewSetSpec,
     generate_views,
     load_views,
@@ -159,10 +159,10 @@ def ray_cluster():
 def test_a_ray_cluster_and_the_local_pool_build_the_same_view_cache_and_table2(tmp_path, ray_cluster):
     import ray
 
-    from uavsearch.search.eval_search import EvalArgs, eval_search, model_path
+    from uavsearch.search.evaluate.search import EvalArgs, eval_search, model_path
     from uavsearch.search.perception import ConfidenceNet, PerceptionNet
     from uavsearch.search.policy import PolicyConfig, PolicyNet, save_search_model
-    from uavsearch.search.view_cache import CacheKey, build_view_cache, load_view_cache
+    from uavsearch.search.data.view_cache import CacheKey, build_view_cache, load_view_cache
 
     torch.manual_seed(0)
     net = PerceptionNet().eval()
@@ -201,8 +201,8 @@ def test_a_ray_cluster_and_the_local_pool_build_the_same_view_cache_and_table2(t
 @pytest.mark.timeout(600)
 def test_flight_vs_teleport_rows_are_the_same_on_ray_and_here(tmp_path, ray_cluster):
     """Two real SITL flights per executor (each a `uavsearch sitl` process over UDP on 127.0.0.1)."""
-    from uavsearch.missions import load_mission
-    from uavsearch.search.mission_controller import eval_flight_vs_teleport
+    from uavsearch.fly.missions import load_mission
+    from uavsearch.fly.flight_vs_teleport import eval_flight_vs_teleport
 
     timing = ("wall_s", "flight_wall_s")
     rows = []

@@ -16,7 +16,7 @@ from pymavlink import mavutil
 
 from uavsearch.errors import MissionError
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
-from uavsearch.plan_files import flown_search_items, load_plan, mission_items, plan_from_dict, save_plan
+from uavsearch.fly.plan_files import flown_search_items, load_plan, mission_items, plan_from_dict, save_plan
 
 M = mavutil.mavlink
 DATA = Path(__file__).parent / "data"

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from synthetic_views import synthetic_cache
+from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
 from uavsearch.search.config import SearchConfig, lattice_index
 from uavsearch.search.perception import ConfidenceNet
@@ -178,7 +178,7 @@ def test_view_cache_matches_live_perception_on_the_teleport_vehicle(tmp_path):
     """The cached outputs of a scene equal running perception on a fresh capture (the flight path)."""
     from uavsearch.search.perception import PerceptionNet
     from uavsearch.search.search_loop import LiveViews
-    from uavsearch.search.view_cache import CacheKey, build_view_cache, load_view_cache
+    from uavsearch.search.data.view_cache import CacheKey, build_view_cache, load_view_cache
     from uavsearch.search.views import TeleportVehicle
     from uavsearch.world.scene import generate_scene
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from synthetic_views import synthetic_cache
+from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
-from uavsearch.missions import mission_from_dict
+from uavsearch.fly.missions import mission_from_dict
 from uavsearch.search.agents import build_agent, checkpoint_path, new_agent
 from uavsearch.search.config import SearchConfig
 from uavsearch.search.perception import ConfidenceNet
@@ -19,7 +19,7 @@ from uavsearch.search.reactive import (LabelGreedyTeacher, ReactiveConfig, React
                                       mirror_states)
 from uavsearch.search.search_loop import (Agent, CachedViews, Observation, PolicyInput, classification_reward,
                                           lattice_moves, run_search)
-from uavsearch.search.train_reactive import Args, DaggerMixture, add_train_reactive_parser, imitation_loss, train
+from uavsearch.search.train.reactive import Args, DaggerMixture, add_train_reactive_parser, imitation_loss, train
 
 CONFIG = SearchConfig()
 MOVES = lattice_moves(CONFIG)

@@ -8,8 +8,8 @@ import pytest
 
 from uavsearch.errors import LogError
 from uavsearch.logs.flight_log import FlightLogWriter
-from uavsearch.logs.replay import replay_run_dir, write_replay
-from uavsearch.missions import load_mission
+from uavsearch.replay.replay import replay_run_dir, write_replay
+from uavsearch.fly.missions import load_mission
 from uavsearch.search.fusion import fuse
 from uavsearch.search.metrics import map_accuracy, map_f1
 
@@ -112,7 +112,7 @@ def test_cli_bad_inputs_are_one_line(tmp_path, capsys):
 def test_mp4_video_through_opencv(run_dir, tmp_path):
     import cv2
 
-    from uavsearch.logs.replay import write_video
+    from uavsearch.replay.replay import write_video
 
     path = write_video(replay_run_dir(run_dir[0]), tmp_path, "mp4", seconds_per_view=0.2)
     cap, n = cv2.VideoCapture(str(path)), 0

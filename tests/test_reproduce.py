@@ -102,7 +102,7 @@ def test_seed_spread_table(tmp_path):
     text = out.read_text()
     import csv
 
-    from uavsearch.search.eval_search import gap_closure
+    from uavsearch.search.evaluate.search import gap_closure
 
     first = {}
     for name in ("search", "search_large"):  # each folder's row, setting 1, as its CSV says

@@ -7,11 +7,11 @@ import json
 import pytest
 import torch
 
-from synthetic_views import synthetic_cache
+from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
 from uavsearch.search.policy import load_search_model
 from uavsearch.search.search_loop import Episode
-from uavsearch.search.train_policy import Args, add_train_policy_parser, returns, train
+from uavsearch.search.train.policy import Args, add_train_policy_parser, returns, train
 
 
 def _args(tmp_path, **kw):
@@ -103,7 +103,7 @@ def _per_episode_confidence_loss(conf, cache, rows, lattice_idx, pos_weight):
 
 def test_confidence_loss_shared_per_scene_and_position_equals_the_per_episode_loss():
     from uavsearch.search.perception import ConfidenceNet
-    from uavsearch.search.train_policy import confidence_loss
+    from uavsearch.search.train.policy import confidence_loss
 
     cache = synthetic_cache(3, seed=2)
     conf = ConfidenceNet(int(cache.cell_features.shape[-1])).eval()  # no dropout: both forms are exact

@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from uavsearch.missions import load_mission  # noqa: E402
+from uavsearch.fly.missions import load_mission  # noqa: E402
 
 STAGES = ("imports", "agent", "scene", "vehicle", "take-off", "search", "landing", "exit")
 _MARKS = ("agent_s", "scene_s", "vehicle_ready_s", "took_off_s", "searched_s", "landed_s")

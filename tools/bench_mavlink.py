@@ -20,18 +20,15 @@ import time
 from pathlib import Path
 
 import numpy as np
+from bench_table import print_table  # noqa: E402  (tools/ is on sys.path when run as a script)
 from pymavlink import mavutil
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from mavlink_client import NAN, Client  # noqa: E402
-
-from uavsearch.flight.commander import VehicleCommand  # noqa: E402
-from uavsearch.flight.mavlink.wire_units import deg_to_e7  # noqa: E402
-from uavsearch.flight.sitl import Sitl, SitlConfig  # noqa: E402
-from uavsearch.flight.sitl_process import SitlProcess  # noqa: E402
-from uavsearch.geometry import GeodeticOrigin  # noqa: E402
-
-from bench_table import print_table  # noqa: E402  (tools/ is on sys.path when run as a script)
+from uavsearch.flight.commander import VehicleCommand
+from uavsearch.flight.mavlink.wire_units import deg_to_e7
+from uavsearch.flight.sitl import Sitl, SitlConfig
+from uavsearch.flight.sitl_process import SitlProcess
+from uavsearch.geometry import GeodeticOrigin
+from uavsearch.testing.mavlink_client import NAN, Client
 
 M = mavutil.mavlink
 

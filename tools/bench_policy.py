@@ -16,23 +16,18 @@ which a shared machine disturbs less; the load average is printed with them.
 
 import argparse
 import os
-import sys
 import time
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-
-from synthetic_views import synthetic_cache  # noqa: E402
-
-from uavsearch.search.agents import new_agent  # noqa: E402
-from uavsearch.search.config import SearchConfig  # noqa: E402
-from uavsearch.search.perception import PerceptionConfig, PerceptionNet  # noqa: E402
-from uavsearch.search.search_loop import CachedViews, LiveViews, run_search  # noqa: E402
-from uavsearch.search.train_policy import Args, train  # noqa: E402
-from uavsearch.search.views import TeleportVehicle  # noqa: E402
-from uavsearch.world.scene import generate_scene  # noqa: E402
+from uavsearch.search.agents import new_agent
+from uavsearch.search.config import SearchConfig
+from uavsearch.search.perception import PerceptionConfig, PerceptionNet
+from uavsearch.search.search_loop import CachedViews, LiveViews, run_search
+from uavsearch.search.train.policy import Args, train
+from uavsearch.search.views import TeleportVehicle
+from uavsearch.testing.synthetic_views import synthetic_cache
+from uavsearch.world.scene import generate_scene
 
 
 def timed(fn, repeat):

@@ -25,7 +25,7 @@ import time
 from uavsearch.geometry import nadir_camera_pose
 from uavsearch.parallel import Executor, Store, map_scenes, process_tree_cpu_s
 from uavsearch.search.config import SearchConfig, lattice_positions
-from uavsearch.search.dataset import ViewSetSpec, perception_scenes, positions_for_scene, render_scene_shard, render_tag
+from uavsearch.search.data.dataset import ViewSetSpec, perception_scenes, positions_for_scene, render_scene_shard, render_tag
 from uavsearch.world.render import SceneRenderer
 from uavsearch.world.scene import generate_scene
 

@@ -96,12 +96,12 @@ STEPS=()
 add() { STEPS+=("$1|$2|$3|$4"); }
 
 add lattice_views full "render every lattice view of the large split into cache/lattice_views/ (resumable)" \
-  "$PY -c \"from uavsearch.search.view_cache import CacheKey, render_lattice_views
+  "$PY -c \"from uavsearch.search.data.view_cache import CacheKey, render_lattice_views
 [render_lattice_views(CacheKey(s, 'large', part), progress=False) for part in ('train', 'val', 'test') for s in (1, 2, 3)]\""
 add train_perception full "stage 1 (seed 1, 5000 steps, the large split's training lattice views) -> $NEWPERC" \
   "$UAV train perception --seed 1 --runs-dir $RUN --out $NEWPERC --no-progress"
 add view_caches full "perception outputs of every paper- and large-split lattice view for $NEWPERC" \
-  "$PY -c \"from uavsearch.search.perception import load_perception; from uavsearch.search.view_cache import get_view_cache
+  "$PY -c \"from uavsearch.search.perception import load_perception; from uavsearch.search.data.view_cache import get_view_cache
 net, _ = load_perception('$NEWPERC')
 [get_view_cache(net, s, split, part, progress=False) for s in (1, 2, 3) for split in ('paper', 'large') for part in ('train', 'val', 'test')]\""
 TRAIN_CMDS=""

@@ -16,11 +16,11 @@ import torch
 
 from uavsearch.search.agents import build_agent
 from uavsearch.search.config import SearchConfig
-from uavsearch.search.eval_search import policy_checkpoint
+from uavsearch.search.evaluate.search import policy_checkpoint
 from uavsearch.search.perception import load_perception
 from uavsearch.search.policy import load_search_model
 from uavsearch.search.search_loop import CachedViews, run_search
-from uavsearch.search.view_cache import get_view_cache
+from uavsearch.search.data.view_cache import get_view_cache
 from uavsearch.world.settings import SETTINGS
 
 POLICIES = ("learned", "reactive", "greedy", "coverage")

@@ -20,7 +20,7 @@ import numpy as np
 
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import display_path
-from uavsearch.search.eval_search import gap_closure
+from uavsearch.search.evaluate.search import gap_closure
 from uavsearch.world.settings import SETTINGS
 
 

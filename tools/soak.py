@@ -23,8 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from uavsearch.missions import load_mission  # noqa: E402
-from uavsearch.search.mission_controller import fly  # noqa: E402
+from uavsearch.fly.missions import load_mission  # noqa: E402
+from uavsearch.fly.mission_controller import fly  # noqa: E402
 
 
 def _status(pid: int | str = "self") -> dict:

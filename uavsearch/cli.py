@@ -92,14 +92,14 @@ def _add_scene_parser(sub) -> None:
 
 
 # --------------------------------------------------------------------------------------------------
-# fly / replay (uavsearch/search/mission_controller.py, uavsearch/logs/replay.py)
+# fly / replay (uavsearch/fly/mission_controller.py, uavsearch/replay/replay.py)
 
 
 def _cmd_fly(args) -> int:
     # lazy: pydantic, pymavlink, OpenCV; torch (2-5 s) is imported by fly() once the vehicle is starting, so
     # the mission is read without the agent registry (fly checks it then)
-    from .missions import load_mission
-    from .search.mission_controller import fly, format_maps
+    from .fly.missions import load_mission
+    from .fly.mission_controller import fly, format_maps
 
     mission = load_mission(args.mission, check_registry=False)
     mission = mission.with_overrides(check_registry=False, **{"scene.seed": args.scene, "flight.speed": args.speed})
@@ -157,9 +157,9 @@ def _add_vehicle_option(p) -> None:
     def run(args):
         if args.vehicle == "teleport":
             return teleport(args)
-        from .missions import load_mission  # lazy: torch (2-5 s)
+        from .fly.missions import load_mission  # lazy: torch (2-5 s)
         from .parallel import Executor
-        from .search.mission_controller import eval_flight_vs_teleport
+        from .fly.flight_vs_teleport import eval_flight_vs_teleport
 
         setting = 2 if str(args.setting) == "all" else int(args.setting)
         res = eval_flight_vs_teleport(load_mission(args.mission), setting, args.split, args.speed, args.out,
@@ -172,10 +172,10 @@ def _add_vehicle_option(p) -> None:
 
 
 def _cmd_replay(args) -> int:
-    from .logs.replay import replay_command  # lazy: torch (2-5 s)
+    from .replay.replay import replay_command  # lazy: torch (2-5 s)
 
     if args.html is not None:
-        from .logs.flight_review import write_flight_review
+        from .replay.flight_review import write_flight_review
 
         print(f"wrote {write_flight_review(args.log, args.html or None, mission_file=args.mission)}")
         if args.out is None:
@@ -215,9 +215,9 @@ EVAL_HELP = ("evaluate: single-view perception (Table I, Fig. 4), search methods
 
 def _add_train_parser(sub) -> None:
     # lazy: torch (2-5 s); built only when `train` is the command (build_parser)
-    from .search.train_perception import add_train_perception_parser
-    from .search.train_policy import add_train_policy_parser
-    from .search.train_reactive import add_train_reactive_parser
+    from .search.train.perception import add_train_perception_parser
+    from .search.train.policy import add_train_policy_parser
+    from .search.train.reactive import add_train_reactive_parser
 
     train = sub.add_parser("train", help=TRAIN_HELP)
     tsub = train.add_subparsers(dest="train_cmd", required=True, metavar="{perception,policy,reactive}")
@@ -228,9 +228,9 @@ def _add_train_parser(sub) -> None:
 
 def _add_eval_parser(sub) -> None:
     # lazy: torch (2-5 s); built only when `eval` is the command (build_parser)
-    from .search.eval_perception import add_eval_perception_parser
-    from .search.eval_search import add_eval_search_parser
-    from .search.eval_single_view import add_eval_single_view_parser
+    from .search.evaluate.perception import add_eval_perception_parser
+    from .search.evaluate.search import add_eval_search_parser
+    from .search.evaluate.single_view import add_eval_single_view_parser
 
     ev = sub.add_parser("eval", help=EVAL_HELP)
     esub = ev.add_subparsers(dest="eval_cmd", required=True, metavar="{single-view,search,perception}")
@@ -261,7 +261,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(name, help=text)
     _add_fly_parser(sub)
     _add_replay_parser(sub)
-    from .mission_upload import add_mission_parser
+    from .fly.mission_upload import add_mission_parser
 
     add_mission_parser(sub)
     return parser

@@ -29,7 +29,7 @@ from .perception import ConfidenceNet, load_perception
 from .policy import (ArgmaxPolicy, CoverageRoute, GreedyUncertainty, PolicyConfig, PolicyNet, RandomPolicy,
                      load_search_model)
 from .search_loop import Agent, Policy
-from .view_cache import perception_tag
+from .perception import perception_tag
 
 
 class PolicyKind(NamedTuple):

@@ -21,6 +21,7 @@ Stage 2 freezes the backbone and classifier and caches `PerceptionNet.views_outp
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -423,3 +424,12 @@ def load_perception(path, map_location: str = "cpu") -> tuple[PerceptionNet, dic
         raise UavsearchError(f"{path} is not a uavsearch perception checkpoint ({type(e).__name__}: {e})") from None
     net.eval()
     return net, ckpt.get("extra", {})
+
+
+def perception_tag(net: torch.nn.Module) -> str:
+    """A content hash of the weights, so caches of different perception checkpoints never mix."""
+    h = hashlib.sha256()
+    for k, v in sorted(net.state_dict().items()):
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]

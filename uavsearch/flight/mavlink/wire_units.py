@@ -1,7 +1,7 @@
 """Client-side decoding of MAVLink wire units into SI units and the scene frame, in one place.
 
 MAVLink packs positions as integers (degE7, mm), velocities in cm/s and times in ms, all in NED; the
-flying client (search/mavlink_vehicle.py) and replay (logs/replay.py) read the same messages and must
+flying client (fly/vehicle.py) and replay (replay/replay.py) read the same messages and must
 decode them the same way. Frame conversions themselves stay in geometry.py (the one module that converts
 frames); this module only undoes the wire scaling and hands over to it.
 """

@@ -43,14 +43,13 @@ from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot, save_figure
 
-from .agents import checkpoint_path
-from .config import SearchConfig
-from .eval_search import evaluate_agent
-from .policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search_model
-from .reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
-from .search_loop import R_RE, Agent, CachedViews, classification_reward, run_search
-from .train_perception import copy_checkpoint, seed_everything
-from .train_policy import RunArgs, load_caches, start_run
+from ..agents import checkpoint_path
+from ..config import SearchConfig
+from ..policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search_model
+from ..reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
+from ..scoring import evaluate_agent
+from ..search_loop import R_RE, Agent, CachedViews, classification_reward, run_search
+from .runs import RunArgs, copy_checkpoint, load_caches, seed_everything, start_run
 
 FUSION = "learned"
 
@@ -365,7 +364,7 @@ def add_train_reactive_parser(subparsers) -> None:
                                                "paper)",
                               description="A conv-net policy on the map of what each view said, imitating a "
                                           "label-peeking teacher, then REINFORCE against the coverage route; see "
-                                          "uavsearch/search/train_reactive.py.")
+                                          "uavsearch/search/train/reactive.py.")
     add_dataclass_args(p, Args)
     p.set_defaults(func=cmd_train_reactive)
 
@@ -378,6 +377,6 @@ def cmd_train_reactive(args) -> int:
     return 0
 
 
-if __name__ == "__main__":  # python -m uavsearch.search.train_reactive [flags] = uavsearch train reactive [flags]
+if __name__ == "__main__":  # python -m uavsearch.search.train.reactive [flags] = uavsearch train reactive [flags]
     raise SystemExit(run_command(cmd_train_reactive, add_dataclass_args(argparse.ArgumentParser(
-        prog="python -m uavsearch.search.train_reactive"), Args).parse_args()))
+        prog="python -m uavsearch.search.train.reactive"), Args).parse_args()))

@@ -361,7 +361,7 @@ def write_flight_review(log, out=None, mission_file=None) -> Path:
     """Write the review page for a run directory or a bare .tlog; returns its path."""
     import plotly.io as pio
 
-    from .flight_log import read_flight_log
+    from ..logs.flight_log import read_flight_log
 
     log = Path(log)
     run = None
@@ -375,7 +375,7 @@ def write_flight_review(log, out=None, mission_file=None) -> Path:
     tel = read_telemetry(tlog)
     home = run.header.get("home") if run else None
     if home is None and mission_file:
-        from ..missions import load_mission
+        from ..fly.missions import load_mission
 
         home = load_mission(mission_file).home.model_dump()
     origin = _origin(tel, home)

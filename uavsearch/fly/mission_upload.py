@@ -14,8 +14,8 @@ from pathlib import Path
 
 from pymavlink import mavutil
 
-from .errors import MissionError
-from .flight.mission import NAV_LAND, NAV_RETURN_TO_LAUNCH, MissionItem
+from ..errors import MissionError
+from ..flight.mission import NAV_LAND, NAV_RETURN_TO_LAUNCH, MissionItem
 from .plan_files import Plan, load_plan, mission_items
 
 M = mavutil.mavlink
@@ -110,7 +110,7 @@ def _fence_notes(vehicle, plan: Plan, apply: bool) -> list[str]:
 def upload_plan(path, connect: str = "udpin:127.0.0.1:14550", start: bool = False, timeout_s: float = 600.0,
                 progress=print) -> UploadReport:
     """Upload the plan (and its fence radius); with `start`, arm, fly it, and wait for its end."""
-    from .search.mavlink_vehicle import FlightError, FlightSettings, MavlinkVehicle
+    from .vehicle import FlightError, FlightSettings, MavlinkVehicle
 
     plan, source = resolve_plan(path)
     items = mission_items(plan, source)
@@ -148,7 +148,7 @@ def upload_plan(path, connect: str = "udpin:127.0.0.1:14550", start: bool = Fals
 
 
 def _fly(vehicle, items, state, timeout_s: float, progress) -> str:
-    from .search.mavlink_vehicle import FlightError
+    from .vehicle import FlightError
 
     end = time.monotonic() + 30.0
     while (r := vehicle.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1)) != M.MAV_RESULT_ACCEPTED:

@@ -56,7 +56,8 @@ from uavsearch.paths import REPO_ROOT
 from uavsearch.world import settings
 from uavsearch.world.settings import SETTINGS, scene_seeds
 
-from .config import SearchConfig, lattice_positions
+from ..config import SearchConfig, lattice_positions
+from ..perception import perception_tag
 from .dataset import ViewSetSpec, generate_views, load_views, probe_render
 
 FORMAT = "uavsearch-search-views/1"
@@ -123,15 +124,6 @@ def world_tag() -> str:
     h.update(image)
     h.update(Path(settings.SETTINGS_FILE).read_bytes())
     return h.hexdigest()[:12]
-
-
-def perception_tag(net: torch.nn.Module) -> str:
-    """A content hash of the weights, so caches of different perception checkpoints never mix."""
-    h = hashlib.sha256()
-    for k, v in sorted(net.state_dict().items()):
-        h.update(k.encode())
-        h.update(v.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()[:16]
 
 
 @torch.no_grad()

@@ -33,9 +33,9 @@ from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.viz import pyplot, save_figure
 from uavsearch.world.settings import SETTINGS, parse_settings
 
-from .metrics import average_precision, rate_by_bin
-from .perception import load_perception
-from .view_cache import PARTS, get_view_cache
+from ..data.view_cache import PARTS, get_view_cache
+from ..metrics import average_precision, rate_by_bin
+from ..perception import load_perception
 
 THRESHOLD = 0.5
 PX_BINS: tuple[tuple[int, int | None], ...] = ((0, 0), (1, 3), (4, 7), (8, 15), (16, None))  # [lo, hi] pixels

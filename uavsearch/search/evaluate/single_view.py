@@ -28,15 +28,14 @@ from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs, Store
 from uavsearch.paths import MODELS_DIR, display_path
-from uavsearch.world.settings import density_scenes
 from uavsearch.viz import pyplot, save_figure
+from uavsearch.world.settings import density_scenes
 
-from .config import SearchConfig, lattice_positions
-
-from .dataset import DATA_DIR, ViewSetSpec, generate_views, load_views
-from .metrics import average_metrics, cell_correct, rate_by_bin
-from .perception import load_perception
-from .train_perception import predict_views
+from ..config import SearchConfig, lattice_positions
+from ..data.dataset import DATA_DIR, ViewSetSpec, generate_views, load_views
+from ..metrics import average_metrics, cell_correct, rate_by_bin
+from ..perception import load_perception
+from ..scoring import predict_views
 
 PAPER_TABLE1 = {  # pair -> (Aacc, AF1), paper Table I
     (1, 2): (0.896, 0.201), (3, 4): (0.892, 0.356), (5, 6): (0.883, 0.445),

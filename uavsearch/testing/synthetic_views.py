@@ -10,7 +10,7 @@ import torch
 
 from uavsearch.search.config import SearchConfig
 from uavsearch.search.search_loop import lattice_cell_distances
-from uavsearch.search.view_cache import ViewCache
+from uavsearch.search.data.view_cache import ViewCache
 
 
 def synthetic_cache(num_scenes: int = 4, k: int = 5, seed: int = 0, cell_dim: int = 6, global_dim: int = 16) -> ViewCache:

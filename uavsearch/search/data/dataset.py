@@ -50,8 +50,8 @@ from uavsearch.paths import REPO_ROOT
 from uavsearch.world.scene import generate_scene, scene_to_json
 from uavsearch.world.settings import SETTINGS, scene_seeds
 
-from .config import SearchConfig, lattice_positions
-from .views import TeleportVehicle
+from ..config import SearchConfig, lattice_positions
+from ..views import TeleportVehicle
 
 FORMAT = "uavsearch-views/2"
 DATA_DIR = REPO_ROOT / "data" / "views"

@@ -21,10 +21,19 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from .errors import MissionError, format_validation_error, read_user_file
-from .flight.mavlink.wire_units import deg_to_e7
-from .flight.mission import (FRAME_GLOBAL_RELATIVE_ALT, FRAME_MISSION, IMAGE_START_CAPTURE, NAV_LAND,
-                             NAV_RETURN_TO_LAUNCH, NAV_TAKEOFF, NAV_WAYPOINT, SUPPORTED_COMMANDS, MissionItem)
+from ..errors import MissionError, format_validation_error, read_user_file
+from ..flight.mavlink.wire_units import deg_to_e7
+from ..flight.mission import (
+    FRAME_GLOBAL_RELATIVE_ALT,
+    FRAME_MISSION,
+    IMAGE_START_CAPTURE,
+    NAV_LAND,
+    NAV_RETURN_TO_LAUNCH,
+    NAV_TAKEOFF,
+    NAV_WAYPOINT,
+    SUPPORTED_COMMANDS,
+    MissionItem,
+)
 
 # QGC's numbers for what it writes: MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR, altitude relative to home.
 FIRMWARE_PX4 = 12
@@ -243,7 +252,7 @@ def _global_item(seq: int, command: int, lat: float, lon: float, rel_alt_m: floa
 def flown_search_items(home: dict, waypoints_enu, end_action: str = "land") -> list[MissionItem]:
     """The flown search as a mission: take off over the first view, fly to each view and take a photo
     there, then land where the search ended (or return). Flying it re-takes the same photos."""
-    from .geometry import GeodeticOrigin
+    from ..geometry import GeodeticOrigin
 
     origin = GeodeticOrigin(float(home["lat_deg"]), float(home["lon_deg"]), float(home["alt_m"]))
     items: list[MissionItem] = []
@@ -271,7 +280,7 @@ def flown_search_items(home: dict, waypoints_enu, end_action: str = "land") -> l
 
 def write_flown_plan(run_dir, out=None) -> Path | None:
     """`RUN_DIR/flown.plan` from a flight log: the views the search flew, in order; None with no views."""
-    from .logs.flight_log import read_flight_log
+    from ..logs.flight_log import read_flight_log
 
     run_dir = Path(run_dir)
     log = read_flight_log(run_dir)

@@ -34,8 +34,9 @@ from tqdm import tqdm
 
 from ..errors import LogError, UavsearchError
 from ..flight.mavlink import wire_units as wire
+from ..fly.missions import load_mission, mission_from_dict
 from ..geometry import CameraIntrinsics, GeodeticOrigin, Grid, camera_pose_from_vehicle
-from ..missions import load_mission, mission_from_dict
+from ..logs.flight_log import read_flight_log
 from ..search.agents import FUSION_METHODS, check_names
 from ..search.fusion import fuse_prefixes
 from ..search.metrics import map_accuracy, map_f1
@@ -45,7 +46,6 @@ from ..world.render import SceneRenderer
 from ..world.scene import generate_scene
 from ..world.settings import resolve_k
 from ..world.topdown import draw_topdown
-from .flight_log import read_flight_log
 
 # --------------------------------------------------------------------------------------------------
 # tlog reading (robust: stops at the first damaged record)

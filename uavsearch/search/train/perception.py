@@ -36,8 +36,6 @@ from __future__ import annotations
 
 import csv
 import json
-import random
-import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -54,13 +52,21 @@ from uavsearch.paths import MODELS_DIR, RUNS_DIR
 from uavsearch.viz import pyplot, save_figure
 from uavsearch.world.settings import parse_settings
 
-from .config import SearchConfig, lattice_positions
-from .dataset import ViewSet, concat_views, load_views
-from .fusion import DEFAULT_PRIOR
-from .metrics import average_metrics, average_precision, cell_correct
-from .perception import (PerceptionConfig, PerceptionNet, cell_pooling, images_to_tensor, load_perception,
-                         save_perception)
-from .view_cache import CACHE_DIR, CacheKey, render_lattice_views, world_tag
+from ..config import SearchConfig, lattice_positions
+from ..data.dataset import ViewSet, concat_views, load_views
+from ..data.view_cache import CACHE_DIR, CacheKey, render_lattice_views, world_tag
+from ..fusion import DEFAULT_PRIOR
+from ..metrics import average_metrics, average_precision, cell_correct
+from ..perception import (
+    PerceptionConfig,
+    PerceptionNet,
+    cell_pooling,
+    images_to_tensor,
+    load_perception,
+    save_perception,
+)
+from ..scoring import predict_views
+from .runs import copy_checkpoint, seed_everything
 
 
 @dataclass
@@ -93,27 +99,6 @@ class Args(ScaleOutArgs):
     runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
     progress: bool = opt(True, "tqdm bars")
     layers: tuple = opt(factory=lambda: PerceptionConfig().layers, help="backbone (out, kernel, stride)", cli=False)
-
-
-def copy_checkpoint(ckpt: Path, out, ship: bool, shipped: Path) -> Path | None:
-    """Training writes into its run directory; only an explicit `out`, or `ship` (the shipped file in
-    models/), copies the best checkpoint elsewhere. Returns where it went (None: nowhere)."""
-    if ship and out and Path(out).resolve() != Path(shipped).resolve():
-        raise UavsearchError(f"--ship writes {shipped}; drop --out {out} or --ship")
-    target = Path(shipped) if ship else Path(out) if out else None
-    if target is not None:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        if target.resolve() != Path(ckpt).resolve():
-            shutil.copyfile(ckpt, target)
-    return target
-
-
-def seed_everything(seed: int) -> np.random.Generator:
-    """One call seeds numpy, torch and Python's random; returns the generator the run draws from."""
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
-    return np.random.default_rng(seed)
 
 
 def augment_batch(rng: np.random.Generator, *arrays: np.ndarray) -> list[np.ndarray]:
@@ -186,21 +171,6 @@ def batch_loss(net: PerceptionNet, images, labels, occupancy, args: Args, person
             out.person_logits, target, pos_weight=torch.tensor(args.person_pos_weight))
     loss = loss_cells + args.person_weight * loss_person
     return loss, {"cells": float(loss_cells.detach()), "person": float(loss_person.detach())}, out.log_probs, mask
-
-
-@torch.no_grad()
-def predict_views(net: PerceptionNet, views: ViewSet, batch_size: int = 64, progress: bool = False):
-    """Single-view occupancy maps p(y=1) (V, N*N) with the prior where a cell is out of view, + pixels."""
-    net.eval()
-    probs, pixels = [], []
-    for i in tqdm(range(0, len(views), batch_size), desc="predict", disable=not progress, leave=False):
-        rows = np.arange(i, min(i + batch_size, len(views)))
-        out = net.forward_all(views.images[rows], views.label_images(rows))
-        probs.append(out.log_probs[..., 1].exp().numpy())
-        pixels.append(out.cell_pixels.numpy())
-    p, px = np.concatenate(probs), np.concatenate(pixels)
-    p = np.where(views.cells_in_view, p, DEFAULT_PRIOR)
-    return p, px
 
 
 def evaluate(net: PerceptionNet, views: ViewSet, centre_index: int) -> dict[str, float]:

@@ -25,12 +25,12 @@ import torch
 
 from uavsearch.errors import UavsearchError
 
-from .agents import needs_confidence
-from .config import SearchConfig
-from .metrics import map_f1
-from .policy import coverage_route
-from .reactive import LabelGreedyTeacher
-from .search_loop import Agent, CachedViews, run_search, start_index
+from ..agents import needs_confidence
+from ..config import SearchConfig
+from ..metrics import map_f1
+from ..policy import coverage_route
+from ..reactive import LabelGreedyTeacher
+from ..search_loop import Agent, CachedViews, run_search, start_index
 
 RESAMPLES = 10_000
 LEVEL = 0.95

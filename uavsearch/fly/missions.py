@@ -15,19 +15,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import yaml
-from pydantic import (BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator,
-                      model_validator)
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
-from .errors import MissionError, format_validation_error, read_user_file
-from .geometry import CameraIntrinsics, GeodeticOrigin
-from .paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
-from .search.config import ACTIONS, SearchConfig
-from .search.mavlink_vehicle import FlightSettings
-from .world.scene import generate_scene, load_scene
-from .world.settings import SETTINGS
+from ..errors import MissionError, format_validation_error, read_user_file
+from ..geometry import CameraIntrinsics, GeodeticOrigin
+from ..paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
+from ..search.config import ACTIONS, SearchConfig
+from ..world.scene import generate_scene, load_scene
+from ..world.settings import SETTINGS
+from .vehicle import FlightSettings
 
 if TYPE_CHECKING:
-    from .search.agents import LoadedAgent
+    from ..search.agents import LoadedAgent
 
 DEFAULT_MISSION = MISSIONS_DIR / "default.yaml"
 # The agent registry (search/agents.py) imports torch (1-4 s). Validating with the context {REGISTRY: False}
@@ -37,7 +36,7 @@ REGISTRY = "check_registry"
 
 
 def _registry():
-    from .search import agents  # lazy: torch, see REGISTRY
+    from ..search import agents  # lazy: torch, see REGISTRY
 
     return agents
 
@@ -95,7 +94,7 @@ class SearchSection(_Strict):
 
 
 # The camera the shipped models were trained with: every training and evaluation view set is rendered with
-# SearchConfig's default intrinsics (its manifest records them, search/dataset.py) and no training command
+# SearchConfig's default intrinsics (its manifest records them, search/data/dataset.py) and no training command
 # takes an option to change them.
 TRAINED_CAMERA = CameraIntrinsics()
 
@@ -219,7 +218,7 @@ class Mission(_Strict):
     def setting_for_models(self) -> int:
         if self.scene.setting is not None:
             return int(self.scene.setting)
-        from .world.settings import SETTINGS
+        from ..world.settings import SETTINGS
 
         k = self.scene.k
         return min(SETTINGS, key=lambda s: abs(SETTINGS[s] - k))  # nearest density's model

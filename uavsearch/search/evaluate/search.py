@@ -41,7 +41,6 @@ import csv
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -51,17 +50,17 @@ from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import MODELS_DIR, display_path
-from uavsearch.world.settings import SETTINGS, parse_settings
 from uavsearch.viz import pyplot, save_figure
+from uavsearch.world.settings import SETTINGS, parse_settings
 
-from .agents import POLICIES, build_agent, checkpoint_path, needs_confidence
+from ..agents import POLICIES, build_agent, checkpoint_path, needs_confidence
+from ..config import SearchConfig
+from ..data.view_cache import get_view_cache
+from ..perception import load_perception
+from ..policy import load_search_model
+from ..scoring import evaluate_agent
+from ..search_loop import Agent
 from .bounds import RESAMPLES, bootstrap_ci, hidden_shares, label_greedy_af1, paired_differences, route_bounds
-from .config import SearchConfig
-from .metrics import map_accuracy, map_f1
-from .perception import load_perception
-from .policy import load_search_model
-from .search_loop import Agent, CachedViews, Episode, run_search
-from .view_cache import get_view_cache
 
 # (key, Table II label, fusion, policy): names from the agent registry (agents.py). The single-view row is
 # the start view alone (budget 1), so its policy never moves.
@@ -114,39 +113,6 @@ def available_rows(setting: int, models_dir=None) -> tuple[list[str], list[str]]
         else:
             keys.append(key)
     return keys, notices
-
-
-class EpisodeScores(NamedTuple):
-    """Per-episode, per-step map metrics of one method: (E, T) each."""
-    acc: np.ndarray
-    f1: np.ndarray
-    revisit_rate: float
-
-
-def score_episode(ep: Episode) -> EpisodeScores:
-    maps = ep.maps.detach().numpy()
-    y = ep.labels.numpy()
-    T = maps.shape[1]
-    acc = np.stack([map_accuracy(maps[:, t], y) for t in range(T)], 1)
-    f1 = np.stack([map_f1(maps[:, t], y) for t in range(T)], 1)
-    return EpisodeScores(acc, f1, float(ep.revisit[:, 1:].float().mean()) if T > 1 else 0.0)
-
-
-@torch.no_grad()
-def evaluate_agent(cache, agent: Agent, episodes_per_scene: int = 10, seed: int = 0, config: SearchConfig | None = None,
-                   budget_T: int | None = None, single_view: bool = False) -> EpisodeScores:
-    """Run `episodes_per_scene` episodes on every scene of the cache; the generator is seeded by `seed`."""
-    for m in (agent.confidence, getattr(agent.policy, "net", agent.policy)):
-        if isinstance(m, torch.nn.Module):
-            m.eval()
-    rows = np.repeat(np.arange(cache.num_scenes), episodes_per_scene)
-    gen = torch.Generator().manual_seed(int(seed))
-    conf = agent.confidence if needs_confidence(agent.fusion) else None
-    ep = run_search(CachedViews(cache, rows, config, conf), agent, 1 if single_view else budget_T, generator=gen)
-    return score_episode(ep)
-
-
-# --------------------------------------------------------------------------------------------------
 
 
 def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = False,
@@ -483,6 +449,6 @@ def cmd_eval_search(args) -> int:
     return 0
 
 
-if __name__ == "__main__":  # python -m uavsearch.search.eval_search [flags] = uavsearch eval search [flags]
+if __name__ == "__main__":  # python -m uavsearch.search.evaluate.search [flags] = uavsearch eval search [flags]
     raise SystemExit(run_command(cmd_eval_search, add_dataclass_args(argparse.ArgumentParser(
-        prog="python -m uavsearch.search.eval_search"), EvalArgs).parse_args()))
+        prog="python -m uavsearch.search.evaluate.search"), EvalArgs).parse_args()))

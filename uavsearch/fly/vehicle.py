@@ -41,8 +41,8 @@ from ..errors import UavsearchError
 from ..flight.lockstep import MAV_CMD_SIM_ADVANCE
 from ..flight.mavlink import wire_units as wire
 from ..geometry import GeodeticOrigin, camera_pose_from_vehicle
-from .config import SearchConfig
-from .views import View, make_view
+from ..search.config import SearchConfig
+from ..search.views import View, make_view
 
 M = mavutil.mavlink
 AUTOPILOT_COMPID = 1

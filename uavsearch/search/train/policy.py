@@ -40,30 +40,17 @@ from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
-from uavsearch.parallel import Executor, ScaleOutArgs
-from uavsearch.paths import MODELS_DIR, RUNS_DIR
+from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot
 
-from .agents import FUSION_METHODS, check_names, checkpoint_path, new_agent
-from .config import SearchConfig
-from .eval_search import evaluate_agent
-from .fusion import fuse
-from .perception import ConfidenceNet, load_perception
-from .policy import save_search_model
-from .search_loop import R_FP, R_RE, R_TP, Agent, CachedViews, classification_reward, run_search
-from .train_perception import copy_checkpoint, seed_everything
-from .view_cache import get_view_cache
-
-
-@dataclass
-class RunArgs(ScaleOutArgs):
-    """How a stage-2 training command runs and reports (train_policy, train_reactive)."""
-
-    threads: int = opt(1, "torch CPU threads")
-    cache_dir: str | None = opt(None, "view cache root (default cache/)")
-    runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
-    progress: bool = opt(True, "progress bar")
-    plot: bool = opt(True, "write learning_curve.png at the end")
+from ..agents import FUSION_METHODS, check_names, checkpoint_path, new_agent
+from ..config import SearchConfig
+from ..fusion import fuse
+from ..perception import ConfidenceNet
+from ..policy import save_search_model
+from ..scoring import evaluate_agent
+from ..search_loop import R_FP, R_RE, R_TP, Agent, CachedViews, classification_reward, run_search
+from .runs import RunArgs, copy_checkpoint, load_caches, seed_everything, start_run
 
 
 @dataclass
@@ -116,25 +103,6 @@ def check_args(args: Args) -> None:
         raise UavsearchError("the loo baseline needs --episodes-per-scene >= 2")
     if min(args.iterations, args.scenes_per_batch, args.episodes_per_scene, args.eval_every, args.eval_episodes) < 1:
         raise UavsearchError("iterations, batch sizes, eval_every and eval_episodes must be positive")
-
-
-def start_run(args: RunArgs, name: str, seed: int) -> Path:
-    """runs/<name>__<seed>__<unix time>/, new, with args.json written first."""
-    stamp = int(time.time())
-    run_dir = Path(args.runs_dir) / f"{name}__{seed}__{stamp}"
-    while run_dir.exists():  # two runs started within the same second
-        stamp += 1
-        run_dir = Path(args.runs_dir) / f"{name}__{seed}__{stamp}"
-    run_dir.mkdir(parents=True)
-    (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
-    return run_dir
-
-
-def load_caches(args: Args):
-
-    net, _ = load_perception(args.perception)
-    kw = dict(cache_dir=args.cache_dir, progress=args.progress, executor=Executor.from_args(args))
-    return get_view_cache(net, args.setting, args.split, "train", **kw), get_view_cache(net, args.setting, args.split, "val", **kw)
 
 
 def returns(ep, final_map, labels, args: Args) -> tuple[torch.Tensor, torch.Tensor]:
@@ -313,7 +281,7 @@ def add_train_policy_parser(subparsers) -> None:
     """`uavsearch train policy ...` (subparsers: the `train` command's); one flag per Args field."""
     p = subparsers.add_parser("policy", help="stage 2: confidence fusion + REINFORCE view-selection policy",
                               description="Stage 2 (paper Sec. V-B) on cached teleport views; see "
-                                          "uavsearch/search/train_policy.py.")
+                                          "uavsearch/search/train/policy.py.")
     add_dataclass_args(p, Args)
     p.set_defaults(func=cmd_train_policy)
 
@@ -326,6 +294,6 @@ def cmd_train_policy(args) -> int:
     return 0
 
 
-if __name__ == "__main__":  # python -m uavsearch.search.train_policy [flags] = uavsearch train policy [flags]
+if __name__ == "__main__":  # python -m uavsearch.search.train.policy [flags] = uavsearch train policy [flags]
     raise SystemExit(run_command(cmd_train_policy, add_dataclass_args(argparse.ArgumentParser(
-        prog="python -m uavsearch.search.train_policy"), Args).parse_args()))
+        prog="python -m uavsearch.search.train.policy"), Args).parse_args()))

@@ -1,0 +1,1 @@
+"""Flying the search loop over MAVLink: the client, the mission controller, mission files, upload, .plan files."""

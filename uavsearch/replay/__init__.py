@@ -1,0 +1,1 @@
+"""Replaying flight logs: re-scoring, plots and video, and the flight review page."""

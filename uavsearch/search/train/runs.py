@@ -1,0 +1,77 @@
+"""What every trainer shares: seeding, the run directory, the view caches it trains on, and copying the
+chosen checkpoint out (never over models/ unless asked)."""
+
+from __future__ import annotations
+
+import json
+import random
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uavsearch.cli_args import opt
+from uavsearch.errors import UavsearchError
+from uavsearch.parallel import Executor, ScaleOutArgs
+from uavsearch.paths import RUNS_DIR
+
+from ..data.view_cache import get_view_cache
+from ..perception import load_perception
+
+
+@dataclass
+class RunArgs(ScaleOutArgs):
+    """How a stage-2 training command runs and reports (train_policy, train_reactive)."""
+
+    threads: int = opt(1, "torch CPU threads")
+    cache_dir: str | None = opt(None, "view cache root (default cache/)")
+    runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
+    progress: bool = opt(True, "progress bar")
+    plot: bool = opt(True, "write learning_curve.png at the end")
+
+
+def start_run(args: RunArgs, name: str, seed: int) -> Path:
+    """runs/<name>__<seed>__<unix time>/, new, with args.json written first."""
+    stamp = int(time.time())
+    run_dir = Path(args.runs_dir) / f"{name}__{seed}__{stamp}"
+    while run_dir.exists():  # two runs started within the same second
+        stamp += 1
+        run_dir = Path(args.runs_dir) / f"{name}__{seed}__{stamp}"
+    run_dir.mkdir(parents=True)
+    (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
+    return run_dir
+
+
+def load_caches(args):
+    """The (train, val) view caches of args.setting / args.split under the frozen args.perception."""
+
+    net, _ = load_perception(args.perception)
+    kw = dict(cache_dir=args.cache_dir, progress=args.progress, executor=Executor.from_args(args))
+    return get_view_cache(net, args.setting, args.split, "train", **kw), get_view_cache(net, args.setting, args.split, "val", **kw)
+
+
+def copy_checkpoint(ckpt: Path, out, ship: bool, shipped: Path) -> Path | None:
+    """Training writes into its run directory; only an explicit `out`, or `ship` (the shipped file in
+    models/), copies the best checkpoint elsewhere. Returns where it went (None: nowhere)."""
+    if ship and out and Path(out).resolve() != Path(shipped).resolve():
+        raise UavsearchError(f"--ship writes {shipped}; drop --out {out} or --ship")
+    target = Path(shipped) if ship else Path(out) if out else None
+    if target is not None:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        if target.resolve() != Path(ckpt).resolve():
+            shutil.copyfile(ckpt, target)
+    return target
+
+
+def seed_everything(seed: int) -> np.random.Generator:
+    """One call seeds numpy, torch and Python's random; returns the generator the run draws from."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+    return np.random.default_rng(seed)
+
+
+__all__ = ["RunArgs", "copy_checkpoint", "load_caches", "seed_everything", "start_run"]
