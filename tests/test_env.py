@@ -11,7 +11,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 from uavsearch.errors import SceneError
-from uavsearch.search.config import SearchConfig, lattice_index, lattice_positions
+from uavsearch.search.config import SearchConfig
 from uavsearch.search.env import ActiveSearchEnv
 from uavsearch.search.perception import PerceptionConfig, PerceptionNet
 from uavsearch.search.search_loop import R_RE, Agent, LiveViews, run_search
@@ -31,13 +31,13 @@ def env():
 
 def test_lattice_is_the_paper_one():
     cfg = SearchConfig()
-    pos = lattice_positions(cfg)
+    pos = cfg.lattice.positions_enu
     assert pos.shape == (25, 3)
     assert set(np.unique(pos[:, 0])) == {-20.0, -10.0, 0.0, 10.0, 20.0}
     assert np.all(pos[:, 2] == 70.0)
-    assert pos[lattice_index(cfg, (0, 0))] == pytest.approx([0, 0, 70])
-    assert pos[lattice_index(cfg, (2, 2))] == pytest.approx([20, 20, 70])  # NE corner
-    assert lattice_index(cfg, (-2, 2)) == 0  # NW corner first, like the cell grid
+    assert pos[cfg.lattice.index((0, 0))] == pytest.approx([0, 0, 70])
+    assert pos[cfg.lattice.index((2, 2))] == pytest.approx([20, 20, 70])  # NE corner
+    assert cfg.lattice.index((-2, 2)) == 0  # NW corner first, like the cell grid
 
 
 def test_check_env_passes():

@@ -6,7 +6,7 @@ import torch
 
 from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
-from uavsearch.search.config import SearchConfig, lattice_index
+from uavsearch.search.config import SearchConfig
 from uavsearch.search.perception import ConfidenceNet
 from uavsearch.search.policy import (
     ArgmaxPolicy,
@@ -24,10 +24,7 @@ from uavsearch.search.search_loop import (
     Agent,
     CachedViews,
     PolicyInput,
-    lattice_cell_distances,
-    lattice_moves,
     run_search,
-    start_index,
 )
 
 CONFIG = SearchConfig()
@@ -55,16 +52,16 @@ def _inp(B=3, fused=None, idx=None, visited=None, g=16):
 
 
 def test_lattice_moves_follow_the_env_rules():
-    m = lattice_moves(CONFIG)
-    c = start_index(CONFIG)
-    assert c == lattice_index(CONFIG, (0, 0)) == 12
-    assert m[c, AHEAD] == lattice_index(CONFIG, (0, 1))
-    assert m[c, RIGHT] == lattice_index(CONFIG, (1, 0))
-    assert m[c, LEFT] == lattice_index(CONFIG, (-1, 0))
-    assert m[c, BACK] == lattice_index(CONFIG, (0, -1))
-    nw = lattice_index(CONFIG, (-2, 2))
+    m = CONFIG.lattice.moves
+    c = CONFIG.lattice.start_index
+    assert c == CONFIG.lattice.index((0, 0)) == 12
+    assert m[c, AHEAD] == CONFIG.lattice.index((0, 1))
+    assert m[c, RIGHT] == CONFIG.lattice.index((1, 0))
+    assert m[c, LEFT] == CONFIG.lattice.index((-1, 0))
+    assert m[c, BACK] == CONFIG.lattice.index((0, -1))
+    nw = CONFIG.lattice.index((-2, 2))
     assert m[nw, AHEAD] == nw and m[nw, LEFT] == nw  # leaving the lattice keeps the camera in place
-    assert m[nw, RIGHT] == lattice_index(CONFIG, (-1, 2))
+    assert m[nw, RIGHT] == CONFIG.lattice.index((-1, 2))
 
 
 def test_run_search_revisits_and_start_view():
@@ -132,11 +129,11 @@ def test_random_policy_is_uniform_and_seeded():
 def test_coverage_route_never_revisits_and_sees_every_cell_closer():
     route = coverage_route(CONFIG)
     assert len(route) == CONFIG.budget_T - 1
-    m, pos = lattice_moves(CONFIG), [start_index(CONFIG)]
+    m, pos = CONFIG.lattice.moves, [CONFIG.lattice.start_index]
     for a in route:
         pos.append(int(m[pos[-1], a]))
     assert len(set(pos)) == len(pos)
-    d = lattice_cell_distances(CONFIG)
+    d = CONFIG.lattice.cell_distances
     assert d[pos].amin(0).sum() < d[[12, 7, 2, 2, 2]].amin(0).sum()  # beats flying straight into the edge
     ep = run_search(CachedViews(synthetic_cache(2), [0, 1]), Agent("average", CoverageRoute(CONFIG)))
     assert ep.lattice_idx[0].tolist() == pos == ep.lattice_idx[1].tolist()

@@ -18,11 +18,11 @@ from uavsearch.search.policy import (ArgmaxPolicy, PolicyNet, RandomPolicy, load
 from uavsearch.search.reactive import (LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, action_mask,
                                       mirror_states)
 from uavsearch.search.search_loop import (Agent, CachedViews, Observation, PolicyInput, classification_reward,
-                                          lattice_moves, run_search)
+                                          run_search)
 from uavsearch.search.train.reactive import Args, DaggerMixture, add_train_reactive_parser, imitation_loss, train
 
 CONFIG = SearchConfig()
-MOVES = lattice_moves(CONFIG)
+MOVES = CONFIG.lattice.moves
 
 
 def _conf(cell_dim=6, seed=0):

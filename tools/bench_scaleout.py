@@ -24,7 +24,7 @@ import time
 
 from uavsearch.geometry import nadir_camera_pose
 from uavsearch.parallel import Executor, Store, map_scenes, process_tree_cpu_s
-from uavsearch.search.config import SearchConfig, lattice_positions
+from uavsearch.search.config import SearchConfig
 from uavsearch.search.data.dataset import ViewSetSpec, perception_scenes, positions_for_scene, render_scene_shard, render_tag
 from uavsearch.world.render import SceneRenderer
 from uavsearch.world.scene import generate_scene
@@ -33,7 +33,7 @@ from uavsearch.world.scene import generate_scene
 def raw_rate(spec: ViewSetSpec) -> tuple[float, float, int]:
     """(views/s wall, CPU s per view, views) of SceneRenderer.render alone, one process (with its worker)."""
     config = SearchConfig()
-    lattice = lattice_positions(config)
+    lattice = config.lattice.positions_enu
     wall = cpu = 0.0
     n = 0
     for s, k in spec.scenes:

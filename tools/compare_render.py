@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from uavsearch.geometry import nadir_camera_pose
-from uavsearch.search.config import SearchConfig, lattice_positions
+from uavsearch.search.config import SearchConfig
 from uavsearch.world.render import RenderOptions, SceneRenderer
 from uavsearch.world.scene import generate_scene
 from uavsearch.world.settings import SETTINGS, scene_seeds
@@ -44,9 +44,9 @@ def render_views(spec, config: SearchConfig, ground: str) -> tuple[list, float]:
     options = RenderOptions(ground=ground, isolate=False)
     out = []
     with SceneRenderer(spec, config.intrinsics, options) as r:
-        r.render(nadir_camera_pose(lattice_positions(config)[0]))  # warm-up
+        r.render(nadir_camera_pose(config.lattice.positions_enu[0]))  # warm-up
         t0 = time.process_time()
-        for pos in lattice_positions(config):
+        for pos in config.lattice.positions_enu:
             out.append(r.render(nadir_camera_pose(pos)))
         ms = (time.process_time() - t0) / len(out) * 1e3
     return out, ms
@@ -59,7 +59,7 @@ def perception_delta(net, config: SearchConfig, old: list, new: list) -> tuple[n
     from uavsearch.search.views import make_view
 
     p_old, p_new = [], []
-    for pos, a, b in zip(lattice_positions(config), old, new):
+    for pos, a, b in zip(config.lattice.positions_enu, old, new):
         va = make_view(a.rgb, nadir_camera_pose(pos), config.grid, config.intrinsics, None, config.min_cell_area_px)
         with torch.no_grad():
             lp = net(np.stack([a.rgb, b.rgb]), np.stack([va.cell_label, va.cell_label]))

@@ -11,7 +11,6 @@ import numpy as np
 
 from ..parallel import Executor, map_scenes
 from ..paths import RUNS_DIR
-from ..search.config import lattice_positions
 from ..search.metrics import map_accuracy, map_f1
 from ..search.views import TeleportVehicle
 from ..world.settings import scene_seeds
@@ -34,7 +33,7 @@ def teleport_episode(mission, loaded: LoadedAgent | None = None):
     gen = torch.Generator().manual_seed(int(mission.policy_seed))
     with TeleportVehicle(spec, config) as v, torch.no_grad():
         ep = run_search(LiveViews(v, loaded.perception, labels), loaded.agent, config.budget_T, generator=gen)
-    pos = lattice_positions(config)[ep.lattice_idx[0].numpy()]
+    pos = config.lattice.positions_enu[ep.lattice_idx[0].numpy()]
     return ep.maps[0, -1].numpy(), pos, labels
 
 

@@ -34,7 +34,6 @@ from ..flight.camera import SCENE_FILE
 from ..flight.sitl_process import SitlProcess
 from ..logs.flight_log import FlightLogWriter
 from ..paths import RUNS_DIR
-from ..search.config import lattice_positions
 from ..search.metrics import map_accuracy, map_f1
 from ..world.scene import load_scene
 from .vehicle import FlightError, MavlinkVehicle, StepFailed
@@ -119,7 +118,7 @@ class SearchRecorder:
         self.config, self.run_dir, self.progress, self.T = config, run_dir, progress, T
         self.visited: set[int] = set()
         self.records: list[dict] = []
-        self.lattice = lattice_positions(config)
+        self.lattice = config.lattice.positions_enu
 
     def step(self, t: int, fused, action: int | None) -> None:
         import torch

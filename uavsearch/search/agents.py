@@ -23,7 +23,7 @@ from torch import nn
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR
 
-from .config import SearchConfig
+from .config import SearchConfig, config_from_dict
 from .fusion import FUSION_METHODS
 from .perception import ConfidenceNet, load_perception
 from .policy import (ArgmaxPolicy, CoverageRoute, GreedyUncertainty, PolicyConfig, PolicyNet, RandomPolicy,
@@ -76,6 +76,16 @@ def loads_checkpoint(policy: str) -> bool:
     return POLICIES[policy].build is None
 
 
+def _same_lattice(a: SearchConfig, b: SearchConfig) -> bool:
+    pa, pb = a.lattice.positions_enu, b.lattice.positions_enu
+    return pa.shape == pb.shape and bool((abs(pa - pb) < 1e-6).all()) and a.actions == b.actions
+
+
+def _lattice_text(c: SearchConfig) -> str:
+    alts = "/".join(f"{a:g}" for a in c.layers_m)
+    return f"{c.lattice.num_positions} viewpoints at {alts} m, {c.step_m:g} m apart, moves {', '.join(c.actions)}"
+
+
 class LoadedAgent(NamedTuple):
     agent: Agent
     perception: nn.Module | None  # the frozen perception net, when asked for
@@ -125,6 +135,10 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
         if net.KIND != kind.net:
             raise error(f"{where}checkpoint {checkpoint} holds a {net.KIND!r} policy net, not the {policy!r} "
                         f"policy's {kind.net!r}")
+        recorded = extra.get("search_config") if isinstance(extra, dict) else None
+        if recorded is not None and not _same_lattice(config_from_dict(recorded), config):
+            raise error(f"{where}checkpoint {checkpoint} was trained on another viewpoint lattice "
+                        f"({_lattice_text(config_from_dict(recorded))}) than this search's ({_lattice_text(config)})")
         if net.cfg.num_actions != len(config.actions):
             raise error(f"{where}checkpoint has {net.cfg.num_actions} actions, search.actions has "
                         f"{len(config.actions)}")
@@ -151,7 +165,7 @@ def new_agent(fusion: str, config: SearchConfig, global_dim: int, cell_dim: int,
     """A fresh agent for stage 2 to train: a policy net and, when the fusion needs one, a confidence net."""
     check_names(fusion)
     policy = PolicyNet(PolicyConfig(global_dim=global_dim, num_cells=config.grid.num_cells,
-                                    num_positions=config.lattice_size ** 2, num_actions=len(config.actions),
+                                    num_positions=config.lattice.num_positions, num_actions=len(config.actions),
                                     budget_T=config.budget_T, extras=extras))
     return Agent(fusion, policy, ConfidenceNet(cell_dim) if needs_confidence(fusion) else None)
 

@@ -12,8 +12,8 @@ from gymnasium import spaces
 from ..errors import SceneError
 from ..world.scene import SceneSpec, generate_scene, scene_from_json, scene_to_json
 from ..world.settings import SETTINGS, scene_seeds
-from .config import SearchConfig, lattice_positions
-from .search_loop import R_RE, lattice_moves, start_index
+from .config import SearchConfig
+from .search_loop import R_RE
 from .views import TeleportVehicle, View
 
 
@@ -94,8 +94,8 @@ class ActiveSearchEnv(gym.Env):
         scene_seeds(setting, split, part)  # validate early: a bad split/part is a one-line error now
         self.r_revisit = float(r_revisit)
         self.render_mode = render_mode
-        self._lattice = lattice_positions(self.config)
-        self._moves = lattice_moves(self.config).numpy()  # (P, A) the loop's move rule
+        self._lattice = self.config.lattice.positions_enu
+        self._moves = self.config.lattice.moves.numpy()  # (P, A) the loop's move rule
         self._vehicles: dict[str, TeleportVehicle] = {}  # scene JSON hash -> vehicle with its render cache
         self._cache_scenes = cache_scenes
         intr, n_cells = self.config.intrinsics, self.config.grid.num_cells
@@ -113,7 +113,7 @@ class ActiveSearchEnv(gym.Env):
         )
         self.scene = None
         self._vehicle: TeleportVehicle | None = None
-        self._idx = start_index(self.config)
+        self._idx = self.config.lattice.start_index
         self._t = 0
         self._visited: list[int] = []
         self._last_view: View | None = None
@@ -179,7 +179,7 @@ class ActiveSearchEnv(gym.Env):
         super().reset(seed=seed)
         self.scene = self._pick_scene(options or {})
         self._vehicle = self._vehicle_for(self.scene)
-        self._idx, self._t, self._visited = start_index(self.config), 0, []
+        self._idx, self._t, self._visited = self.config.lattice.start_index, 0, []
         view = self._capture()
         return self._obs(view), self._info(False)
 

@@ -32,7 +32,7 @@ from uavsearch.errors import UavsearchError
 from .config import SearchConfig
 from .perception import EMBED_DIM, ConfidenceNet, ImageEmbedding
 from .reactive import ReactiveConfig, ReactivePolicyNet
-from .search_loop import PolicyInput, lattice_cell_distances, lattice_moves, sample_actions, start_index
+from .search_loop import PolicyInput, sample_actions
 
 
 @dataclass(frozen=True)
@@ -113,10 +113,10 @@ def coverage_route(config: SearchConfig, budget_T: int | None = None) -> tuple[i
     apart), ties to the first in action order. A lawnmower for a budget too short to mow.
     """
     T = int(budget_T or config.budget_T)
-    moves, dist = lattice_moves(config), lattice_cell_distances(config)
+    moves, dist = config.lattice.moves, config.lattice.cell_distances
     best, best_score = None, -np.inf
     for seq in itertools.product(range(moves.shape[1]), repeat=T - 1):
-        pos = [start_index(config)]
+        pos = [config.lattice.start_index]
         for a in seq:
             pos.append(int(moves[pos[-1], a]))
         if len(set(pos)) < len(pos):
@@ -144,8 +144,8 @@ class GreedyUncertainty:
     """Next view = the neighbour nearest to the most uncertain cells; unvisited neighbours first."""
 
     def __init__(self, config: SearchConfig):
-        self.moves = lattice_moves(config)
-        self.weight = -lattice_cell_distances(config)  # (P, N): nearer is better
+        self.moves = config.lattice.moves
+        self.weight = -config.lattice.cell_distances  # (P, N): nearer is better
 
     def act(self, inp: PolicyInput, generator=None):
         p = inp.fused.clamp(1e-6, 1 - 1e-6)

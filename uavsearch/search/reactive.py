@@ -27,9 +27,9 @@ from torch import nn
 
 from uavsearch.errors import UavsearchError
 
-from .config import SearchConfig
+from .config import SearchConfig, config_from_dict
 from .fusion import fuse
-from .search_loop import PolicyInput, classification_reward, lattice_cell_distances, lattice_moves, sample_actions
+from .search_loop import PolicyInput, classification_reward, sample_actions
 
 MASKED = -1e9  # logit of a forbidden move: finite, so log p and the entropy stay finite
 PLANES = ("fused", "uncertainty", "max_p", "min_p", "views", "score", "last_p", "last_valid", "dist_camera",
@@ -50,6 +50,13 @@ class ReactiveConfig:
     hidden: int = 64
     distance_scale_m: float = 50.0  # distances enter as d / scale
     score_scale: float = 4.0  # confidence scores (a few units either side of 0) enter as s / scale
+    search: dict | None = None  # config_to_dict of the SearchConfig (None: a checkpoint older than the record)
+
+    def search_config(self) -> SearchConfig:
+        """The search config whose lattice the net reads: the recorded one, or the paper's with this step and T."""
+        if self.search is not None:
+            return config_from_dict(self.search)
+        return SearchConfig(step_m=self.step_m, budget_T=self.budget_T)
 
     @property
     def num_cells(self) -> int:
@@ -76,8 +83,8 @@ class ReactivePolicyNet(nn.Module):
     def __init__(self, cfg: ReactiveConfig | None = None):
         super().__init__()
         self.cfg = cfg = cfg or ReactiveConfig()
-        config = SearchConfig(step_m=cfg.step_m, budget_T=cfg.budget_T)
-        moves, dist = lattice_moves(config), lattice_cell_distances(config)
+        config = cfg.search_config()
+        moves, dist = config.lattice.moves, config.lattice.cell_distances
         if moves.shape != (cfg.num_positions, cfg.num_actions) or dist.shape[1] != cfg.num_cells:
             raise UavsearchError(f"reactive policy config {cfg} does not match the search lattice "
                                  f"({moves.shape[0]} positions, {moves.shape[1]} moves, {dist.shape[1]} cells)")
@@ -132,7 +139,7 @@ class ReactivePolicyNet(nn.Module):
 def mirror_actions(config: SearchConfig, east_west: bool, north_south: bool) -> torch.Tensor | None:
     """(A,) long: the move each move becomes when the grid is mirrored (None: the action set is not closed)."""
     vec = config.action_vectors()
-    flipped = vec * np.array([-1 if east_west else 1, -1 if north_south else 1])
+    flipped = vec * np.array([-1 if east_west else 1, -1 if north_south else 1, 1])
     perm = [next((b for b, w in enumerate(vec) if (w == v).all()), None) for v in flipped]
     return None if None in perm else torch.as_tensor(perm)
 
@@ -187,7 +194,7 @@ class LabelGreedyTeacher:
         self.valid = cache.valid[uniq]
         self.scores = scores[uniq] if scores is not None else score_table(cache.subset(uniq.numpy()), confidence)
         self.labels = cache.occupancy[self.rows]
-        self.moves = lattice_moves(config)
+        self.moves = config.lattice.moves
         A = self.moves.shape[1]
         # tie-breaks below the smallest reward difference (1, N_tp - N_fp is an integer)
         self._tie = 0.01 * torch.arange(A, 0, -1, dtype=torch.float32)

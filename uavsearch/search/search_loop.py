@@ -11,22 +11,21 @@ evaluation and the flying mission controller all run this same function:
   the MAVLink vehicle that flies) to capture at the lattice position and runs perception on the image
   against the REPORTED pose's cell labels.
 
-The move rule is `lattice_moves` (the gymnasium env, env.py, steps through it too): a move that would
-leave the lattice keeps the camera where it is, the view is re-taken and counts as a revisit.
+The move rule is the config's `lattice.moves` (search/lattice.py; the gymnasium env steps through it
+too): a move that would leave the lattice keeps the camera where it is, the view is re-taken and counts
+as a revisit.
 """
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple, Protocol
 
 import numpy as np
 import torch
 
 from uavsearch.errors import UavsearchError
-from uavsearch.geometry import cell_pixel_areas, nadir_camera_pose
 
-from .config import SearchConfig, lattice_positions
+from .config import SearchConfig
 from .fusion import FUSION_METHODS, fuse
 
 
@@ -40,52 +39,6 @@ def classification_reward(final_map, labels, r_tp: float = R_TP, r_fp: float = R
     """R_cls of Eq. 14: N_tp R_tp + N_fp R_fp of the map thresholded at 0.5 ((B, N) -> (B,), or (N,) -> ())."""
     pred = final_map > 0.5
     return r_tp * (pred & labels).sum(-1) + r_fp * (pred & ~labels).sum(-1)
-
-
-# --------------------------------------------------------------------------------------------------
-# Lattice tables (pure functions of the config)
-
-
-@functools.lru_cache(maxsize=8)
-def lattice_moves(config: SearchConfig) -> torch.Tensor:
-    """(P, A) long: the lattice index reached from position p by action a (itself if it leaves the lattice)."""
-    h, L = config.lattice_half_steps, config.lattice_size
-    moves = config.action_vectors()
-    table = np.zeros((L * L, len(moves)), dtype=np.int64)
-    for p in range(L * L):
-        row, col = divmod(p, L)
-        i, j = col - h, h - row  # east, north steps
-        for a, (di, dj) in enumerate(moves):
-            ni, nj = i + di, j + dj
-            if abs(ni) > h or abs(nj) > h:
-                ni, nj = i, j
-            table[p, a] = (h - nj) * L + (ni + h)
-    return torch.as_tensor(table)
-
-
-@functools.lru_cache(maxsize=8)
-def lattice_cell_areas(config: SearchConfig) -> torch.Tensor:
-    """(P, N) float: each cell's pixel area (F_size) in the nadir view from each lattice position."""
-    return torch.as_tensor(np.stack([
-        cell_pixel_areas(config.grid, config.intrinsics, nadir_camera_pose(p)) for p in lattice_positions(config)
-    ]), dtype=torch.float32)
-
-
-@functools.lru_cache(maxsize=8)
-def lattice_cell_distances(config: SearchConfig) -> torch.Tensor:
-    """(P, N) float: horizontal distance in metres from each lattice position to each cell centre.
-
-    With a nadir camera over flat ground every cell has the same pixel area wherever it is in the image;
-    what changes with the view is how far off-nadir the cell is (parallax, people hidden by buildings
-    and trees), which is this distance.
-    """
-    pos = lattice_positions(config)[:, None, :2]
-    return torch.as_tensor(np.linalg.norm(pos - config.grid.centers_enu[None, :, :2], axis=-1), dtype=torch.float32)
-
-
-def start_index(config: SearchConfig) -> int:
-    """The lattice centre: the start position above the middle of the search area."""
-    return (config.lattice_size * config.lattice_size) // 2
 
 
 # --------------------------------------------------------------------------------------------------
@@ -122,14 +75,17 @@ class CachedViews:
     """
 
     def __init__(self, cache, scene_rows, config: SearchConfig | None = None, confidence=None):
+        """`config` defaults to the one the cache was made for (a cache records it)."""
         self.cache = cache
         self.rows = torch.as_tensor(np.asarray(scene_rows), dtype=torch.long).reshape(-1)
-        self.config = config or SearchConfig()
+        self.config = config if config is not None else getattr(cache, "config", None)
+        if self.config is None:
+            raise UavsearchError("the view cache records no search config; pass the one it was made for")
         self.batch_size = int(self.rows.numel())
         self.labels = cache.occupancy[self.rows]
-        if cache.num_positions != self.config.lattice_size ** 2:
+        if cache.num_positions != self.config.lattice.num_positions:
             raise UavsearchError(f"view cache has {cache.num_positions} positions, the config's lattice "
-                                 f"{self.config.lattice_size ** 2}")
+                                 f"{self.config.lattice.num_positions}")
         self.confidence = confidence
         if confidence is not None:
             uniq, inv = torch.unique(self.rows, return_inverse=True)
@@ -169,7 +125,7 @@ class LiveViews:
         self.config: SearchConfig = vehicle.config
         self.batch_size = 1
         self.labels = None if labels is None else torch.as_tensor(np.asarray(labels)).bool().reshape(1, -1)
-        self._lattice = lattice_positions(self.config)
+        self._lattice = self.config.lattice.positions_enu
         self.views: list = []
 
     @torch.no_grad()
@@ -277,9 +233,9 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
     with_scores = "scores" in FUSION_METHODS[agent.fusion].needs
     if with_scores and agent.confidence is None:
         raise UavsearchError(f"{agent.fusion} fusion needs a confidence network")
-    moves = lattice_moves(config)
-    B, P = source.batch_size, config.lattice_size ** 2
-    idx = torch.full((B,), start_index(config) if start_idx is None else int(start_idx), dtype=torch.long)
+    moves = config.lattice.moves
+    B, P = source.batch_size, config.lattice.num_positions
+    idx = torch.full((B,), config.lattice.start_index if start_idx is None else int(start_idx), dtype=torch.long)
     visited = torch.zeros(B, P, dtype=torch.bool)
     arange = torch.arange(B)
     obs: list[Observation] = []
@@ -322,5 +278,4 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
 
 
 __all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
-           "R_FP", "R_RE", "R_TP", "classification_reward", "fuse_views", "lattice_cell_areas",
-           "lattice_cell_distances", "lattice_moves", "run_search", "sample_actions", "start_index"]
+           "R_FP", "R_RE", "R_TP", "classification_reward", "fuse_views", "run_search", "sample_actions"]

@@ -9,14 +9,15 @@ import numpy as np
 import torch
 
 from uavsearch.search.config import SearchConfig
-from uavsearch.search.search_loop import lattice_cell_distances
 from uavsearch.search.data.view_cache import ViewCache
 
 
-def synthetic_cache(num_scenes: int = 4, k: int = 5, seed: int = 0, cell_dim: int = 6, global_dim: int = 16) -> ViewCache:
+def synthetic_cache(num_scenes: int = 4, k: int = 5, seed: int = 0, cell_dim: int = 6, global_dim: int = 16,
+                    config: SearchConfig | None = None) -> ViewCache:
+    """`config` (default: the paper's) decides the lattice: one column per viewpoint."""
     rng = np.random.default_rng(seed)
-    config = SearchConfig()
-    dist = lattice_cell_distances(config).numpy()  # (P, N)
+    config = config or SearchConfig()
+    dist = config.lattice.cell_distances.numpy()  # (P, N)
     P, N = dist.shape
     occ = np.zeros((num_scenes, N), bool)
     for s in range(num_scenes):
@@ -35,5 +36,5 @@ def synthetic_cache(num_scenes: int = 4, k: int = 5, seed: int = 0, cell_dim: in
         cell_features=torch.as_tensor(feats, dtype=torch.float32),
         global_feature=torch.as_tensor(glob, dtype=torch.float32).relu(),
         cell_area_px=torch.full((num_scenes, P, N), 192.0), valid=torch.ones(num_scenes, P, N, dtype=torch.bool),
-        perception_tag="synthetic",
+        perception_tag="synthetic", config=config,
     )

@@ -50,7 +50,7 @@ from uavsearch.paths import REPO_ROOT
 from uavsearch.world.scene import generate_scene, scene_to_json
 from uavsearch.world.settings import SETTINGS, scene_seeds
 
-from ..config import SearchConfig, lattice_positions
+from ..config import SearchConfig, config_from_dict
 from ..views import TeleportVehicle
 
 FORMAT = "uavsearch-views/2"
@@ -67,6 +67,7 @@ class ViewSetSpec:
     include_start: bool = True  # the start view (lattice centre) is always among them
     seed: int = 0
     altitude_m: float = 70.0
+    search: dict | None = None  # config_to_dict of the SearchConfig whose lattice is rendered (None: the paper's at altitude_m)
 
     def __post_init__(self):
         if not self.scenes:
@@ -77,6 +78,8 @@ class ViewSetSpec:
     def to_json(self) -> dict:
         d = asdict(self)
         d["scenes"] = [list(s) for s in self.scenes]
+        if d["search"] is None:
+            del d["search"]  # view sets of the paper's lattice keep the manifest they always had
         return d
 
     @staticmethod
@@ -103,15 +106,15 @@ def perception_scenes(part: str, n: int, seed: int, k_range: tuple[int, int] = (
     return tuple(out)
 
 
-def search_config(spec: ViewSetSpec):
-
-    return SearchConfig(altitude_m=spec.altitude_m)
+def search_config(spec: ViewSetSpec) -> SearchConfig:
+    """The SearchConfig whose lattice the view set renders."""
+    return config_from_dict(spec.search) if spec.search is not None else SearchConfig(altitude_m=spec.altitude_m)
 
 
 def positions_for_scene(spec: ViewSetSpec, scene_seed: int, k: int, num_positions: int) -> np.ndarray:
     """The lattice indices rendered for one scene (sorted, distinct), a pure function of the spec."""
     n = min(spec.views_per_scene, num_positions)
-    centre = num_positions // 2
+    centre = search_config(spec).lattice.start_index
     rng = np.random.default_rng([spec.seed, int(scene_seed), int(k)])
     if spec.include_start:
         others = np.delete(np.arange(num_positions), centre)
@@ -130,15 +133,16 @@ def shard_path(root: Path, scene_seed: int, k: int) -> Path:
     return Path(root) / shard_key(scene_seed, k)
 
 
-@functools.lru_cache(maxsize=1)
-def probe_render() -> tuple[str, str, bytes]:
-    """(search config repr, probe scene JSON, its rendered start view's bytes) as this code makes them now:
-    what decides the pixels, once per process (about a second)."""
-    config = SearchConfig()
+@functools.lru_cache(maxsize=8)
+def probe_render(config: SearchConfig | None = None) -> tuple[str, str, bytes]:
+    """(the config's render key, probe scene JSON, its rendered start view's bytes) as this code makes them
+    now: what decides the pixels, once per process and config (about a second). No config: the renderer's
+    own fingerprint, with the paper's camera."""
+    config = config or SearchConfig()
     probe = generate_scene(PROBE_SCENE[0], PROBE_SCENE[1])
     with TeleportVehicle(probe, config, cache=False) as vehicle:
         view = vehicle.capture([0.0, 0.0, config.altitude_m])
-    return repr(config), scene_to_json(probe), np.ascontiguousarray(view.image).tobytes()
+    return config.render_key(), scene_to_json(probe), np.ascontiguousarray(view.image).tobytes()
 
 
 def render_tag() -> str:
@@ -157,7 +161,7 @@ def render_scene_shard(job: tuple[dict, Store, int, int, str]) -> dict:
     spec = ViewSetSpec.from_json(spec_json)
     t0, cpu0 = time.perf_counter(), process_tree_cpu_s()
     config = search_config(spec)
-    lattice = lattice_positions(config)
+    lattice = config.lattice.positions_enu
     idx = positions_for_scene(spec, scene_seed, k, len(lattice))
     scene = generate_scene(int(scene_seed), int(k))
     n_cells = config.grid.num_cells
@@ -329,8 +333,7 @@ def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only
     man = read_manifest(root)
     spec = ViewSetSpec.from_json({**man["spec"], "scenes": [[0, 0]]})
     config = search_config(spec)
-
-    centre = len(lattice_positions(config)) // 2
+    centre = config.lattice.start_index
     wanted = list(scenes) if scenes is not None else shards_in(root)
     parts: dict[str, list] = {k: [] for k in ("images", "lattice_index", "position_enu", "cell_area_px",
                                               "cells_in_view", "person_px", "occupancy", "scene_seed",
@@ -357,7 +360,7 @@ def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only
         raise UavsearchError(f"no views selected from {root}")
     cat = {k: np.concatenate(v) for k, v in parts.items()}
     uniq, label_id = np.unique(cat["lattice_index"], return_inverse=True)
-    lattice = lattice_positions(config)
+    lattice = config.lattice.positions_enu
     labels = np.stack([cell_label_image(config.grid, config.intrinsics, nadir_camera_pose(lattice[i])) for i in uniq])
     return ViewSet(
         images=cat["images"], label_id=label_id.astype(np.int64), labels=labels,

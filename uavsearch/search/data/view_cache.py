@@ -28,7 +28,8 @@ Two layers, both under the gitignored ``cache/`` folder:
                                                for evaluation only: how visible each person is; absent in caches
                                                written before it, loaded as None)
 
-   P indexes config.lattice_positions (row-major from the NW corner; the centre is P // 2).
+       search_config    () str        config_to_dict of the SearchConfig, as JSON: P indexes its lattice
+                                               (search/lattice.py; row-major from the NW corner, layer by layer)
 
 A run is resumable at layer 1 (dataset.generate_views skips finished shards; its scenes run on local
 processes or on Ray, parallel.map_scenes); layer 2 is one pass of the CNN over the rendered images, in this
@@ -56,7 +57,7 @@ from uavsearch.paths import REPO_ROOT
 from uavsearch.world import settings
 from uavsearch.world.settings import SETTINGS, scene_seeds
 
-from ..config import SearchConfig, lattice_positions
+from ..config import SearchConfig, config_from_dict, config_to_dict, setting_config
 from ..perception import perception_tag
 from .dataset import ViewSetSpec, generate_views, load_views, probe_render
 
@@ -77,6 +78,7 @@ class ViewCache(NamedTuple):
     valid: torch.Tensor  # (S, P, N) bool
     perception_tag: str
     person_px: torch.Tensor | None = None  # (S, P, N) int32 visible person pixels per cell (None: an older cache)
+    config: SearchConfig | None = None  # the search config whose lattice the positions are
 
     @property
     def num_scenes(self) -> int:
@@ -91,15 +93,20 @@ class ViewCache(NamedTuple):
         t = torch.as_tensor(rows, dtype=torch.long)
         return ViewCache(self.scene_seed[rows], self.occupied_cells[rows], self.occupancy[t], self.log_probs[t],
                          self.cell_features[t], self.global_feature[t], self.cell_area_px[t], self.valid[t],
-                         self.perception_tag, None if self.person_px is None else self.person_px[t])
+                         self.perception_tag, None if self.person_px is None else self.person_px[t], self.config)
 
 
 @dataclass(frozen=True)
 class CacheKey:
-    """Which scenes a cache holds: one part of one split of one paper setting."""
+    """Which scenes a cache holds (one part of one split of one setting) and under which search config."""
     setting: int
     split: str = "paper"
     part: str = "train"
+    config: SearchConfig | None = None  # None: the setting's own (config.setting_config)
+
+    @property
+    def search_config(self) -> SearchConfig:
+        return self.config if self.config is not None else setting_config(self.setting)
 
     @property
     def name(self) -> str:
@@ -112,14 +119,15 @@ class CacheKey:
         return [(int(s), SETTINGS[self.setting]) for s in scene_seeds(self.setting, self.split, self.part)]
 
 
-@functools.lru_cache(maxsize=1)
-def world_tag() -> str:
-    """A hash of what decides the pixels: a probe scene's spec and its start view as rendered now, the
-    scene splits and the search config. Any change to how scenes are generated or drawn changes it (and
-    so never silently reuses old renders); edits that change no pixel do not. About a second, once per
-    process."""
-    config_repr, probe_json, image = probe_render()
-    h = hashlib.sha256(config_repr.encode())
+@functools.lru_cache(maxsize=8)
+def world_tag(config: SearchConfig) -> str:
+    """A hash of what decides the pixels of a config's lattice views: a probe scene's spec and its start
+    view as rendered now, the scene splits and the config's render key (camera, grid, render options,
+    viewpoints). Any change to how scenes are generated or drawn, or to where the camera may go, changes
+    it (and so never silently reuses old renders); edits that change no pixel do not. About a second,
+    once per process and config."""
+    render_key, probe_json, image = probe_render(config)
+    h = hashlib.sha256(render_key.encode())
     h.update(probe_json.encode())
     h.update(image)
     h.update(Path(settings.SETTINGS_FILE).read_bytes())
@@ -142,10 +150,12 @@ def render_lattice_views(key: CacheKey, scenes=None, root=None, workers: int = 2
                          executor: Executor | None = None):
     """Layer 1: render every lattice position of every scene (resumable); returns the view-set folder."""
     scenes = list(scenes) if scenes is not None else key.scenes()
-    n_pos = len(lattice_positions(SearchConfig()))
+    config = key.search_config
+    default = config == SearchConfig(altitude_m=config.altitude_m)  # the paper's lattice at that altitude
     spec = ViewSetSpec(name=f"lattice-{key.name}", scenes=tuple((int(s), int(k)) for s, k in scenes),
-                       views_per_scene=n_pos, include_start=True, seed=0)
-    root = root if root is not None else CACHE_DIR / "lattice_views" / world_tag() / key.name
+                       views_per_scene=config.lattice.num_positions, include_start=True, seed=0,
+                       altitude_m=config.altitude_m, search=None if default else config_to_dict(config))
+    root = root if root is not None else CACHE_DIR / "lattice_views" / world_tag(config) / key.name
     return generate_views(spec, root=root, workers=workers, progress=progress, executor=executor)
 
 
@@ -156,7 +166,7 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
     local processes). Perception runs here, over the stored renders, in scene order."""
     store = Store(cache_dir if cache_dir is not None else CACHE_DIR)
     tag = perception_tag(net)
-    world = world_tag()
+    world = world_tag(key.search_config)
     out_key = f"search_views/{world}-{tag}/{key.name}.npz"
     out = Path(store.path(out_key)) if store.local else store.path(out_key)
     if store.exists(out_key):
@@ -185,6 +195,7 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
     # written whole (two processes building at once never clash), without timestamps (equal caches are equal bytes)
     store.write_bytes(out_key, npz_bytes({
         "format": np.array(FORMAT), "perception_tag": np.array(tag),
+        "search_config": np.array(json.dumps(config_to_dict(key.search_config), sort_keys=True)),
         **{k: np.stack(v) if k not in ("scene_seed", "occupied_cells") else np.array(v, np.int64)
            for k, v in parts.items()}}, compress=False))
     return out
@@ -210,13 +221,16 @@ def load_view_cache(path) -> ViewCache:
         cell_area_px=torch.as_tensor(d["cell_area_px"]), valid=torch.as_tensor(d["valid"]).bool(),
         perception_tag=str(d["perception_tag"]),
         person_px=torch.as_tensor(d["person_px"].astype(np.int32)) if "person_px" in d else None,
+        config=config_from_dict(json.loads(str(d["search_config"]))) if "search_config" in d else None,
     )
 
 
 def get_view_cache(net, setting: int, split: str = "paper", part: str = "train", cache_dir=None,
-                   workers: int = 2, progress: bool = True, executor: Executor | None = None) -> ViewCache:
-    """The cache of one part, building it first if needed (the one call training and evaluation make)."""
-    return load_view_cache(build_view_cache(net, CacheKey(setting, split, part), cache_dir=cache_dir,
+                   workers: int = 2, progress: bool = True, executor: Executor | None = None,
+                   config: SearchConfig | None = None) -> ViewCache:
+    """The cache of one part under `config` (default: the setting's), building it first if needed (the one
+    call training and evaluation make)."""
+    return load_view_cache(build_view_cache(net, CacheKey(setting, split, part, config), cache_dir=cache_dir,
                                             workers=workers, progress=progress, executor=executor))
 
 

@@ -30,7 +30,7 @@ from ..config import SearchConfig
 from ..metrics import map_f1
 from ..policy import coverage_route
 from ..reactive import LabelGreedyTeacher
-from ..search_loop import Agent, CachedViews, run_search, start_index
+from ..search_loop import Agent, CachedViews, run_search
 
 RESAMPLES = 10_000
 LEVEL = 0.95
@@ -117,7 +117,7 @@ def route_index(route, num_actions: int) -> int:
 def route_af1(cache, confidence=None, config: SearchConfig | None = None, fusion: str = "learned",
               max_episodes: int = 8192) -> np.ndarray:
     """(S, R) final AF1 of every scene under every route of all_routes, `max_episodes` episodes at a time."""
-    config = config or SearchConfig()
+    config = config or cache.config
     if needs_confidence(fusion) and confidence is None:
         raise UavsearchError(f"the route bound with {fusion} fusion needs a confidence network")
     conf = confidence if needs_confidence(fusion) else None
@@ -147,7 +147,7 @@ class RouteBounds(NamedTuple):
 
 
 def route_bounds(cache, confidence=None, config: SearchConfig | None = None, fusion: str = "learned") -> RouteBounds:
-    config = config or SearchConfig()
+    config = config or cache.config
     af1 = route_af1(cache, confidence, config, fusion)
     routes = all_routes(config)
     arg = af1.argmax(1)
@@ -160,7 +160,7 @@ def route_bounds(cache, confidence=None, config: SearchConfig | None = None, fus
 @torch.no_grad()
 def label_greedy_af1(cache, confidence, config: SearchConfig | None = None, seed: int = 0) -> np.ndarray:
     """(S,) final AF1 of the label-peeking greedy with learned fusion, one episode per scene."""
-    config = config or SearchConfig()
+    config = config or cache.config
     rows = np.arange(cache.num_scenes)
     teacher = LabelGreedyTeacher(cache, rows, confidence, config)
     ep = run_search(CachedViews(cache, rows, config, confidence), Agent("learned", teacher, confidence),
@@ -176,7 +176,7 @@ def hidden_shares(cache, config: SearchConfig | None = None) -> tuple[float, flo
     occ = cache.occupancy.numpy().astype(bool)
     px = cache.person_px.numpy()
     n = max(int(occ.sum()), 1)
-    start = px[:, start_index(config or SearchConfig())] == 0
+    start = px[:, (config or cache.config).lattice.start_index] == 0
     return float((start & occ).sum() / n), float(((px.max(1) == 0) & occ).sum() / n)
 
 

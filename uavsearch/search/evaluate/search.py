@@ -145,7 +145,7 @@ class EvalArgs(ScaleOutArgs):
 def evaluate_setting(setting: int, cache, args: EvalArgs, keys=None) -> dict[str, dict]:
     """{row key: {"acc": (seeds, E, T), "f1": ..., "revisit": (seeds,), "scenes": S}} on one setting's cache,
     for the rows `keys` (default every row)."""
-    config = SearchConfig()
+    config = cache.config
     agents = methods(setting, config, args.models_dir, args.argmax, keys)
     res: dict[str, dict] = {}
     for key, agent in tqdm(agents.items(), desc=f"eval setting {setting}", disable=not args.progress, leave=False):
@@ -215,7 +215,7 @@ def _num(x: float, fmt: str) -> str:
 
 def setting_bounds(setting: int, cache, res: dict[str, dict], args: EvalArgs) -> dict:
     """Difficulty and upper bounds of one setting (module docstring); `notes` says what was skipped and why."""
-    config = SearchConfig()
+    config = cache.config
     nan = float("nan")
     b = {"setting": setting, "scenes": cache.num_scenes, "single_view_af1": nan, "hidden_start": nan,
          "hidden_all": nan, "coverage_af1": nan, "best_fixed_af1": nan, "best_fixed_route": "",
@@ -420,7 +420,7 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
               for p in paired_differences(results[s], REFERENCES, LABELS, args.bootstrap, args.bootstrap_seed)]
     bounds = {s: setting_bounds(s, caches[s], results[s], args) for s in settings}
     out = Path(args.out)
-    meta = {"T": SearchConfig().budget_T, "split": args.split, "episodes": args.episodes, "seeds": args.seeds,
+    meta = {"T": caches[settings[0]].config.budget_T, "split": args.split, "episodes": args.episodes, "seeds": args.seeds,
             "perception": display_path(args.perception), "tag": caches[settings[0]].perception_tag,
             "models_dir": display_path(args.models_dir), "argmax": args.argmax, "notices": notices,
             "bootstrap": args.bootstrap, "bootstrap_seed": args.bootstrap_seed, "seconds": time.perf_counter() - t0}

@@ -31,7 +31,7 @@ from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.viz import pyplot, save_figure
 from uavsearch.world.settings import density_scenes
 
-from ..config import SearchConfig, lattice_positions
+from ..config import SearchConfig
 from ..data.dataset import DATA_DIR, ViewSetSpec, generate_views, load_views
 from ..metrics import average_metrics, cell_correct, rate_by_bin
 from ..perception import load_perception
@@ -90,7 +90,7 @@ def evaluate_single_view(args: EvalArgs) -> dict:
     t0 = time.perf_counter()
     p, pixels = predict_views(net, views, progress=args.progress)
     t_pred = time.perf_counter() - t0
-    centre = len(lattice_positions(SearchConfig())) // 2
+    centre = len(SearchConfig().lattice.positions_enu) // 2
     start = views.lattice_index == centre
     y = views.occupancy
 

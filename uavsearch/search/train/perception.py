@@ -52,7 +52,6 @@ from uavsearch.paths import MODELS_DIR, RUNS_DIR
 from uavsearch.viz import pyplot, save_figure
 from uavsearch.world.settings import parse_settings
 
-from ..config import SearchConfig, lattice_positions
 from ..data.dataset import ViewSet, concat_views, load_views
 from ..data.view_cache import CACHE_DIR, CacheKey, render_lattice_views, world_tag
 from ..fusion import DEFAULT_PRIOR
@@ -253,14 +252,15 @@ def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
             scenes = key.scenes()
             if not 1 <= n <= len(scenes):
                 raise UavsearchError(f"{part} scenes per setting must be 1..{len(scenes)} for the {args.split} split")
-            root = render_lattice_views(key, scenes[:n], root=store.path(f"lattice_views/{world_tag()}/{key.name}"),
+            world = world_tag(key.search_config)
+            root = render_lattice_views(key, scenes[:n], root=store.path(f"lattice_views/{world}/{key.name}"),
                                         progress=args.progress, executor=executor)
             loaded.append(load_views(root, scenes[:n], person_frac=part == "train"))
         sets[part] = loaded[0] if len(loaded) == 1 else concat_views(loaded)
         del loaded
     print(f"data: {len(sets['train'])} training views, {len(sets['val'])} validation views of the {args.split} "
           f"split, settings {args.settings} ({time.perf_counter() - t0:.0f} s to render / load from {store.url})")
-    return sets["train"], sets["val"], len(lattice_positions(SearchConfig())) // 2
+    return sets["train"], sets["val"], key.search_config.lattice.start_index
 
 
 def train(args: Args) -> dict:

@@ -44,7 +44,7 @@ from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot
 
 from ..agents import FUSION_METHODS, check_names, checkpoint_path, new_agent
-from ..config import SearchConfig
+from ..config import config_to_dict
 from ..fusion import fuse
 from ..perception import ConfidenceNet
 from ..policy import save_search_model
@@ -183,7 +183,7 @@ def train(args: Args, caches=None) -> TrainResult:
     run_dir = start_run(args, name, args.seed)
 
     train_cache, val_cache = caches if caches is not None else load_caches(args)
-    config = SearchConfig()
+    config = train_cache.config
     agent = new_agent(args.fusion, config, int(train_cache.global_feature.shape[-1]),
                       int(train_cache.cell_features.shape[-1]), args.state_extras)  # evaluation
     policy, conf = agent.policy, agent.confidence
@@ -253,7 +253,8 @@ def train(args: Args, caches=None) -> TrainResult:
                 best = {"iteration": it, "val_aacc": row["eval/aacc"], "val_af1": row["eval/af1"],
                         "val_revisit": sc.revisit_rate}
                 save_search_model(ckpt, args.fusion, policy, conf,
-                                  {"args": asdict(args), "best": best, "perception_tag": train_cache.perception_tag})
+                                  {"args": asdict(args), "best": best, "perception_tag": train_cache.perception_tag,
+                                   "search_config": config_to_dict(config)})
             bar.set_postfix(val_af1=f"{row['eval/af1']:.3f}", best=f"{best_key[0]:.3f}")
         rows.append(row)
         if writer is None:

@@ -44,7 +44,7 @@ from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot, save_figure
 
 from ..agents import checkpoint_path
-from ..config import SearchConfig
+from ..config import SearchConfig, config_to_dict
 from ..policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search_model
 from ..reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
 from ..scoring import evaluate_agent
@@ -144,7 +144,7 @@ def imitation_loss(net, states, masks, targets, mirror: torch.Generator | None =
     with `mirror` (a generator) the batch is first mirrored east-west and / or north-south at random."""
     if mirror is not None:
         ew, ns = (torch.rand(2, generator=mirror) < 0.5).tolist()
-        states, masks, targets = mirror_states(states, masks, targets, config or SearchConfig(), ew, ns)
+        states, masks, targets = mirror_states(states, masks, targets, config or net.cfg.search_config(), ew, ns)
     logits = net(states, masks)
     return F.cross_entropy(logits, targets), (logits.argmax(-1) == targets).float().mean()
 
@@ -207,14 +207,15 @@ def train(args: Args, caches=None) -> TrainResult:
     if tag and tag != train_cache.perception_tag:
         print(f"uavsearch: warning: {conf_path}'s confidence net was trained on perception {tag}, the view cache "
               f"holds perception {train_cache.perception_tag}", file=sys.stderr)
-    config = SearchConfig()
+    config = train_cache.config
     T, S = config.budget_T, train_cache.num_scenes
     train_scores, val_scores = score_table(train_cache, conf), score_table(val_cache, conf)
     train_s, val_s = scored(train_cache, train_scores), scored(val_cache, val_scores)
     lookup = ScoreLookup()
-    net = ReactivePolicyNet(ReactiveConfig(num_positions=config.lattice_size ** 2, num_actions=len(config.actions),
-                                           budget_T=T, step_m=config.step_m, channels=args.channels,
-                                           conv_layers=args.conv_layers, hidden=args.hidden))
+    net = ReactivePolicyNet(ReactiveConfig(grid_size=config.grid.n, num_positions=config.lattice.num_positions,
+                                           num_actions=len(config.actions), budget_T=T, step_m=config.step_m,
+                                           channels=args.channels, conv_layers=args.conv_layers, hidden=args.hidden,
+                                           search=config_to_dict(config)))
 
     with torch.no_grad():  # the coverage route: return to go per (train scene, step), and the validation bar
         cov = run_search(CachedViews(train_s, torch.arange(S), config, lookup), Agent(FUSION, CoverageRoute(config),
@@ -232,7 +233,8 @@ def train(args: Args, caches=None) -> TrainResult:
     ckpt = run_dir / "model.pt"
     csv_f = (run_dir / "metrics.csv").open("w", newline="")
     writer = None
-    meta = {"args": asdict(args), "confidence": str(conf_path), "perception_tag": train_cache.perception_tag}
+    meta = {"args": asdict(args), "confidence": str(conf_path), "perception_tag": train_cache.perception_tag,
+            "search_config": config_to_dict(config)}
 
     def validate(row: dict, it: int) -> None:
         nonlocal best, best_key
