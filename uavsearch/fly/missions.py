@@ -45,14 +45,32 @@ def _checks_registry(info: ValidationInfo) -> bool:
     return not (info.context and info.context.get(REGISTRY) is False)
 
 
-# What the shipped models were trained on: the training commands render every view with SearchConfig's
-# defaults (70 m, 10 m steps, the default camera) and take no option to change them.
+# What a checkpoint that records no search config was trained on (the shipped models: every view rendered
+# with SearchConfig's defaults, 70 m and 10 m steps). A checkpoint trained since records its own.
 TRAINED_FOR = {"altitude_m": 70.0, "step_m": 10.0}
 
 
-def untrained_settings(search) -> list[str]:
-    """The search settings that differ from TRAINED_FOR, as 'altitude_m 40 (trained 70)'."""
-    return [f"{k} {getattr(search, k):g} (trained {v:g})" for k, v in TRAINED_FOR.items()
+def trained_for(checkpoint: Path) -> dict:
+    """{altitude_m, step_m} the policy checkpoint was trained on: its recorded search config, or TRAINED_FOR
+    for one older than the record (or one that cannot be read: loading it later says why)."""
+    from ..search.config import config_from_dict
+    from ..search.policy import load_search_model  # lazy: torch, see REGISTRY
+
+    try:
+        *_, extra = load_search_model(checkpoint)
+    except Exception:  # noqa: BLE001 - the agent's own load reports a bad checkpoint in one line
+        return dict(TRAINED_FOR)
+    rec = extra.get("search_config") if isinstance(extra, dict) else None
+    if rec is None:
+        return dict(TRAINED_FOR)
+    c = config_from_dict(rec)
+    return {"altitude_m": c.altitude_m, "step_m": c.step_m}
+
+
+def untrained_settings(search, trained: dict | None = None) -> list[str]:
+    """The search settings that differ from what the models were trained on, as 'altitude_m 40 (trained 70)'."""
+    trained = trained or TRAINED_FOR
+    return [f"{k} {getattr(search, k):g} (trained {v:g})" for k, v in trained.items()
             if not math.isclose(float(getattr(search, k)), v, rel_tol=0, abs_tol=1e-6)]
 
 
@@ -183,10 +201,18 @@ class Mission(_Strict):
         if _checks_registry(info) and _registry().needs_confidence(self.fusion) and \
                 not _registry().loads_checkpoint(self.policy) and self.checkpoint is None and s.setting is None:
             raise ValueError(f"{self.fusion} fusion needs a checkpoint (no setting to pick a shipped one)")
-        off = untrained_settings(self.search)
-        if off and not self.search.allow_untrained:
-            raise ValueError(f"search: {', '.join(off)}; the models were trained at {TRAINED_FOR['altitude_m']:g} m "
-                             f"altitude with {TRAINED_FOR['step_m']:g} m steps (set search.allow_untrained: true "
+        if self.search.allow_untrained:
+            return self
+        # A named checkpoint says what it was trained on, which needs torch: checked with the registry. The
+        # shipped models were all trained on TRAINED_FOR.
+        if self.checkpoint is not None and not _checks_registry(info):
+            return self
+        trained = trained_for(self.checkpoint_path) if _checks_registry(info) and \
+            _registry().loads_checkpoint(self.policy) else TRAINED_FOR
+        off = untrained_settings(self.search, trained)
+        if off:
+            raise ValueError(f"search: {', '.join(off)}; the models were trained at {trained['altitude_m']:g} m "
+                             f"altitude with {trained['step_m']:g} m steps (set search.allow_untrained: true "
                              "to fly it anyway)")
         return self
 
