@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from uavsearch.errors import UavsearchError
-from uavsearch.search.fusion import FUSION_METHODS, fuse, fuse_prefixes
+from uavsearch.search.fusion import FUSIONS, FusionViews, LearnedFusion, fuse
 
 # Three views (T = 3) of four cells (N = 4). Cell 3 is never seen; cell 2 is seen by views 0 and 2 only.
 P = np.array(
@@ -125,7 +125,7 @@ def test_all_methods_torch_and_numpy_agree_and_never_nan():
     v = rng.uniform(size=(4, 5, 100)) < 0.6
     v[:, :, 0] = False  # a cell nobody saw
     kw = dict(area_px=rng.uniform(50, 300, p.shape), scores=rng.normal(size=p.shape), labels=rng.uniform(size=(4, 100)) < 0.1)
-    for m in FUSION_METHODS:
+    for m in FUSIONS:
         a = fuse(m, p, v, **kw)
         b = fuse(m, torch.tensor(p), torch.tensor(v), **{k: torch.tensor(x) for k, x in kw.items()}).numpy()
         assert a == pytest.approx(b)
@@ -135,7 +135,7 @@ def test_all_methods_torch_and_numpy_agree_and_never_nan():
 
 def test_prefixes_match_truncated_sequences():
     s = np.arange(12.0).reshape(3, 4)
-    pre = fuse_prefixes("learned", P, V, scores=s, prior=PRIOR)
+    pre = LearnedFusion(prior=PRIOR).prefixes(FusionViews(torch.tensor(P), torch.tensor(V), scores=torch.tensor(s))).numpy()
     assert pre.shape == (3, 4)
     assert pre[1] == pytest.approx(fuse("learned", P[:2], V[:2], scores=s[:2], prior=PRIOR))
     assert pre[2] == pytest.approx(fuse("learned", P, V, scores=s, prior=PRIOR))
