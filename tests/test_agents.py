@@ -13,9 +13,9 @@ from uavsearch.errors import MissionError, UavsearchError
 from uavsearch.replay.replay import _fuse_all
 from uavsearch.fly.missions import mission_from_dict
 from uavsearch.search import fusion
-from uavsearch.search.agents import POLICIES, build_agent, checkpoint_path, needs_confidence, new_agent
+from uavsearch.search.agents import POLICIES, build_agent, checkpoint_path, new_agent, trained_fusion
 from uavsearch.search.config import SearchConfig
-from uavsearch.search.fusion import FUSION_METHODS, FusionMethod
+from uavsearch.search.fusion import FUSIONS, Fusion
 from uavsearch.search.policy import save_search_model
 from uavsearch.search.reactive import ReactivePolicyNet
 from uavsearch.search.search_loop import CachedViews, run_search
@@ -23,20 +23,20 @@ from uavsearch.search.search_loop import CachedViews, run_search
 
 def _ship(models, setting=2, cell_dim=6, global_dim=16):
     torch.manual_seed(0)
-    for f in FUSION_METHODS:
+    for f in FUSIONS:
         a = new_agent(f, SearchConfig(), global_dim, cell_dim)
-        save_search_model(checkpoint_path(setting, f, models), f, a.policy, a.confidence)
-        save_search_model(checkpoint_path(setting, f, models, policy="reactive"), f, ReactivePolicyNet(), a.confidence)
+        save_search_model(checkpoint_path(setting, f, models), a.fusion, a.policy)
+        save_search_model(checkpoint_path(setting, f, models, policy="reactive"), a.fusion, ReactivePolicyNet())
 
 
 @pytest.mark.parametrize("policy", list(POLICIES))
-@pytest.mark.parametrize("fusion", list(FUSION_METHODS))
+@pytest.mark.parametrize("fusion", list(FUSIONS))
 def test_every_registered_pair_builds_and_runs(tmp_path, fusion, policy):
     _ship(tmp_path)
     config = SearchConfig()
     loaded = build_agent(fusion, policy, config, checkpoint=checkpoint_path(2, fusion, tmp_path, policy=policy),
                          confidence_checkpoint=checkpoint_path(2, "learned", tmp_path), scores_net=True)
-    assert (loaded.agent.confidence is not None) == needs_confidence(fusion)
+    assert loaded.agent.fusion_name == fusion and loaded.agent.fusion.trainable == trained_fusion(fusion)
     assert loaded.scores_net is not None  # the learned checkpoint's net, for logging scores
     assert loaded.description == f"{fusion} fusion + {policy} policy"
     with torch.no_grad():
@@ -61,13 +61,16 @@ def test_unknown_names_and_mismatched_checkpoints_are_one_line_errors(tmp_path):
         mission_from_dict({"fusion": "median"}, "x.yaml")
 
 
-def test_a_new_fusion_method_is_one_table_entry(monkeypatch):
-    """Registered in fusion.py's table only, a method runs in the loop, in replay and validates in missions."""
+def test_a_new_fusion_method_is_one_class_and_one_registry_entry(monkeypatch):
+    """Registered in fusion.py's FUSIONS only, a method runs in the loop, in replay and validates in missions."""
     def _max(p, v, prior, area_px):  # max p over the valid views (takes area_px only to show a need)
         return torch.where(v, p, torch.zeros_like(p)).amax(-2)
 
-    monkeypatch.setitem(FUSION_METHODS, "max", FusionMethod(_max, ("area_px",)))
-    assert fusion.FUSION_METHODS["max"].needs == ("area_px",)
+    class MaxFusion(Fusion):
+        name, needs, kernel = "max", ("area_px",), staticmethod(_max)
+
+    monkeypatch.setitem(FUSIONS, "max", MaxFusion)
+    assert fusion.FUSIONS["max"].needs == ("area_px",)
     agent = build_agent("max", "random", SearchConfig()).agent
     with torch.no_grad():
         ep = run_search(CachedViews(synthetic_cache(2), [0, 1]), agent, generator=torch.Generator().manual_seed(0))

@@ -11,6 +11,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 from uavsearch.errors import SceneError
+from uavsearch.search.fusion import FUSIONS
 from uavsearch.search.config import SearchConfig
 from uavsearch.search.env import ActiveSearchEnv
 from uavsearch.search.perception import PerceptionConfig, PerceptionNet
@@ -135,7 +136,7 @@ def test_env_and_search_loop_agree_step_for_step(env, actions):
     torch.manual_seed(0)
     with TeleportVehicle(scene, env.config) as vehicle, torch.no_grad():
         views = LiveViews(vehicle, PerceptionNet(PerceptionConfig()), scene.occupancy_array())
-        ep = run_search(views, Agent("average", _Scripted(actions)), generator=torch.Generator().manual_seed(0))
+        ep = run_search(views, Agent(FUSIONS["average"](), _Scripted(actions)), generator=torch.Generator().manual_seed(0))
     assert ep.lattice_idx[0].tolist() == env_idx
     assert ep.revisit[0].tolist() == env_rev
     np.testing.assert_array_equal(np.stack([v.position_enu for v in views.views]).astype(np.float32), env_pos)

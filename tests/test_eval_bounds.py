@@ -23,6 +23,7 @@ from uavsearch.search.evaluate.bounds import (
     route_bounds,
     scene_af1,
 )
+from uavsearch.search.fusion import FUSIONS, LearnedFusion
 from uavsearch.search.config import SearchConfig
 from uavsearch.search.evaluate.perception import (
     EvalArgs as PerceptionArgs,
@@ -83,22 +84,22 @@ def test_paired_differences_are_per_scene_and_count_wins():
 def test_hindsight_best_route_bounds_every_fixed_route_and_any_moving_policy():
     torch.manual_seed(0)
     cache, conf = synthetic_cache(4), ConfidenceNet(6).eval()
-    af1 = route_af1(cache, conf, CONFIG, max_episodes=300)  # two scenes per batch: chunks agree with one batch
-    assert af1.shape == (4, 4 ** 4) and np.array_equal(af1, route_af1(cache, conf, CONFIG))
-    rb = route_bounds(cache, conf, CONFIG)
+    af1 = route_af1(cache, LearnedFusion(conf), CONFIG, max_episodes=300)  # two scenes per batch: chunks agree with one batch
+    assert af1.shape == (4, 4 ** 4) and np.array_equal(af1, route_af1(cache, LearnedFusion(conf), CONFIG))
+    rb = route_bounds(cache, LearnedFusion(conf), CONFIG)
     assert np.array_equal(rb.best, af1.max(1)) and (rb.best[:, None] >= af1).all()
     assert rb.best_fixed == pytest.approx(af1.mean(0).max()) and rb.best_fixed <= rb.best.mean()
     # the coverage route, evaluated as Table II does, is one of the routes
-    cov = evaluate_agent(cache, Agent("learned", CoverageRoute(CONFIG), conf), 1).f1[:, -1]
+    cov = evaluate_agent(cache, Agent(LearnedFusion(conf), CoverageRoute(CONFIG)), 1).f1[:, -1]
     assert np.allclose(cov, rb.coverage) and (rb.best >= cov - 1e-12).all()
     # random moves are routes too: no episode beats its scene's hindsight-best
     rows = np.repeat(np.arange(4), 8)
-    ep = run_search(CachedViews(cache, rows, CONFIG, conf), Agent("learned", RandomPolicy(), conf),
+    ep = run_search(CachedViews(cache, rows, CONFIG, conf), Agent(LearnedFusion(conf), RandomPolicy()),
                     generator=torch.Generator().manual_seed(0))
     from uavsearch.search.metrics import map_f1
     assert (map_f1(ep.maps[:, -1].numpy(), ep.labels.numpy()) <= rb.best[rows] + 1e-12).all()
     # a FixedRoutes episode flies its route
-    one = run_search(CachedViews(cache, [0], CONFIG), Agent("average", FixedRoutes(all_routes(CONFIG)[[27]])))
+    one = run_search(CachedViews(cache, [0], CONFIG), Agent(FUSIONS["average"](), FixedRoutes(all_routes(CONFIG)[[27]])))
     assert one.actions.tolist() == [all_routes(CONFIG)[27].tolist()]
 
 
@@ -217,6 +218,6 @@ def test_one_line_errors():
 def test_label_greedy_bound_is_a_route_so_hindsight_best_bounds_it():
     torch.manual_seed(0)
     cache, conf = synthetic_cache(3), ConfidenceNet(6).eval()
-    f1 = label_greedy_af1(cache, conf, CONFIG)
+    f1 = label_greedy_af1(cache, LearnedFusion(conf), CONFIG)
     assert f1.shape == (3,) and ((0 <= f1) & (f1 <= 1)).all()
-    assert (f1 <= route_bounds(cache, conf, CONFIG).best + 1e-12).all()
+    assert (f1 <= route_bounds(cache, LearnedFusion(conf), CONFIG).best + 1e-12).all()

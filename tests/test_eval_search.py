@@ -19,6 +19,7 @@ from uavsearch.search.evaluate.search import (
     model_path,
     summarise,
 )
+from uavsearch.search.fusion import FUSIONS, LearnedFusion
 from uavsearch.search.agents import checkpoint_path
 from uavsearch.search.perception import ConfidenceNet
 from uavsearch.search.reactive import ReactivePolicyNet
@@ -30,22 +31,22 @@ def _models(tmp_path, settings=(2,), cell_dim=6, global_dim=16):
     torch.manual_seed(0)
     for s in settings:
         for fusion in ("learned", "average", "bayes", "size", "oracle"):
-            conf = ConfidenceNet(cell_dim) if fusion == "learned" else None
-            save_search_model(model_path(s, fusion, tmp_path), fusion, PolicyNet(PolicyConfig(global_dim)), conf)
+            fu = LearnedFusion(ConfidenceNet(cell_dim)) if fusion == "learned" else FUSIONS[fusion]()
+            save_search_model(model_path(s, fusion, tmp_path), fu, PolicyNet(PolicyConfig(global_dim)))
             if fusion == "learned":  # the reactive row: its own net on the same confidence net
-                save_search_model(checkpoint_path(s, fusion, tmp_path, policy="reactive"), fusion,
-                                  ReactivePolicyNet(), conf)
+                save_search_model(checkpoint_path(s, fusion, tmp_path, policy="reactive"), fu,
+                                  ReactivePolicyNet())
     return tmp_path
 
 
 def test_evaluate_agent_scores_every_step_of_every_episode():
     cache = synthetic_cache(3)
-    sc = evaluate_agent(cache, Agent("average", RandomPolicy()), episodes_per_scene=4, seed=0)
+    sc = evaluate_agent(cache, Agent(FUSIONS["average"](), RandomPolicy()), episodes_per_scene=4, seed=0)
     assert sc.acc.shape == sc.f1.shape == (12, 5)
     assert ((0 <= sc.acc) & (sc.acc <= 1)).all() and 0 <= sc.revisit_rate <= 1
-    single = evaluate_agent(cache, Agent("average", RandomPolicy()), 4, seed=0, single_view=True)
+    single = evaluate_agent(cache, Agent(FUSIONS["average"](), RandomPolicy()), 4, seed=0, single_view=True)
     assert single.acc.shape == (12, 1) and np.allclose(single.acc[:, 0], sc.acc[:, 0])
-    again = evaluate_agent(cache, Agent("average", RandomPolicy()), 4, seed=0)
+    again = evaluate_agent(cache, Agent(FUSIONS["average"](), RandomPolicy()), 4, seed=0)
     assert np.array_equal(again.f1, sc.f1)
 
 

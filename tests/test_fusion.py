@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from uavsearch.errors import UavsearchError
-from uavsearch.search.fusion import FUSION_METHODS, fuse, fuse_prefixes
+from uavsearch.search.fusion import FUSIONS, FusionViews, LearnedFusion, fuse
 
 # Three views (T = 3) of four cells (N = 4). Cell 3 is never seen; cell 2 is seen by views 0 and 2 only.
 P = np.array(
@@ -125,7 +125,7 @@ def test_all_methods_torch_and_numpy_agree_and_never_nan():
     v = rng.uniform(size=(4, 5, 100)) < 0.6
     v[:, :, 0] = False  # a cell nobody saw
     kw = dict(area_px=rng.uniform(50, 300, p.shape), scores=rng.normal(size=p.shape), labels=rng.uniform(size=(4, 100)) < 0.1)
-    for m in FUSION_METHODS:
+    for m in FUSIONS:
         a = fuse(m, p, v, **kw)
         b = fuse(m, torch.tensor(p), torch.tensor(v), **{k: torch.tensor(x) for k, x in kw.items()}).numpy()
         assert a == pytest.approx(b)
@@ -135,7 +135,7 @@ def test_all_methods_torch_and_numpy_agree_and_never_nan():
 
 def test_prefixes_match_truncated_sequences():
     s = np.arange(12.0).reshape(3, 4)
-    pre = fuse_prefixes("learned", P, V, scores=s, prior=PRIOR)
+    pre = LearnedFusion(prior=PRIOR).prefixes(FusionViews(torch.tensor(P), torch.tensor(V), scores=torch.tensor(s))).numpy()
     assert pre.shape == (3, 4)
     assert pre[1] == pytest.approx(fuse("learned", P[:2], V[:2], scores=s[:2], prior=PRIOR))
     assert pre[2] == pytest.approx(fuse("learned", P, V, scores=s, prior=PRIOR))
@@ -152,3 +152,55 @@ def test_bad_input_is_a_clear_error():
         fuse("average", P, V[:2])
     with pytest.raises(UavsearchError, match="prior"):
         fuse("average", P, V, prior=0.0)
+
+
+def test_fusion_objects_step_by_step_equal_the_kernels_bit_for_bit():
+    """update() view by view (what the loop does) and fuse() give exactly the functional kernels' maps."""
+    from uavsearch.search.perception import ConfidenceNet
+
+    torch.manual_seed(0)
+    B, T, N, D = 3, 5, 100, 6
+    p, v = torch.rand(B, T, N), torch.rand(B, T, N) < 0.6
+    area, feats, labels = torch.rand(B, T, N) * 300, torch.randn(B, T, N, D), torch.rand(B, N) < 0.1
+    net = ConfidenceNet(D).eval()
+    given = {"area_px": area, "scores": net(feats), "labels": labels}
+    for name, cls in FUSIONS.items():
+        fusion = LearnedFusion(net) if name == "learned" else cls()
+        views = FusionViews(p, v, area, feats, None, torch.zeros(B, T, dtype=torch.long), labels)
+        state = fusion.init_state(B, N)
+        for t in range(T):
+            state, fused = fusion.update(state, views._replace(**{
+                k: x[:, t:t + 1] for k, x in views._asdict().items() if x is not None and k != "labels"}))
+            want = fuse(name, p[:, :t + 1], v[:, :t + 1], **{k: (x if k == "labels" else x[:, :t + 1])
+                                                            for k, x in given.items() if k in cls.needs})
+            assert torch.equal(fused, want), (name, t)
+        assert torch.equal(fusion.fuse(views), want)
+        assert torch.equal(fusion.prefixes(views)[:, -1], want)
+
+
+def test_fusion_saves_itself_and_loads_back():
+    from uavsearch.search.fusion import load_fusion
+
+    torch.manual_seed(0)
+    learned = LearnedFusion.new(6).eval()
+    back = load_fusion(learned.save_dict())
+    x = torch.randn(2, 5, 6)
+    assert type(back) is LearnedFusion and torch.equal(back.scorer(x), learned.scorer(x))
+    assert type(load_fusion(FUSIONS["size"]().save_dict())) is FUSIONS["size"]
+    with pytest.raises(UavsearchError, match="unknown fusion"):
+        load_fusion({"name": "median", "config": {}, "state_dict": {}})
+
+
+def test_shipped_checkpoints_in_the_old_layout_still_load():
+    """models/ holds checkpoints written before fusions saved themselves: they convert on load."""
+    from uavsearch.paths import MODELS_DIR
+    from uavsearch.search.policy import FORMAT_V1, load_search_model
+
+    path = MODELS_DIR / "search_s2_learned.pt"
+    ck = torch.load(path, map_location="cpu", weights_only=True)
+    assert ck["format"] == FORMAT_V1
+    fusion = load_search_model(path).fusion
+    assert fusion.name == "learned" and fusion.trainable
+    c = ck["confidence"]
+    assert all(torch.equal(fusion.net.state_dict()[k], v.float()) for k, v in c["state_dict"].items())
+    assert load_search_model(MODELS_DIR / "search_s2_bayes.pt").fusion.name == "bayes"

@@ -160,6 +160,7 @@ def test_a_ray_cluster_and_the_local_pool_build_the_same_view_cache_and_table2(t
     import ray
 
     from uavsearch.search.evaluate.search import EvalArgs, eval_search, model_path
+    from uavsearch.search.fusion import FUSIONS, LearnedFusion
     from uavsearch.search.perception import ConfidenceNet, PerceptionNet
     from uavsearch.search.policy import PolicyConfig, PolicyNet, save_search_model
     from uavsearch.search.data.view_cache import CacheKey, build_view_cache, load_view_cache
@@ -186,8 +187,8 @@ def test_a_ray_cluster_and_the_local_pool_build_the_same_view_cache_and_table2(t
     models = tmp_path / "models"
     torch.manual_seed(0)
     for fusion in ("learned", "average", "bayes", "size", "oracle"):
-        conf = ConfidenceNet(net.cfg.cell_dim) if fusion == "learned" else None
-        save_search_model(model_path(2, fusion, models), fusion, PolicyNet(PolicyConfig(net.cfg.global_dim)), conf)
+        fu = LearnedFusion(ConfidenceNet(net.cfg.cell_dim)) if fusion == "learned" else FUSIONS[fusion]()
+        save_search_model(model_path(2, fusion, models), fu, PolicyNet(PolicyConfig(net.cfg.global_dim)))
     tables = []
     for name, path in (("ray", path_ray), ("local", path_local)):
         out = tmp_path / f"eval_{name}"

@@ -6,6 +6,7 @@ import torch
 
 from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
+from uavsearch.search.fusion import FUSIONS, LearnedFusion
 from uavsearch.search.config import SearchConfig
 from uavsearch.search.perception import ConfidenceNet
 from uavsearch.search.policy import (
@@ -66,7 +67,7 @@ def test_lattice_moves_follow_the_env_rules():
 
 def test_run_search_revisits_and_start_view():
     cache = synthetic_cache(3)
-    ep = run_search(CachedViews(cache, [0, 1, 2]), Agent("average", Fixed(AHEAD)))
+    ep = run_search(CachedViews(cache, [0, 1, 2]), Agent(FUSIONS["average"](), Fixed(AHEAD)))
     north = [12, 7, 2, 2, 2]
     assert ep.lattice_idx.tolist() == [north] * 3
     assert ep.revisit.tolist() == [[False, False, False, True, True]] * 3
@@ -81,7 +82,7 @@ def test_learned_fusion_backpropagates_into_the_confidence_net():
     torch.manual_seed(0)  # the net's initial weights
     cache = synthetic_cache(2)
     conf = ConfidenceNet(cache.cell_features.shape[-1])
-    ep = run_search(CachedViews(cache, [0, 1]), Agent("learned", RandomPolicy(), conf), generator=torch.Generator().manual_seed(0))
+    ep = run_search(CachedViews(cache, [0, 1]), Agent(LearnedFusion(conf), RandomPolicy()), generator=torch.Generator().manual_seed(0))
     ep.maps[:, -1].sum().backward()
     *hidden, (out_bias_name, out_bias) = list(conf.named_parameters())
     assert out_bias_name.endswith("bias") and out_bias.numel() == 1
@@ -93,11 +94,11 @@ def test_learned_fusion_backpropagates_into_the_confidence_net():
 def test_learned_fusion_needs_a_confidence_net_and_oracle_the_truth():
     cache = synthetic_cache(1)
     with pytest.raises(UavsearchError):
-        run_search(CachedViews(cache, [0]), Agent("learned", RandomPolicy()))
+        run_search(CachedViews(cache, [0]), Agent(LearnedFusion(), RandomPolicy()))
     src = CachedViews(cache, [0])
     src.labels = None
     with pytest.raises(UavsearchError, match="ground truth"):
-        run_search(src, Agent("oracle", RandomPolicy()))
+        run_search(src, Agent(FUSIONS["oracle"](), RandomPolicy()))
 
 
 def test_policy_net_samples_reproducibly_and_gives_log_probs():
@@ -135,7 +136,7 @@ def test_coverage_route_never_revisits_and_sees_every_cell_closer():
     assert len(set(pos)) == len(pos)
     d = CONFIG.lattice.cell_distances
     assert d[pos].amin(0).sum() < d[[12, 7, 2, 2, 2]].amin(0).sum()  # beats flying straight into the edge
-    ep = run_search(CachedViews(synthetic_cache(2), [0, 1]), Agent("average", CoverageRoute(CONFIG)))
+    ep = run_search(CachedViews(synthetic_cache(2), [0, 1]), Agent(FUSIONS["average"](), CoverageRoute(CONFIG)))
     assert ep.lattice_idx[0].tolist() == pos == ep.lattice_idx[1].tolist()
 
 
@@ -156,9 +157,10 @@ def test_search_model_round_trip(tmp_path):
     torch.manual_seed(0)
     net, conf = PolicyNet(PolicyConfig(global_dim=16)), ConfidenceNet(6)
     round_trip_half(net), round_trip_half(conf)
-    path = save_search_model(tmp_path / "m.pt", "learned", net, conf, {"note": 1})
-    fusion, net2, conf2, extra = load_search_model(path)
-    assert fusion == "learned" and extra == {"note": 1}
+    path = save_search_model(tmp_path / "m.pt", LearnedFusion(conf), net, {"note": 1})
+    fusion, net2, extra = load_search_model(path)
+    assert isinstance(fusion, LearnedFusion) and extra == {"note": 1}
+    conf2 = fusion.net
     inp = _inp()
     net.eval(), conf.eval()
     assert torch.equal(net.logits(inp), net2.logits(inp))
@@ -189,8 +191,8 @@ def test_view_cache_matches_live_perception_on_the_teleport_vehicle(tmp_path):
     assert build_view_cache(net, key, scenes=[(seed, k)], cache_dir=tmp_path, progress=False) == path  # reused
     with TeleportVehicle(generate_scene(seed, k), CONFIG) as vehicle:
         live = LiveViews(vehicle, net, labels=cache.occupancy[0].numpy())
-        ep_live = run_search(live, Agent("bayes", Fixed(RIGHT)))
-        ep_cache = run_search(CachedViews(cache, [0]), Agent("bayes", Fixed(RIGHT)))
+        ep_live = run_search(live, Agent(FUSIONS["bayes"](), Fixed(RIGHT)))
+        ep_cache = run_search(CachedViews(cache, [0]), Agent(FUSIONS["bayes"](), Fixed(RIGHT)))
     assert torch.equal(ep_live.lattice_idx, ep_cache.lattice_idx)
     assert torch.allclose(ep_live.maps, ep_cache.maps, atol=1e-5)
     assert len(live.views) == CONFIG.budget_T

@@ -11,6 +11,7 @@ from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
 from uavsearch.fly.missions import mission_from_dict
 from uavsearch.search.agents import build_agent, checkpoint_path, new_agent
+from uavsearch.search.fusion import FUSIONS, LearnedFusion
 from uavsearch.search.config import SearchConfig
 from uavsearch.search.perception import ConfidenceNet
 from uavsearch.search.policy import (ArgmaxPolicy, PolicyNet, RandomPolicy, load_search_model, round_trip_half,
@@ -57,7 +58,7 @@ def test_masked_moves_never_leave_the_lattice_nor_revisit(action, start):
     net = _biased_net(action)
     gen = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        ep = run_search(CachedViews(cache, np.repeat(np.arange(3), 20)), Agent("average", net), generator=gen,
+        ep = run_search(CachedViews(cache, np.repeat(np.arange(3), 20)), Agent(FUSIONS["average"](), net), generator=gen,
                         start_idx=start)
     assert (ep.lattice_idx[:, 1:] != ep.lattice_idx[:, :-1]).all()  # no move off the lattice (it would stay)
     assert not ep.revisit.any()  # a new position is always reachable from 5 views on the 5x5 lattice
@@ -82,7 +83,7 @@ def test_a_mirrored_world_gives_the_mirrored_state_and_moves(east_west, north_so
     cache = synthetic_cache(2)
     conf = _conf()
     rec = _Recorder(RandomPolicy())
-    run_search(CachedViews(cache, [0, 1, 1]), Agent("learned", rec, conf), generator=torch.Generator().manual_seed(2))
+    run_search(CachedViews(cache, [0, 1, 1]), Agent(LearnedFusion(conf), rec), generator=torch.Generator().manual_seed(2))
 
     def mirror_index(size):  # row-major from the NW corner: columns run west -> east, rows north -> south
         rc = torch.arange(size * size)
@@ -111,7 +112,7 @@ def test_policy_input_carries_the_episode_so_far():
     rows = torch.tensor([0, 1, 2, 2])
     rec = _Recorder(RandomPolicy())
     with torch.no_grad():
-        ep = run_search(CachedViews(cache, rows), Agent("learned", rec, conf), generator=torch.Generator().manual_seed(3))
+        ep = run_search(CachedViews(cache, rows), Agent(LearnedFusion(conf), rec), generator=torch.Generator().manual_seed(3))
     assert len(rec.seen) == CONFIG.budget_T - 1
     r = rows[:, None]
     for t, inp in enumerate(rec.seen):
@@ -122,7 +123,7 @@ def test_policy_input_carries_the_episode_so_far():
         assert torch.allclose(inp.view_scores, conf(cache.cell_features[r, pos]), atol=1e-6)
         assert torch.allclose(inp.fused, ep.maps[:, t], atol=1e-6)
     rec = _Recorder(RandomPolicy())
-    run_search(CachedViews(cache, rows), Agent("average", rec), generator=torch.Generator().manual_seed(3))
+    run_search(CachedViews(cache, rows), Agent(FUSIONS["average"](), rec), generator=torch.Generator().manual_seed(3))
     assert rec.seen[-1].view_scores is None and rec.seen[-1].view_probs.shape == (4, 4, 100)
 
 
@@ -133,12 +134,12 @@ def test_teacher_takes_the_best_allowed_move_and_beats_random():
     teacher = LabelGreedyTeacher(cache, rows, conf, CONFIG)
     rec = _Recorder(teacher)
     with torch.no_grad():
-        ep = run_search(CachedViews(cache, rows, CONFIG, conf), Agent("learned", rec, conf))
+        ep = run_search(CachedViews(cache, rows, CONFIG, conf), Agent(LearnedFusion(conf), rec))
         for inp, a in zip(rec.seen, ep.actions.T):
             r = teacher.rewards(inp).masked_fill(~action_mask(inp, MOVES), -1e9)
             assert torch.equal(r.gather(1, a[:, None])[:, 0], r.amax(1))
         taught = classification_reward(ep.maps[:, -1], ep.labels).float().mean()
-        rand = [classification_reward(run_search(CachedViews(cache, rows, CONFIG, conf), Agent("learned", RandomPolicy(), conf),
+        rand = [classification_reward(run_search(CachedViews(cache, rows, CONFIG, conf), Agent(LearnedFusion(conf), RandomPolicy()),
                                                  generator=torch.Generator().manual_seed(s)).maps[:, -1],
                                       ep.labels).float().mean() for s in range(3)]
     assert not ep.revisit.any()
@@ -161,8 +162,8 @@ def test_reactive_policy_flies_a_single_live_like_episode():
     torch.manual_seed(1)
     net = ReactivePolicyNet()
     with torch.no_grad():
-        live = run_search(LiveLike(), Agent("learned", ArgmaxPolicy(net), conf))
-        cached = run_search(CachedViews(cache, [1], CONFIG, conf), Agent("learned", ArgmaxPolicy(net), conf))
+        live = run_search(LiveLike(), Agent(LearnedFusion(conf), ArgmaxPolicy(net)))
+        cached = run_search(CachedViews(cache, [1], CONFIG, conf), Agent(LearnedFusion(conf), ArgmaxPolicy(net)))
     assert torch.equal(live.lattice_idx, cached.lattice_idx) and live.lattice_idx.shape == (1, CONFIG.budget_T)
     assert torch.allclose(live.maps, cached.maps, atol=1e-6)
 
@@ -174,22 +175,22 @@ def test_checkpoint_round_trip_through_build_agent_and_a_mission(tmp_path):
     path = checkpoint_path(2, "learned", tmp_path, policy="reactive")
     assert path.name == "search_s2_learned_reactive.pt"
     assert checkpoint_path(2, "learned", tmp_path).name == "search_s2_learned.pt"
-    save_search_model(path, "learned", net, conf, {"best": {"iteration": 3}})
-    fusion, loaded, c, extra = load_search_model(path)
+    save_search_model(path, LearnedFusion(conf), net, {"best": {"iteration": 3}})
+    fusion, loaded, extra = load_search_model(path)
     assert isinstance(loaded, ReactivePolicyNet) and loaded.cfg == net.cfg and extra["best"]["iteration"] == 3
     agent = build_agent("learned", "reactive", CONFIG, checkpoint=path).agent
     greedy = build_agent("learned", "reactive", CONFIG, checkpoint=path, greedy=True).agent
-    assert isinstance(greedy.policy, ArgmaxPolicy) and agent.confidence is not None
+    assert isinstance(greedy.policy, ArgmaxPolicy) and agent.fusion.trainable
     cache = synthetic_cache(2)
     with torch.no_grad():
         for a, ref in ((agent, net), (greedy, ArgmaxPolicy(net))):
             eps = [run_search(CachedViews(cache, [0, 1, 1]), ag, generator=torch.Generator().manual_seed(5))
-                   for ag in (a, Agent("learned", ref, conf))]
+                   for ag in (a, Agent(LearnedFusion(conf), ref))]
             assert torch.equal(eps[0].lattice_idx, eps[1].lattice_idx) and torch.allclose(eps[0].maps, eps[1].maps)
     # a paper checkpoint is no reactive policy, and one saved before checkpoints had a kind loads as the paper's
     paper = new_agent("learned", CONFIG, 16, 6)
     old = tmp_path / "old.pt"
-    save_search_model(old, "learned", paper.policy, paper.confidence)
+    save_search_model(old, paper.fusion, paper.policy)
     ck = torch.load(old, weights_only=True)
     del ck["policy_kind"]
     torch.save(ck, old)
@@ -209,7 +210,7 @@ def test_checkpoint_round_trip_through_build_agent_and_a_mission(tmp_path):
 def _tiny(tmp_path, **kw):
     torch.manual_seed(0)
     a = new_agent("learned", CONFIG, 16, 6)
-    save_search_model(tmp_path / "conf.pt", "learned", a.policy, a.confidence)
+    save_search_model(tmp_path / "conf.pt", a.fusion, a.policy)
     base = dict(confidence=str(tmp_path / "conf.pt"), dagger_iterations=2, dagger_episodes=24, dagger_epochs=2,
                 batch_size=32, pg_iterations=4, scenes_per_batch=3, episodes_per_scene=2, eval_every=2, channels=8,
                 hidden=16, runs_dir=str(tmp_path / "runs"), progress=False)
@@ -229,13 +230,13 @@ def test_dagger_lowers_the_imitation_loss_and_a_run_is_reproducible(tmp_path):
     fresh = ReactivePolicyNet(ReactiveConfig(channels=8, hidden=16))
     mix = DaggerMixture(fresh, LabelGreedyTeacher(train_cache, rows, conf), 1.0, torch.Generator().manual_seed(0))
     with torch.no_grad():
-        run_search(CachedViews(train_cache, rows, CONFIG, conf), Agent("learned", mix, conf))
+        run_search(CachedViews(train_cache, rows, CONFIG, conf), Agent(LearnedFusion(conf), mix))
         X, M, Y = torch.cat(mix.states), torch.cat(mix.masks), torch.cat(mix.targets)
         before = float(imitation_loss(fresh, X, M, Y)[0])
-    save_search_model(tmp_path / "c.pt", "learned", fresh, conf)
+    save_search_model(tmp_path / "c.pt", LearnedFusion(conf), fresh)
     res = train(_tiny(tmp_path, confidence=str(tmp_path / "c.pt"), dagger_iterations=3, dagger_epochs=6,
                       pg_iterations=0, mirror=False, plot=False), caches=(train_cache, val_cache))
-    _, net, _, extra = load_search_model(res.checkpoint)
+    _, net, extra = load_search_model(res.checkpoint)
     with torch.no_grad():
         after = float(imitation_loss(net, X, M, Y)[0])
     assert after < before - 0.1
@@ -265,7 +266,7 @@ def test_bad_arguments_are_one_line_errors(tmp_path, kw):
 
 def test_a_confidence_checkpoint_without_a_confidence_net_is_refused(tmp_path):
     a = new_agent("average", CONFIG, 16, 6)
-    save_search_model(tmp_path / "avg.pt", "average", a.policy, None)
+    save_search_model(tmp_path / "avg.pt", FUSIONS["average"](), a.policy)
     with pytest.raises(UavsearchError, match="holds no confidence network"):
         train(_tiny(tmp_path, confidence=str(tmp_path / "avg.pt")), caches=_caches())
 

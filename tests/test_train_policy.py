@@ -33,16 +33,16 @@ def test_smoke_run_writes_the_run_folder_and_a_loadable_checkpoint(tmp_path):
     assert json.loads((res.run_dir / "args.json").read_text())["iterations"] == 4
     rows = list(csv.DictReader((res.run_dir / "metrics.csv").open()))
     assert len(rows) == 4 and rows[1]["eval/af1"] != "" and rows[0]["eval/af1"] == ""
-    fusion, net, conf, extra = load_search_model(out)
-    assert fusion == "learned" and conf is not None and extra["best"]["iteration"] in (2, 4)
+    fusion, net, extra = load_search_model(out)
+    assert fusion.name == "learned" and fusion.trainable and extra["best"]["iteration"] in (2, 4)
     assert res.steps_per_s > 0
 
 
 def test_baseline_fusions_train_a_policy_without_confidence_net(tmp_path):
     for fusion in ("average", "oracle"):
         res = train(_args(tmp_path, fusion=fusion, iterations=2, baseline="ema", plot=False), caches=_caches())
-        f, _, conf, _ = load_search_model(res.checkpoint)
-        assert f == fusion and conf is None
+        f = load_search_model(res.checkpoint).fusion
+        assert f.name == fusion and not f.trainable
 
 
 def test_same_seed_same_numbers(tmp_path):
@@ -50,8 +50,8 @@ def test_same_seed_same_numbers(tmp_path):
         res = train(_args(tmp_path / sub, seed=seed, plot=False), caches=_caches())
         rows = list(csv.DictReader((res.run_dir / "metrics.csv").open()))
         nums = [{k: v for k, v in r.items() if k != "charts/steps_per_s"} for r in rows]
-        _, net, conf, _ = load_search_model(res.checkpoint)
-        return nums, net.state_dict(), conf.state_dict()
+        fusion, net, _ = load_search_model(res.checkpoint)
+        return nums, net.state_dict(), fusion.state_dict()
 
     a, b, c = run(7, "a"), run(7, "b"), run(8, "c")
     assert a[0] == b[0]
@@ -103,6 +103,7 @@ def _per_episode_confidence_loss(conf, cache, rows, lattice_idx, pos_weight):
 
 def test_confidence_loss_shared_per_scene_and_position_equals_the_per_episode_loss():
     from uavsearch.search.perception import ConfidenceNet
+    from uavsearch.search.fusion import LearnedFusion
     from uavsearch.search.train.policy import confidence_loss
 
     cache = synthetic_cache(3, seed=2)
@@ -111,7 +112,7 @@ def test_confidence_loss_shared_per_scene_and_position_equals_the_per_episode_lo
     g = torch.Generator().manual_seed(0)
     idx = torch.randint(cache.num_positions, (6, 5), generator=g)
     idx[:, 0] = 12  # every episode starts at the centre: shared views
-    a = confidence_loss(conf, cache, rows, idx, 3.0)
+    a = confidence_loss(LearnedFusion(conf), cache, rows, idx, 3.0)
     ga = torch.autograd.grad(a, list(conf.parameters()))
     b = _per_episode_confidence_loss(conf, cache, rows, idx, 3.0)
     gb = torch.autograd.grad(b, list(conf.parameters()))

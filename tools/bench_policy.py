@@ -50,7 +50,7 @@ def main():
     cfg, pc = SearchConfig(), PerceptionConfig()
     cache = synthetic_cache(20, 5, cell_dim=pc.cell_dim, global_dim=pc.global_dim)
     agent = new_agent("learned", cfg, pc.global_dim, pc.cell_dim)
-    conf = agent.confidence.eval()
+    conf = agent.fusion.eval().scorer
     agent.policy.eval()
     moves = cfg.budget_T - 1
     rows = []  # (name, steps/s wall, steps/s CPU, limit row or None)

@@ -40,7 +40,7 @@ def main() -> None:
              "| setting | " + " | ".join(POLICIES) + " |", "|---|" + "---|" * len(POLICIES)]
     for s in sorted(SETTINGS):
         cache = get_view_cache(net, s, args.split, "test", progress=False)
-        _, _, confidence, _ = load_search_model(Path(args.models_dir) / f"search_s{s}_learned.pt")
+        confidence = load_search_model(Path(args.models_dir) / f"search_s{s}_learned.pt").fusion.scorer
         cells = []
         for policy in POLICIES:
             agent = build_agent("learned", policy, config, checkpoint=policy_checkpoint(s, "learned", policy, args.models_dir),

@@ -204,13 +204,13 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
     runs once the link is up (a MissionError from it ends the mission on the ground)."""
     import torch
 
-    from ..search.search_loop import Agent, LiveViews, run_search
+    from ..search.search_loop import LiveViews, run_search
 
     phases = {} if phases is None else phases
     T = config.budget_T
     views = _RecordingViews(LiveViews(vehicle, loaded.perception, labels))
     rec = SearchRecorder(log, views, vehicle, loaded, labels, config, run_dir, progress, T)
-    agent = Agent(loaded.agent.fusion, _RecordingPolicy(loaded.agent.policy, rec.step), loaded.agent.confidence)
+    agent = loaded.agent._replace(policy=_RecordingPolicy(loaded.agent.policy, rec.step))
     gen = torch.Generator().manual_seed(int(policy_seed))
     status = "completed"
     try:

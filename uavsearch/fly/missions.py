@@ -185,7 +185,7 @@ class Mission(_Strict):
         if not _checks_registry(info):
             return v
         agents = _registry()
-        known = {"fusion": agents.FUSION_METHODS, "policy": agents.POLICIES}[info.field_name]
+        known = {"fusion": agents.FUSIONS, "policy": agents.POLICIES}[info.field_name]
         if v not in known:
             kind = "fusion method" if info.field_name == "fusion" else "policy"
             raise ValueError(f"unknown {kind} {v!r}; valid: {', '.join(map(repr, known))}")
@@ -198,7 +198,7 @@ class Mission(_Strict):
             raise ValueError("scene: give a seed or a spec file")
         if s.occupied_cells is not None and s.setting is not None and "setting" in s.model_fields_set:
             raise ValueError("scene: give setting OR occupied_cells, not both")
-        if _checks_registry(info) and _registry().needs_confidence(self.fusion) and \
+        if _checks_registry(info) and _registry().trained_fusion(self.fusion) and \
                 not _registry().loads_checkpoint(self.policy) and self.checkpoint is None and s.setting is None:
             raise ValueError(f"{self.fusion} fusion needs a checkpoint (no setting to pick a shipped one)")
         if self.search.allow_untrained:
@@ -293,7 +293,7 @@ class Mission(_Strict):
         """Perception + fusion + policy of the mission, from its checkpoints (agents.build_agent); the
         confidence net of learned fusion comes along for logging scores whatever the fusion."""
         agents = _registry()
-        learned_ck = self.checkpoint_path if agents.needs_confidence(self.fusion) and self.checkpoint else \
+        learned_ck = self.checkpoint_path if agents.trained_fusion(self.fusion) and self.checkpoint else \
             agents.checkpoint_path(self.setting_for_models, "learned")
         return agents.build_agent(self.fusion, self.policy, config or self.search_config(), checkpoint=self.checkpoint_path,
                            confidence_checkpoint=learned_ck, greedy=self.greedy_policy,

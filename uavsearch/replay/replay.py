@@ -37,8 +37,8 @@ from ..flight.mavlink import wire_units as wire
 from ..fly.missions import load_mission, mission_from_dict
 from ..geometry import CameraIntrinsics, GeodeticOrigin, Grid, camera_pose_from_vehicle
 from ..logs.flight_log import read_flight_log
-from ..search.agents import FUSION_METHODS, check_names
-from ..search.fusion import fuse_prefixes
+from ..search.agents import FUSIONS, check_names
+from ..search.fusion import FusionViews
 from ..search.metrics import map_accuracy, map_f1
 from ..search.views import make_view
 from ..viz import draw_grid_overlay, pyplot, save_figure, settle_tight_layout
@@ -178,14 +178,15 @@ class ReplayData:
 
 
 def _fuse_all(method: str, p, valid, area=None, scores=None, labels=None) -> np.ndarray:
-    """The fused map after each view, with the inputs the method needs (the fusion table's `needs`)."""
+    """The fused map after each view, with the inputs the log holds (the method takes what it needs)."""
     check_names(fusion=method)
-    given = {"area_px": area, "scores": scores, "labels": labels}
-    kw = {need: given[need] for need in FUSION_METHODS[method].needs}
-    if "scores" in kw and scores is None:
+    if "scores" in FUSIONS[method].needs and scores is None:
         raise LogError(f"{method} fusion needs confidence scores, which this log does not hold "
                        "(it was flown without a learned confidence network)")
-    return np.asarray(fuse_prefixes(method, np.asarray(p, float), np.asarray(valid, bool), **kw), dtype=float)
+    def t(x):
+        return None if x is None else torch.as_tensor(np.asarray(x))
+    views = FusionViews(t(np.asarray(p, float)), t(np.asarray(valid, bool)), t(area), scores=t(scores), labels=labels)
+    return np.asarray(FUSIONS[method]().prefixes(views), dtype=float)
 
 
 def _track_from_tlog(path: Path, origin: GeodeticOrigin):

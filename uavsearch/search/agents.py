@@ -3,13 +3,13 @@
 Evaluation (the rows of Table II), flying (a mission's method), replay (re-running perception + fusion on a
 log) and training all build their agents here, so a fusion method or a policy is named in one place:
 
-- fusion methods: `FUSION_METHODS` in fusion.py (kernel and the inputs it needs). A method
-  whose `needs` include "scores" needs a confidence net (learned fusion's, from a search checkpoint).
+- fusion methods: `FUSIONS` in fusion.py (name -> Fusion class). A `trainable` one (learned fusion) comes
+  with its weights from a search checkpoint, which saves the fusion object whole.
 - policies: `POLICIES` below. "learned" (the paper's PolicyNet) loads its net from a search checkpoint
   (search_s<K>_<fusion>.pt, trained with that fusion), "reactive" (reactive.ReactivePolicyNet) from
   search_s<K>_<fusion>_reactive.pt; the others are built from the search config.
 
-Adding a fusion method is one kernel and one entry in fusion.py's table; adding a policy is one entry here.
+Adding a fusion method is one class and one entry in fusion.py's FUSIONS; adding a policy is one entry here.
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR
 
 from .config import SearchConfig, config_from_dict
-from .fusion import FUSION_METHODS
-from .perception import ConfidenceNet, load_perception
+from .fusion import FUSIONS, Fusion
+from .perception import load_perception
 from .policy import (ArgmaxPolicy, CoverageRoute, GreedyUncertainty, PolicyConfig, PolicyNet, RandomPolicy,
                      load_search_model)
 from .search_loop import Agent, Policy
@@ -51,15 +51,15 @@ POLICIES: dict[str, PolicyKind] = {
 }
 
 
-def needs_confidence(fusion: str) -> bool:
-    """Whether the fusion method fuses with a confidence net's scores."""
-    return "scores" in FUSION_METHODS[fusion].needs
+def trained_fusion(fusion: str) -> bool:
+    """Whether the fusion method has trained weights (loaded from a search checkpoint)."""
+    return FUSIONS[fusion].trainable
 
 
 def check_names(fusion: str | None = None, policy: str | None = None) -> None:
     """A one-line error for a fusion method or policy the registry does not know."""
-    if fusion is not None and fusion not in FUSION_METHODS:
-        raise UavsearchError(f"unknown fusion method {fusion!r}; choose one of {', '.join(FUSION_METHODS)}")
+    if fusion is not None and fusion not in FUSIONS:
+        raise UavsearchError(f"unknown fusion method {fusion!r}; choose one of {', '.join(FUSIONS)}")
     if policy is not None and policy not in POLICIES:
         raise UavsearchError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
 
@@ -89,7 +89,7 @@ def _lattice_text(c: SearchConfig) -> str:
 class LoadedAgent(NamedTuple):
     agent: Agent
     perception: nn.Module | None  # the frozen perception net, when asked for
-    scores_net: nn.Module | None  # a confidence net for logging scores (learned fusion's, when one was found)
+    scores_net: nn.Module | None  # per-view scores for logging (a trained fusion's scorer, when one was found)
     description: str
 
 
@@ -107,7 +107,7 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
     """The agent named by (fusion, policy).
 
     checkpoint: the learned policy's search checkpoint (its fusion must be `fusion`).
-    confidence_checkpoint: where a confidence net comes from when the policy's checkpoint has none (learned
+    confidence_checkpoint: where a trained fusion comes from when the policy's checkpoint has none (learned
         fusion with another policy; or, with `scores_net`, any fusion, to log scores for replay's re-fusion).
     greedy: a learned policy takes its most likely move instead of sampling.
     perception: a checkpoint path (or a loaded net) to load with the agent; the policy checkpoint's
@@ -121,16 +121,16 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
     net = None
     if perception is not None and not isinstance(perception, nn.Module):
         perception, _ = load_perception(perception)
-    confidence = None
+    trained: Fusion | None = None  # a fusion with weights, from a checkpoint
     kind = POLICIES[policy]
     if kind.build is None:
         if checkpoint is None:
             raise error(f"{where}the {policy!r} policy needs a checkpoint")
-        trained_with, net, confidence, extra = load_search_model(checkpoint)
+        trained, net, extra = load_search_model(checkpoint)
         if perception is not None:
             _warn_tag(extra, perception, checkpoint)
-        if trained_with != fusion:
-            raise error(f"{where}checkpoint {checkpoint} holds a policy trained with {trained_with!r} fusion, "
+        if trained.name != fusion:
+            raise error(f"{where}checkpoint {checkpoint} holds a policy trained with {trained.name!r} fusion, "
                         f"not {fusion!r}")
         if net.KIND != kind.net:
             raise error(f"{where}checkpoint {checkpoint} holds a {net.KIND!r} policy net, not the {policy!r} "
@@ -145,30 +145,35 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
         pol = ArgmaxPolicy(net) if greedy else net
     else:
         pol = kind.build(config)
-    needed = needs_confidence(fusion)
-    if confidence is None and confidence_checkpoint is not None and \
+    needed = trained_fusion(fusion)
+    if trained is not None and not trained.trainable:
+        trained = None
+    if trained is None and confidence_checkpoint is not None and \
             (needed or (scores_net and Path(confidence_checkpoint).is_file())):
         try:
-            _, _, confidence, _ = load_search_model(confidence_checkpoint)
+            trained = load_search_model(confidence_checkpoint).fusion
         except UavsearchError:
             if needed:
                 raise
-        if needed and confidence is None:
+        if trained is not None and not trained.trainable:
+            trained = None
+        if needed and (trained is None or trained.name != fusion):
             raise error(f"{where}{confidence_checkpoint} has no confidence network for {fusion} fusion")
-    if needed and confidence is None:
+    if needed and trained is None:
         raise error(f"{where}{fusion} fusion needs a confidence network (a checkpoint trained with it)")
-    agent = Agent(fusion, pol, confidence if needed else None)
-    return LoadedAgent(agent, perception, confidence if scores_net else None, f"{fusion} fusion + {policy} policy")
+    agent = Agent(trained if needed else FUSIONS[fusion](), pol)
+    return LoadedAgent(agent, perception, trained.scorer if scores_net and trained is not None else None,
+                       f"{fusion} fusion + {policy} policy")
 
 
 def new_agent(fusion: str, config: SearchConfig, global_dim: int, cell_dim: int, extras: bool = True) -> Agent:
-    """A fresh agent for stage 2 to train: a policy net and, when the fusion needs one, a confidence net."""
+    """A fresh agent for stage 2 to train: a policy net and a fresh fusion (its weights untrained)."""
     check_names(fusion)
     policy = PolicyNet(PolicyConfig(global_dim=global_dim, num_cells=config.grid.num_cells,
                                     num_positions=config.lattice.num_positions, num_actions=len(config.actions),
                                     budget_T=config.budget_T, extras=extras))
-    return Agent(fusion, policy, ConfidenceNet(cell_dim) if needs_confidence(fusion) else None)
+    return Agent(FUSIONS[fusion].new(cell_dim), policy)
 
 
-__all__ = ["FUSION_METHODS", "POLICIES", "LoadedAgent", "PolicyKind", "build_agent", "check_names",
-           "checkpoint_path", "loads_checkpoint", "needs_confidence", "new_agent"]
+__all__ = ["FUSIONS", "POLICIES", "LoadedAgent", "PolicyKind", "build_agent", "check_names",
+           "checkpoint_path", "loads_checkpoint", "new_agent", "trained_fusion"]

@@ -47,7 +47,7 @@ class ActiveSearchEnv(gym.Env):
     - ``cells_in_view``: ``(N*N,)`` int8, c^t: 1 where the cell covers at least ``min_cell_area_px`` px.
     - ``step``: int, index of this view in the episode (0 for the start view).
 
-    **Moves** follow the search loop's move rule (``search_loop.lattice_moves``, the table training,
+    **Moves** follow the search loop's move rule (``config.lattice.moves``, the table training,
     evaluation and flight use): a move that would leave the lattice (the camera positions above the search
     area, {-20..20 m}^2 for the paper) keeps the camera where it is; the view is re-taken and counts as a
     revisit.

@@ -10,8 +10,9 @@ Every method maps a sequence of T per-view estimates of p(y_i = 1) to one fused 
            valid = False).
 - returns: (..., N) fused p(y_i = 1). A cell that no valid view measured gets `prior`.
 
-Methods (the `FUSION_METHODS` table at the end names each with its kernel and the inputs it needs; a new
-method is one kernel and one entry there):
+Each method is a `Fusion` class (the `FUSIONS` registry at the end; a new method is one class and one entry
+there) whose `fuse(FusionViews)` works on a typed view batch and whose `update(state, view)` adds one view at a
+time (what the search loop calls); `fuse(method, ...)` below is the functional form of the same kernels:
 - "bayes":   log-odds occupancy update (Elfes / Thrun): L = logit(prior) + sum_t [logit(p_t) - logit(prior)].
 - "average": mean of p_t over the valid views (the paper's Average baseline).
 - "size":    p_t of the valid view where the cell's pixel area is largest (needs area_px; ties -> earliest).
@@ -28,12 +29,15 @@ Works on numpy arrays or torch tensors (the result has the input's type). Probab
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Callable, ClassVar, NamedTuple
 
 import numpy as np
 import torch
+from torch import nn
 
 from uavsearch.errors import UavsearchError
+
+from .perception import ConfidenceNet
 
 # A never-seen cell must land on one side of 0.5 (the metric's test is strict, so 0.5 is wrong for either
 # label); the few occupied cells of every setting (2-12 of 100) make "empty" the right default.
@@ -52,8 +56,12 @@ def fuse(
     prior: float = DEFAULT_PRIOR,
 ):
     """Fuse T views into one occupancy map; see the module docstring for shapes and methods."""
-    if method not in FUSION_METHODS:
-        raise UavsearchError(f"unknown fusion method {method!r}; choose one of {', '.join(FUSION_METHODS)}")
+    return _run(fusion_class(method), FusionViews(p_occ, valid, area_px=area_px, scores=scores, labels=labels), prior)
+
+
+def _run(cls: type["Fusion"], views: "FusionViews", prior: float):
+    """cls's kernel on the views, after checking shapes and that every input it needs is there."""
+    p_occ, valid = views.p, views.valid
     if not 0.0 < prior < 1.0:
         raise UavsearchError(f"fusion prior must lie in (0, 1), got {prior}")
     as_numpy = not isinstance(p_occ, torch.Tensor)
@@ -61,12 +69,12 @@ def fuse(
     v = torch.as_tensor(np.asarray(valid) if as_numpy else valid, device=p.device).to(torch.bool)
     if p.shape != v.shape or p.dim() < 2:
         raise UavsearchError(f"p_occ {tuple(p.shape)} and valid {tuple(v.shape)} must both be (..., T, N)")
-    given = {"area_px": area_px, "scores": scores, "labels": labels}
     inputs = {}
-    for name in FUSION_METHODS[method].needs:
-        x = given[name]
+    for name in cls.needs:
+        x = getattr(views, name)
         if x is None:
-            raise UavsearchError(f"fusion method {method!r} needs {name}")
+            what = " (the ground truth, which this view source does not know)" if name == "labels" else ""
+            raise UavsearchError(f"fusion method {cls.name!r} needs {name}{what}")
         t = torch.as_tensor(np.asarray(x) if not isinstance(x, torch.Tensor) else x, device=p.device)
         inputs[name] = t.to(torch.bool) if name == "labels" else t.to(p.dtype)
         want = p.shape[:-2] + p.shape[-1:] if name == "labels" else p.shape
@@ -74,20 +82,8 @@ def fuse(
             shape = "p_occ's shape without T, (..., N)" if name == "labels" else f"match p_occ {tuple(p.shape)}"
             raise UavsearchError(f"{name} {tuple(inputs[name].shape)} must " + (
                 f"be {shape}" if name == "labels" else shape))
-    out = FUSION_METHODS[method].fn(p, v, prior, **inputs)
+    out = cls.kernel(p, v, prior, **inputs)
     return out.numpy() if as_numpy else out
-
-
-def fuse_prefixes(method: str, p_occ, valid, **kwargs):
-    """The fused map after each step: (..., T, N) whose [..., t, :] fuses views 0..t (the policy's M-bar^t)."""
-    as_numpy = not isinstance(p_occ, torch.Tensor)
-    T = np.shape(p_occ)[-2]
-    per_view = ("area_px", "scores")
-    outs = []
-    for t in range(1, T + 1):
-        kw = {k: (val[..., :t, :] if k in per_view and val is not None else val) for k, val in kwargs.items()}
-        outs.append(fuse(method, p_occ[..., :t, :], valid[..., :t, :], **kw))
-    return np.stack(outs, axis=-2) if as_numpy else torch.stack(outs, dim=-2)
 
 
 def _no_view(v: torch.Tensor) -> torch.Tensor:
@@ -138,18 +134,206 @@ def _oracle(p, v, prior, labels):
     return torch.where(_no_view(v), torch.full_like(out, prior), out)
 
 
-class FusionMethod(NamedTuple):
-    """One fusion method: its kernel and the inputs it needs beyond p_occ and valid."""
-
-    fn: Callable  # (p, valid, prior, **inputs) -> fused, all torch
-    needs: tuple[str, ...]  # of "area_px" (F_size per view), "scores" (a confidence net's), "labels" (ground truth)
+# --------------------------------------------------------------------------------------------------
+# Fusion objects: one class per method, what the loop, the checkpoints and the trainers hold
 
 
-# THE table of fusion methods (search/agents.py builds agents from it; replay and the loop read `needs`).
-FUSION_METHODS: dict[str, FusionMethod] = {
-    "bayes": FusionMethod(_bayes, ()),
-    "average": FusionMethod(_average, ()),
-    "size": FusionMethod(_by_size, ("area_px",)),
-    "learned": FusionMethod(_learned, ("scores",)),
-    "oracle": FusionMethod(_oracle, ("labels",)),
-}
+class FusionViews(NamedTuple):
+    """T views of B episodes: everything a fusion method may read (None where the source lacks it).
+
+    Shapes are (B, T, N) as below, or (..., T, N) with any leading dims.
+    """
+
+    p: torch.Tensor  # (B, T, N) each view's p(y_i = 1)
+    valid: torch.Tensor  # (B, T, N) bool, the view measured the cell
+    area_px: torch.Tensor | None = None  # (B, T, N) the cell's pixel area in the view (F_size)
+    cell_features: torch.Tensor | None = None  # (B, T, N, D) perception's per-cell features (or (U, N, D), see rows)
+    scores: torch.Tensor | None = None  # (B, T, N) per-view confidence scores, when precomputed
+    viewpoints: torch.Tensor | None = None  # (B, T) long lattice index of each view
+    labels: torch.Tensor | None = None  # (B, N) bool ground truth (the oracle only)
+    # (B, T) long: cell_features is (U, N, D) and view (b, t) is its row feature_rows[b, t] (a cache batch
+    # reads each distinct (scene, position) once)
+    feature_rows: torch.Tensor | None = None
+
+
+# the view-indexed fields and the dim that indexes T in each
+_TIME_DIM = {"p": -2, "valid": -2, "area_px": -2, "scores": -2, "cell_features": -3, "viewpoints": -1}
+
+
+class Fusion:
+    """One fusion method: `fuse(views) -> (B, N)`, or view by view with `init_state` / `update`.
+
+    A subclass names itself (`name`), lists the FusionViews fields its kernel reads (`needs`) and gives the
+    kernel; register it in FUSIONS. A method with weights is also an nn.Module, says `trainable` and
+    overrides `config` / `from_config` so its checkpoint entry (`save_dict`) rebuilds it (`load_fusion`).
+    """
+
+    name: ClassVar[str]
+    needs: ClassVar[tuple[str, ...]] = ()  # of "area_px", "scores", "labels" (beyond p and valid)
+    trainable: ClassVar[bool] = False  # has weights that stage 2 trains (and a checkpoint holds)
+    kernel: ClassVar[Callable]  # (p, valid, prior, **needs) -> fused, all torch
+
+    def __init__(self, prior: float = DEFAULT_PRIOR):
+        self.prior = prior
+
+    def inputs(self, views: FusionViews) -> FusionViews:
+        """The views with what the kernel needs filled in (a learned method scores cell features here)."""
+        return views
+
+    def fuse(self, views: FusionViews):
+        """(..., T, N) views -> (..., N) fused p(y = 1)."""
+        return _run(type(self), self.inputs(views), self.prior)
+
+    def init_state(self, batch_size: int, num_cells: int):
+        """The state before any view (None: no views yet; a method with a running state builds it here)."""
+        return None
+
+    def update(self, state, view: FusionViews):
+        """Add one view (T = 1) -> (state, fused (B, N)). This default keeps the views the kernel reads and
+        re-fuses them (exactly `fuse` on the history); a method with a cheaper running form overrides it."""
+        view = self.inputs(view)
+        view = view._replace(**{f: None for f in ("area_px", "scores", "labels", "cell_features", "viewpoints",
+                                                  "feature_rows") if f not in self.needs})
+        if state is not None:
+            view = view._replace(**{f: torch.cat([getattr(state, f), x], dim=_TIME_DIM[f])
+                                    for f, x in view._asdict().items() if f in _TIME_DIM and x is not None})
+        return view, self.fuse(view)
+
+    def view_scores(self, state) -> torch.Tensor | None:
+        """(B, t+1, N) per-view confidence of the views so far (policies may read it), or None."""
+        return getattr(state, "scores", None)
+
+    def prefixes(self, views: FusionViews):
+        """The fused map after each view: (..., T, N) whose [..., t, :] fuses views 0..t (the policy's M-bar^t)."""
+        state, outs = None, []
+        for t in range(views.p.shape[-2]):
+            state, fused = self.update(state, views._replace(**{
+                f: x.narrow(_TIME_DIM[f], t, 1) for f, x in views._asdict().items()
+                if f in _TIME_DIM and x is not None}))
+            outs.append(fused)
+        return torch.stack(outs, dim=-2)
+
+    @property
+    def scorer(self) -> Callable | None:
+        """cell features (..., N, D) -> per-view scores (..., N), when the method has such a one-view part
+        (view sources then compute it once per (scene, position)); None otherwise."""
+        return None
+
+    def frozen(self) -> "Fusion":
+        """This method for rollouts: weights shared, scoring in eval mode without grad (itself if none)."""
+        return self
+
+    def config(self) -> dict:
+        return {"prior": self.prior}
+
+    @classmethod
+    def from_config(cls, config: dict) -> "Fusion":
+        return cls(**config)
+
+    @classmethod
+    def new(cls, cell_dim: int) -> "Fusion":
+        """A fresh (untrained) instance for perception features of `cell_dim`."""
+        return cls()
+
+    def save_dict(self) -> dict:
+        """{name, config, state_dict}: what a checkpoint stores; load_fusion rebuilds the object from it."""
+        sd = self.state_dict() if isinstance(self, nn.Module) else {}
+        return {"name": self.name, "config": self.config(), "state_dict": dict(sd)}
+
+
+class BayesFusion(Fusion):
+    name, kernel = "bayes", staticmethod(_bayes)
+
+
+class AverageFusion(Fusion):
+    name, kernel = "average", staticmethod(_average)
+
+
+class SizeFusion(Fusion):
+    name, needs, kernel = "size", ("area_px",), staticmethod(_by_size)
+
+
+class OracleFusion(Fusion):
+    name, needs, kernel = "oracle", ("labels",), staticmethod(_oracle)
+
+
+class _EvalScores(nn.Module):
+    """A confidence net in eval mode without grad, whatever mode the net itself is in (rollouts' scores)."""
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, x):
+        was = self.net.training
+        self.net.eval()
+        with torch.no_grad():
+            s = self.net(x)
+        self.net.train(was)
+        return s
+
+
+class LearnedFusion(nn.Module, Fusion):
+    """Eq. 4-7: a confidence net scores each view's cells, the softmax over views weights their p.
+
+    `net` (perception.ConfidenceNet) may be None where the views come with scores (a log, a scored cache).
+    """
+
+    name, needs, trainable, kernel = "learned", ("scores",), True, staticmethod(_learned)
+
+    def __init__(self, net: nn.Module | None = None, prior: float = DEFAULT_PRIOR):
+        nn.Module.__init__(self)
+        Fusion.__init__(self, prior)
+        self.net = net
+
+    def inputs(self, views: FusionViews) -> FusionViews:
+        if views.scores is not None or views.cell_features is None:
+            return views
+        if self.net is None:
+            raise UavsearchError("learned fusion needs a confidence network (or precomputed scores)")
+        f, rows = views.cell_features, views.feature_rows
+        s = self.net(f) if rows is None else self.net.forward_rows(f, rows)
+        return views._replace(scores=s, cell_features=None, feature_rows=None)
+
+    @property
+    def scorer(self):
+        return self.net
+
+    def frozen(self) -> "LearnedFusion":
+        return self if self.net is None else LearnedFusion(_EvalScores(self.net), self.prior)
+
+    def config(self) -> dict:
+        mlp = self.net.mlp
+        return {"in_dim": self.net.in_dim, "hidden": [mlp[0].out_features, mlp[3].out_features],
+                "dropout": float(mlp[2].p), "prior": self.prior}
+
+    @classmethod
+    def from_config(cls, config: dict) -> "LearnedFusion":
+        c = dict(config)
+        net = ConfidenceNet(int(c.pop("in_dim")), tuple(c.pop("hidden")), float(c.pop("dropout")))
+        return cls(net, **c)
+
+    @classmethod
+    def new(cls, cell_dim: int) -> "LearnedFusion":
+        return cls(ConfidenceNet(cell_dim))
+
+
+# THE registry of fusion methods: name -> class (search/agents.py builds agents from it; a new method is one
+# class and one entry here)
+FUSIONS: dict[str, type[Fusion]] = {cls.name: cls for cls in (BayesFusion, AverageFusion, SizeFusion, LearnedFusion,
+                                                               OracleFusion)}
+
+
+def fusion_class(name: str) -> type[Fusion]:
+    if name not in FUSIONS:
+        raise UavsearchError(f"unknown fusion method {name!r}; choose one of {', '.join(FUSIONS)}")
+    return FUSIONS[name]
+
+
+def load_fusion(d: dict) -> Fusion:
+    """The fusion object of a `save_dict()` (weights cast to float32, in eval mode)."""
+    fusion = fusion_class(d["name"]).from_config(d["config"])
+    if isinstance(fusion, nn.Module):
+        fusion.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in d["state_dict"].items()})
+        fusion.eval()
+    return fusion

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import itertools
 import json
+from typing import NamedTuple
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -30,7 +31,8 @@ from torch import nn
 from uavsearch.errors import UavsearchError
 
 from .config import SearchConfig
-from .perception import EMBED_DIM, ConfidenceNet, ImageEmbedding
+from .fusion import Fusion, load_fusion
+from .perception import EMBED_DIM, ImageEmbedding
 from .reactive import ReactiveConfig, ReactivePolicyNet
 from .search_loop import PolicyInput, sample_actions
 
@@ -158,10 +160,12 @@ class GreedyUncertainty:
 
 
 # --------------------------------------------------------------------------------------------------
-# Checkpoints: one file per (setting, fusion, policy) holds the policy and, for learned fusion, the confidence net
+# Checkpoints: one file per (setting, fusion, policy) holds the policy and the fusion it was trained with; each
+# saves itself ({name / kind, config, state_dict}) and is rebuilt from that
 
 
-FORMAT = "uavsearch-search-model/1"
+FORMAT = "uavsearch-search-model/2"
+FORMAT_V1 = "uavsearch-search-model/1"  # fusion as a name, learned fusion's confidence net by layer sizes
 # policy kind stored in a checkpoint -> (net, its config); files without a kind hold the paper's PolicyNet
 POLICY_NETS: dict[str, tuple[type[nn.Module], type]] = {
     PolicyNet.KIND: (PolicyNet, PolicyConfig),
@@ -169,50 +173,56 @@ POLICY_NETS: dict[str, tuple[type[nn.Module], type]] = {
 }
 
 
+class SearchModel(NamedTuple):
+    fusion: Fusion  # the fusion the policy was trained with (its weights too, for a trainable one)
+    policy: nn.Module  # PolicyNet or ReactivePolicyNet (its KIND says which), in eval mode
+    extra: dict  # metadata (args, best validation, perception_tag)
+
+
 def _half(sd: dict) -> dict:
     """float16 storage halves the shipped files; loading casts back to float32 (what evaluation then uses)."""
     return {k: (v.detach().half() if v.is_floating_point() else v.detach()).clone() for k, v in sd.items()}
 
 
-def save_search_model(path, fusion: str, policy: PolicyNet | ReactivePolicyNet, confidence: ConfidenceNet | None,
-                      extra: dict | None = None) -> Path:
+def save_search_model(path, fusion: Fusion, policy: PolicyNet | ReactivePolicyNet, extra: dict | None = None) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    conf = None
-    if confidence is not None:
-        mlp = confidence.mlp
-        conf = {"in_dim": confidence.in_dim, "hidden": [mlp[0].out_features, mlp[3].out_features],
-                "dropout": float(mlp[2].p), "state_dict": _half(confidence.state_dict())}
-    torch.save({"format": FORMAT, "fusion": fusion, "policy_kind": policy.KIND, "policy_config": asdict(policy.cfg),
-                "policy_state": _half(policy.state_dict()), "confidence": conf,
-                "extra": json.loads(json.dumps(extra or {}, default=str))}, path)
+    fused = fusion.save_dict()
+    torch.save({"format": FORMAT, "fusion": {**fused, "state_dict": _half(fused["state_dict"])},
+                "policy_kind": policy.KIND, "policy_config": asdict(policy.cfg),
+                "policy_state": _half(policy.state_dict()), "extra": json.loads(json.dumps(extra or {}, default=str))},
+               path)
     return path
 
 
-def load_search_model(path) -> tuple[str, PolicyNet | ReactivePolicyNet, ConfidenceNet | None, dict]:
-    """(fusion, policy net (its KIND says which), confidence net or None, extra metadata), in eval mode."""
+def _fusion_v1(ck: dict) -> dict:
+    """The fusion entry of a checkpoint in the first layout: a name, and learned fusion's net by layer sizes."""
+    c = ck["confidence"]
+    if c is None:
+        return {"name": ck["fusion"], "config": {}, "state_dict": {}}
+    return {"name": ck["fusion"], "config": {"in_dim": c["in_dim"], "hidden": c["hidden"], "dropout": c["dropout"]},
+            "state_dict": {f"net.{k}": v for k, v in c["state_dict"].items()}}
+
+
+def load_search_model(path) -> SearchModel:
+    """The policy and fusion of a search checkpoint (either layout), in eval mode."""
     path = Path(path)
     if not path.is_file():
         raise UavsearchError(f"search model {path} not found (train one: uavsearch train policy)")
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
-        if ck.get("format") != FORMAT:
+        if ck.get("format") not in (FORMAT, FORMAT_V1):
             raise KeyError("format")
         net_cls, cfg_cls = POLICY_NETS[ck.get("policy_kind", PolicyNet.KIND)]
         policy = net_cls(cfg_cls(**ck["policy_config"]))
         policy.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ck["policy_state"].items()})
-        conf = None
-        if ck["confidence"] is not None:
-            c = ck["confidence"]
-            conf = ConfidenceNet(int(c["in_dim"]), tuple(c["hidden"]), float(c["dropout"]))
-            conf.load_state_dict({k: v.float() for k, v in c["state_dict"].items()})
-            conf.eval()
+        fusion = load_fusion(ck["fusion"] if ck["format"] == FORMAT else _fusion_v1(ck))
     except UavsearchError:
         raise
     except Exception as e:  # noqa: BLE001 - any corrupt file is one clear line
         raise UavsearchError(f"{path} is not a uavsearch search model ({type(e).__name__}: {e})") from None
     policy.eval()
-    return ck["fusion"], policy, conf, ck.get("extra", {})
+    return SearchModel(fusion, policy, ck.get("extra", {}))
 
 
 def round_trip_half(module: nn.Module) -> nn.Module:
@@ -223,5 +233,5 @@ def round_trip_half(module: nn.Module) -> nn.Module:
     return module
 
 
-__all__ = ["POLICY_NETS", "ArgmaxPolicy", "CoverageRoute", "GreedyUncertainty", "PolicyConfig", "PolicyNet",
+__all__ = ["POLICY_NETS", "SearchModel", "ArgmaxPolicy", "CoverageRoute", "GreedyUncertainty", "PolicyConfig", "PolicyNet",
            "RandomPolicy", "coverage_route", "load_search_model", "round_trip_half", "save_search_model"]

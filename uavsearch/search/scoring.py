@@ -9,7 +9,6 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .agents import needs_confidence
 from .config import SearchConfig
 from .fusion import DEFAULT_PRIOR
 from .metrics import map_accuracy, map_f1
@@ -37,13 +36,12 @@ def score_episode(ep: Episode) -> EpisodeScores:
 def evaluate_agent(cache, agent: Agent, episodes_per_scene: int = 10, seed: int = 0, config: SearchConfig | None = None,
                    budget_T: int | None = None, single_view: bool = False) -> EpisodeScores:
     """Run `episodes_per_scene` episodes on every scene of the cache; the generator is seeded by `seed`."""
-    for m in (agent.confidence, getattr(agent.policy, "net", agent.policy)):
+    for m in (agent.fusion, getattr(agent.policy, "net", agent.policy)):
         if isinstance(m, torch.nn.Module):
             m.eval()
     rows = np.repeat(np.arange(cache.num_scenes), episodes_per_scene)
     gen = torch.Generator().manual_seed(int(seed))
-    conf = agent.confidence if needs_confidence(agent.fusion) else None
-    ep = run_search(CachedViews(cache, rows, config, conf), agent, 1 if single_view else budget_T, generator=gen)
+    ep = run_search(CachedViews(cache, rows, config, agent.fusion.scorer), agent, 1 if single_view else budget_T, generator=gen)
     return score_episode(ep)
 
 

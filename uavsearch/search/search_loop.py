@@ -26,7 +26,7 @@ import torch
 from uavsearch.errors import UavsearchError
 
 from .config import SearchConfig
-from .fusion import FUSION_METHODS, fuse
+from .fusion import Fusion, FusionViews
 
 
 # The rewards of Eq. 13-15 (stage 2 trains with these; the env and the flight log report them)
@@ -113,6 +113,17 @@ class CachedViews:
                            c.valid[r, p])
 
 
+    def fusion_views(self, lattice_idx: torch.Tensor) -> FusionViews:
+        """The views at (B, T) lattice positions as one fusion batch (a trainer's loss re-fuses them); the cell
+        features of each distinct (scene, position) once, indexed by feature_rows."""
+        c, P = self.cache, self.cache.num_positions
+        r = self.rows[:, None].expand_as(lattice_idx)
+        uniq, inv = torch.unique(r * P + lattice_idx, return_inverse=True)
+        feats = c.cell_features.reshape(-1, *c.cell_features.shape[2:])[uniq]  # (U, N, D)
+        return FusionViews(c.log_probs[r, lattice_idx][..., 1].exp(), c.valid[r, lattice_idx],
+                           c.cell_area_px[r, lattice_idx], feats, None, lattice_idx, self.labels, inv)
+
+
 class LiveViews:
     """One episode on a vehicle: capture at the lattice position, run perception on the image (B = 1).
 
@@ -183,11 +194,14 @@ def sample_actions(logits: torch.Tensor, generator: torch.Generator | None = Non
 
 
 class Agent(NamedTuple):
-    """A row of Table II: a fusion method, its confidence net (learned fusion only) and a policy."""
+    """A row of Table II: a fusion method (a fusion.Fusion, holding its learned part if any) and a policy."""
 
-    fusion: str
+    fusion: Fusion
     policy: Policy
-    confidence: torch.nn.Module | None = None
+
+    @property
+    def fusion_name(self) -> str:
+        return self.fusion.name
 
 
 class Episode(NamedTuple):
@@ -202,23 +216,13 @@ class Episode(NamedTuple):
     labels: torch.Tensor | None  # (B, N) bool ground truth when the source knows it
 
 
-def fuse_views(agent: Agent, obs: list[Observation], scores: list[torch.Tensor | None],
-               labels: torch.Tensor | None) -> torch.Tensor:
-    """M-bar over the views so far with the agent's fusion method: (B, N)."""
-    p = torch.stack([o.log_probs[..., 1].exp() for o in obs], dim=1)
-    valid = torch.stack([o.valid for o in obs], dim=1)
-    kw = {}
-    for need in FUSION_METHODS[agent.fusion].needs:
-        if need == "area_px":
-            kw[need] = torch.stack([o.cell_area_px for o in obs], dim=1)
-        elif need == "scores":
-            kw[need] = torch.stack(scores, dim=1)
-        elif need == "labels":
-            if labels is None:
-                raise UavsearchError(f"{agent.fusion} fusion needs the ground truth, which this view source does "
-                                     "not know")
-            kw[need] = labels
-    return fuse(agent.fusion, p, valid, **kw)
+def fusion_view(o: Observation, lattice_idx: torch.Tensor, labels: torch.Tensor | None) -> FusionViews:
+    """One observed view as a fusion batch of T = 1."""
+    def one(x):
+        return None if x is None else x.unsqueeze(1)
+
+    return FusionViews(o.log_probs[..., 1].exp()[:, None], o.valid[:, None], o.cell_area_px[:, None],
+                       one(o.cell_features), one(o.scores), lattice_idx[:, None], labels)
 
 
 def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
@@ -230,16 +234,13 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
     """
     config = source.config
     T = int(budget_T or config.budget_T)
-    with_scores = "scores" in FUSION_METHODS[agent.fusion].needs
-    if with_scores and agent.confidence is None:
-        raise UavsearchError(f"{agent.fusion} fusion needs a confidence network")
     moves = config.lattice.moves
     B, P = source.batch_size, config.lattice.num_positions
     idx = torch.full((B,), config.lattice.start_index if start_idx is None else int(start_idx), dtype=torch.long)
     visited = torch.zeros(B, P, dtype=torch.bool)
     arange = torch.arange(B)
     obs: list[Observation] = []
-    scores: list[torch.Tensor | None] = []
+    state = agent.fusion.init_state(B, config.grid.num_cells)
     positions, actions, logps, ents, revisits, maps = [], [], [], [], [], []
     for t in range(T):
         revisits.append(visited[arange, idx].clone())
@@ -247,15 +248,12 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
         positions.append(idx)
         o = source.observe(idx)
         obs.append(o)
-        if with_scores:
-            scores.append(o.scores if o.scores is not None else agent.confidence(o.cell_features))
-        else:
-            scores.append(None)
-        fused = fuse_views(agent, obs, scores, source.labels)
+        state, fused = agent.fusion.update(state, fusion_view(o, idx, source.labels))
         maps.append(fused)
         if t == T - 1:
             break
-        view_scores = torch.stack(scores, 1).detach() if with_scores else None
+        view_scores = agent.fusion.view_scores(state)
+        view_scores = None if view_scores is None else view_scores.detach()
         inp = PolicyInput(o.global_feature, o.valid.float(), fused.detach().float(), idx, visited.clone(), t, T,
                           torch.stack(positions, 1), torch.stack([v.log_probs[..., 1].exp() for v in obs], 1),
                           torch.stack([v.valid for v in obs], 1), view_scores)
@@ -278,4 +276,4 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
 
 
 __all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
-           "R_FP", "R_RE", "R_TP", "classification_reward", "fuse_views", "run_search", "sample_actions"]
+           "R_FP", "R_RE", "R_TP", "classification_reward", "fusion_view", "run_search", "sample_actions"]

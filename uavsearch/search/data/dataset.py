@@ -9,7 +9,7 @@ once and kept. A dataset is a folder, local or at an fsspec URL (parallel.Store)
                                of the same kind (e.g. 40 then 80 test scenes per density) and reuse shards
     <dir>/shards/s<seed>_k<K>.npz   one compressed shard per scene (parallel.npz_bytes: no timestamps):
         images         (V, H, W, 3) uint8   RGB, north up
-        lattice_index  (V,) int16           index into config.lattice_positions (row-major from the NW corner)
+        lattice_index  (V,) int16           index into config.lattice.positions_enu (row-major from the NW corner)
         position_enu   (V, 3) float32       camera position, scene ENU metres (nadir, heading north)
         cell_area_px   (V, N*N) float32     F_size of every cell (clipped image polygon area)
         cells_in_view  (V, N*N) bool        c^t

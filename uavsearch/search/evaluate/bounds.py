@@ -25,8 +25,8 @@ import torch
 
 from uavsearch.errors import UavsearchError
 
-from ..agents import needs_confidence
 from ..config import SearchConfig
+from ..fusion import Fusion
 from ..metrics import map_f1
 from ..policy import coverage_route
 from ..reactive import LabelGreedyTeacher
@@ -114,15 +114,16 @@ def route_index(route, num_actions: int) -> int:
 
 
 @torch.no_grad()
-def route_af1(cache, confidence=None, config: SearchConfig | None = None, fusion: str = "learned",
+def route_af1(cache, fusion: Fusion | None, config: SearchConfig | None = None,
               max_episodes: int = 8192) -> np.ndarray:
-    """(S, R) final AF1 of every scene under every route of all_routes, `max_episodes` episodes at a time."""
+    """(S, R) final AF1 of every scene under every route of all_routes with `fusion` (learned fusion, as a rule),
+    `max_episodes` episodes at a time."""
     config = config or cache.config
-    if needs_confidence(fusion) and confidence is None:
-        raise UavsearchError(f"the route bound with {fusion} fusion needs a confidence network")
-    conf = confidence if needs_confidence(fusion) else None
-    if conf is not None:
-        conf.eval()
+    if fusion is None:
+        raise UavsearchError("the route bound needs a fusion (learned fusion with its confidence network)")
+    if isinstance(fusion, torch.nn.Module):
+        fusion.eval()
+    conf = fusion.scorer
     routes = all_routes(config)
     S, R = cache.num_scenes, len(routes)
     out = np.empty((S, R))
@@ -130,8 +131,8 @@ def route_af1(cache, confidence=None, config: SearchConfig | None = None, fusion
     for s0 in range(0, S, step):
         s1 = min(S, s0 + step)
         rows = np.repeat(np.arange(s0, s1), R)
-        ep = run_search(CachedViews(cache, rows, config, conf), Agent(fusion, FixedRoutes(np.tile(routes, (s1 - s0, 1))),
-                                                                      conf), config.budget_T)
+        ep = run_search(CachedViews(cache, rows, config, conf), Agent(fusion, FixedRoutes(np.tile(routes, (s1 - s0, 1)))),
+                        config.budget_T)
         out[s0:s1] = map_f1(ep.maps[:, -1].numpy(), ep.labels.numpy()).reshape(s1 - s0, R)
     return out
 
@@ -146,9 +147,9 @@ class RouteBounds(NamedTuple):
     coverage: np.ndarray  # (S,) the coverage route (policy.coverage_route) from the same runs
 
 
-def route_bounds(cache, confidence=None, config: SearchConfig | None = None, fusion: str = "learned") -> RouteBounds:
+def route_bounds(cache, fusion: Fusion | None, config: SearchConfig | None = None) -> RouteBounds:
     config = config or cache.config
-    af1 = route_af1(cache, confidence, config, fusion)
+    af1 = route_af1(cache, fusion, config)
     routes = all_routes(config)
     arg = af1.argmax(1)
     fixed = int(af1.mean(0).argmax())
@@ -158,12 +159,12 @@ def route_bounds(cache, confidence=None, config: SearchConfig | None = None, fus
 
 
 @torch.no_grad()
-def label_greedy_af1(cache, confidence, config: SearchConfig | None = None, seed: int = 0) -> np.ndarray:
+def label_greedy_af1(cache, fusion: Fusion, config: SearchConfig | None = None, seed: int = 0) -> np.ndarray:
     """(S,) final AF1 of the label-peeking greedy with learned fusion, one episode per scene."""
     config = config or cache.config
     rows = np.arange(cache.num_scenes)
-    teacher = LabelGreedyTeacher(cache, rows, confidence, config)
-    ep = run_search(CachedViews(cache, rows, config, confidence), Agent("learned", teacher, confidence),
+    teacher = LabelGreedyTeacher(cache, rows, fusion.scorer, config)
+    ep = run_search(CachedViews(cache, rows, config, fusion.scorer), Agent(fusion, teacher),
                     config.budget_T, generator=torch.Generator().manual_seed(int(seed)))
     return map_f1(ep.maps[:, -1].numpy(), ep.labels.numpy())
 

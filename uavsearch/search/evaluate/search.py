@@ -53,7 +53,7 @@ from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.viz import pyplot, save_figure
 from uavsearch.world.settings import SETTINGS, parse_settings
 
-from ..agents import POLICIES, build_agent, checkpoint_path, needs_confidence
+from ..agents import POLICIES, build_agent, checkpoint_path, trained_fusion
 from ..config import SearchConfig
 from ..data.view_cache import get_view_cache
 from ..perception import load_perception
@@ -98,7 +98,7 @@ def policy_checkpoint(setting: int, fusion: str, policy: str, models_dir=None) -
 def row_checkpoints(setting: int, fusion: str, policy: str, models_dir=None) -> list[Path]:
     """Every file a row needs: its policy's checkpoint, and the confidence net's for learned fusion."""
     need = [policy_checkpoint(setting, fusion, policy, models_dir)]
-    if needs_confidence(fusion):
+    if trained_fusion(fusion):
         need.append(checkpoint_path(setting, "learned", models_dir))
     return [p for p in need if p is not None]
 
@@ -230,11 +230,11 @@ def setting_bounds(setting: int, cache, res: dict[str, dict], args: EvalArgs) ->
     else:
         b["hidden_start"], b["hidden_all"] = hidden
     conf_path = checkpoint_path(setting, "learned", args.models_dir)
-    confidence = load_search_model(conf_path)[2] if args.bounds and conf_path.is_file() else None
+    confidence = load_search_model(conf_path).fusion if args.bounds and conf_path.is_file() else None
     if not args.bounds:
         b["notes"].append("route bounds not computed (--bounds false)")
     elif confidence is None:
-        b["notes"].append(f"route bounds skipped: no learned fusion confidence net ({display_path(conf_path)})")
+        b["notes"].append(f"route bounds skipped: no learned fusion checkpoint ({display_path(conf_path)})")
     else:
         rb = route_bounds(cache, confidence, config)
         m, lo, hi = bootstrap_ci(rb.best - rb.coverage, args.bootstrap, args.bootstrap_seed)

@@ -43,10 +43,9 @@ from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot
 
-from ..agents import FUSION_METHODS, check_names, checkpoint_path, new_agent
+from ..agents import FUSIONS, check_names, checkpoint_path, new_agent
 from ..config import config_to_dict
-from ..fusion import fuse
-from ..perception import ConfidenceNet
+from ..fusion import Fusion
 from ..policy import save_search_model
 from ..scoring import evaluate_agent
 from ..search_loop import R_FP, R_RE, R_TP, Agent, CachedViews, classification_reward, run_search
@@ -57,7 +56,7 @@ from .runs import RunArgs, copy_checkpoint, load_caches, seed_everything, start_
 class Args(RunArgs):
     setting: int = opt(2, "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)")
     fusion: str = opt("learned", "fusion the policy is trained with and rewarded through",
-                      choices=tuple(FUSION_METHODS))
+                      choices=tuple(FUSIONS))
     # scene split: train on its train part, select on its val part. "large" (500 + 50 scenes per setting)
     # for the shipped models: on the paper's 20 training scenes the confidence net and policy overfit
     # within 50-150 iterations (train AF1 0.7, validation falling).
@@ -113,36 +112,14 @@ def returns(ep, final_map, labels, args: Args) -> tuple[torch.Tensor, torch.Tens
     return r.flip(1).cumsum(1).flip(1), r_cls
 
 
-class _EvalScores(torch.nn.Module):
-    """The confidence net in eval mode without grad: what the rollout's M-bar^t (and reward) use."""
-    def __init__(self, conf: ConfidenceNet):
-        super().__init__()
-        self.conf = conf
+def confidence_loss(fusion: Fusion, cache, rows, lattice_idx, pos_weight: float) -> torch.Tensor:
+    """Eq. 11: binary NLL of the trainable fusion's map at T, re-fused in train mode (dropout).
 
-    def forward(self, x):
-        was = self.conf.training
-        self.conf.eval()
-        with torch.no_grad():
-            s = self.conf(x)
-        self.conf.train(was)
-        return s
-
-
-def confidence_loss(conf: ConfidenceNet, cache, rows, lattice_idx, pos_weight: float) -> torch.Tensor:
-    """Eq. 11: binary NLL of the learned-fusion map at T, re-fused with the net in train mode (dropout).
-
-    The net's first (largest) layer runs once per distinct (scene, position) of the batch (episodes of one
-    scene share the start view and often more); dropout and the rest run per episode and view, so every
-    term of the loss draws its own dropout masks, as if the net ran on each episode's views.
+    The views come as one batch with each distinct (scene, position)'s cell features once (episodes of one
+    scene share the start view and often more): learned fusion runs its net's first (largest) layer once per
+    row and dropout and the rest per episode and view, so every term draws its own dropout masks.
     """
-    r = rows[:, None].expand_as(lattice_idx)
-    P = cache.num_positions
-    uniq, inv = torch.unique(r * P + lattice_idx, return_inverse=True)
-    feats = cache.cell_features.reshape(-1, *cache.cell_features.shape[2:])[uniq]  # (U, N, D)
-    scores = conf.forward_rows(feats, inv)  # (B, T, N)
-    p = cache.log_probs[r, lattice_idx][..., 1].exp()  # (B, T, N)
-    valid = cache.valid[r, lattice_idx]
-    fused = fuse("learned", p, valid, scores=scores).clamp(1e-6, 1 - 1e-6)
+    fused = fusion.fuse(CachedViews(cache, rows).fusion_views(lattice_idx)).clamp(1e-6, 1 - 1e-6)
     y = cache.occupancy[rows]
     w = torch.where(y, torch.full_like(fused, pos_weight), torch.ones_like(fused))
     return -(w * torch.where(y, fused.log(), (1 - fused).log())).sum() / w.sum()
@@ -186,13 +163,12 @@ def train(args: Args, caches=None) -> TrainResult:
     config = train_cache.config
     agent = new_agent(args.fusion, config, int(train_cache.global_feature.shape[-1]),
                       int(train_cache.cell_features.shape[-1]), args.state_extras)  # evaluation
-    policy, conf = agent.policy, agent.confidence
+    policy, fusion = agent.policy, agent.fusion
     groups = [{"params": policy.parameters(), "lr": args.lr_policy}]
-    if conf is not None:
-        groups.append({"params": conf.parameters(), "lr": args.lr_confidence})
+    if fusion.trainable:
+        groups.append({"params": fusion.parameters(), "lr": args.lr_confidence})
     opt = torch.optim.Adam(groups, weight_decay=args.weight_decay)
-    rollout_conf = _EvalScores(conf) if conf is not None else None
-    rollout_agent = Agent(args.fusion, policy, rollout_conf)
+    rollout_agent = Agent(fusion.frozen(), policy)
     T, S = config.budget_T, train_cache.num_scenes
     ema = torch.zeros(T - 1)
     rows: list[dict] = []
@@ -204,12 +180,13 @@ def train(args: Args, caches=None) -> TrainResult:
     bar = tqdm(range(1, args.iterations + 1), desc=name, disable=not args.progress, unit="it")
     for it in bar:
         policy.train()
-        if conf is not None:
-            conf.train()
+        if fusion.trainable:
+            fusion.train()
         t0, c0 = time.perf_counter(), time.process_time()
         scenes = torch.randint(S, (args.scenes_per_batch,), generator=gen)
         rows_b = scenes.repeat_interleave(args.episodes_per_scene)
-        ep = run_search(CachedViews(train_cache, rows_b, config, rollout_conf), rollout_agent, generator=gen)
+        ep = run_search(CachedViews(train_cache, rows_b, config, rollout_agent.fusion.scorer), rollout_agent,
+                        generator=gen)
         y = ep.labels
         final = ep.maps[:, -1]
         R, r_cls = returns(ep, final, y, args)
@@ -225,9 +202,9 @@ def train(args: Args, caches=None) -> TrainResult:
         loss_ent = -ep.entropy.mean()
         loss = loss_pg + args.entropy_coef * loss_ent
         loss_conf = torch.zeros(())
-        if conf is not None:
+        if fusion.trainable:
             n = min(args.conf_episodes, len(rows_b))
-            loss_conf = confidence_loss(conf, train_cache, rows_b[:n], ep.lattice_idx[:n], args.conf_pos_weight)
+            loss_conf = confidence_loss(fusion, train_cache, rows_b[:n], ep.lattice_idx[:n], args.conf_pos_weight)
             loss = loss + loss_conf
         opt.zero_grad()
         loss.backward()
@@ -252,7 +229,7 @@ def train(args: Args, caches=None) -> TrainResult:
                 best_key = key
                 best = {"iteration": it, "val_aacc": row["eval/aacc"], "val_af1": row["eval/af1"],
                         "val_revisit": sc.revisit_rate}
-                save_search_model(ckpt, args.fusion, policy, conf,
+                save_search_model(ckpt, fusion, policy,
                                   {"args": asdict(args), "best": best, "perception_tag": train_cache.perception_tag,
                                    "search_config": config_to_dict(config)})
             bar.set_postfix(val_af1=f"{row['eval/af1']:.3f}", best=f"{best_key[0]:.3f}")

@@ -45,6 +45,7 @@ from uavsearch.viz import pyplot, save_figure
 
 from ..agents import checkpoint_path
 from ..config import SearchConfig, config_to_dict
+from ..fusion import LearnedFusion
 from ..policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search_model
 from ..reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
 from ..scoring import evaluate_agent
@@ -195,9 +196,9 @@ def train(args: Args, caches=None) -> TrainResult:
     seed_everything(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
     conf_path = Path(args.confidence) if args.confidence else checkpoint_path(args.setting, FUSION)
-    fusion, _, conf, conf_extra = load_search_model(conf_path)
-    if conf is None:
-        raise UavsearchError(f"{conf_path} holds no confidence network ({fusion} fusion); give a learned-fusion "
+    fusion, _, conf_extra = load_search_model(conf_path)
+    if not fusion.trainable:
+        raise UavsearchError(f"{conf_path} holds no confidence network ({fusion.name} fusion); give a learned-fusion "
                              "checkpoint with --confidence")
     name = args.name or f"reactive_s{args.setting}"
     run_dir = start_run(args, name, args.seed)
@@ -209,21 +210,21 @@ def train(args: Args, caches=None) -> TrainResult:
               f"holds perception {train_cache.perception_tag}", file=sys.stderr)
     config = train_cache.config
     T, S = config.budget_T, train_cache.num_scenes
-    train_scores, val_scores = score_table(train_cache, conf), score_table(val_cache, conf)
+    train_scores, val_scores = score_table(train_cache, fusion.scorer), score_table(val_cache, fusion.scorer)
     train_s, val_s = scored(train_cache, train_scores), scored(val_cache, val_scores)
     lookup = ScoreLookup()
+    on_scores = LearnedFusion(lookup)  # learned fusion reading the scored caches
     net = ReactivePolicyNet(ReactiveConfig(grid_size=config.grid.n, num_positions=config.lattice.num_positions,
                                            num_actions=len(config.actions), budget_T=T, step_m=config.step_m,
                                            channels=args.channels, conv_layers=args.conv_layers, hidden=args.hidden,
                                            search=config_to_dict(config)))
 
     with torch.no_grad():  # the coverage route: return to go per (train scene, step), and the validation bar
-        cov = run_search(CachedViews(train_s, torch.arange(S), config, lookup), Agent(FUSION, CoverageRoute(config),
-                                                                                      lookup))
+        cov = run_search(CachedViews(train_s, torch.arange(S), config, lookup), Agent(on_scores, CoverageRoute(config)))
         cov_returns = step_returns(cov.maps, cov.labels, cov.revisit, args.r_re)  # (S, T-1)
-    cov_val = _validate(val_s, Agent(FUSION, CoverageRoute(config), lookup), config)
-    teacher_val = _validate(val_s, Agent(FUSION, LabelGreedyTeacher(val_s, torch.arange(val_s.num_scenes), lookup,
-                                                                     config), lookup), config)
+    cov_val = _validate(val_s, Agent(on_scores, CoverageRoute(config)), config)
+    teacher_val = _validate(val_s, Agent(on_scores, LabelGreedyTeacher(val_s, torch.arange(val_s.num_scenes), lookup,
+                                                                     config)), config)
 
     opt_il = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     opt_pg = torch.optim.Adam(net.parameters(), lr=args.lr_pg, weight_decay=args.weight_decay)
@@ -238,14 +239,14 @@ def train(args: Args, caches=None) -> TrainResult:
 
     def validate(row: dict, it: int) -> None:
         nonlocal best, best_key
-        v = _validate(val_s, Agent(FUSION, ArgmaxPolicy(net), lookup), config)
+        v = _validate(val_s, Agent(on_scores, ArgmaxPolicy(net)), config)
         row["eval/af1"], row["eval/aacc"], row["eval/af1_vs_coverage"] = v["af1"], v["aacc"], v["af1"] - cov_val["af1"]
         key = (row["eval/af1_vs_coverage"], v["aacc"])
         if key > best_key:
             best_key = key
             best = {"iteration": it, "phase": row["phase"], "val_af1": v["af1"], "val_aacc": v["aacc"],
                     "val_revisit": v["revisit"], "val_af1_vs_coverage": row["eval/af1_vs_coverage"]}
-            save_search_model(ckpt, FUSION, net, conf, {**meta, "best": best})
+            save_search_model(ckpt, fusion, net, {**meta, "best": best})
 
     def log(row: dict) -> None:
         nonlocal writer
@@ -271,7 +272,7 @@ def train(args: Args, caches=None) -> TrainResult:
         rows_b = torch.randint(S, (args.dagger_episodes,), generator=gen)
         mix = DaggerMixture(net, LabelGreedyTeacher(train_s, rows_b, lookup, config, scores=train_scores), beta, gen)
         with torch.no_grad():
-            run_search(CachedViews(train_s, rows_b, config, lookup), Agent(FUSION, mix, lookup), generator=gen)
+            run_search(CachedViews(train_s, rows_b, config, lookup), Agent(on_scores, mix), generator=gen)
         agg_states.append(torch.cat(mix.states))
         agg_masks.append(torch.cat(mix.masks))
         agg_targets.append(torch.cat(mix.targets))
@@ -305,7 +306,7 @@ def train(args: Args, caches=None) -> TrainResult:
         coef = args.entropy_start + (args.entropy_end - args.entropy_start) * k / max(args.pg_iterations - 1, 1)
         scenes = torch.randint(S, (args.scenes_per_batch,), generator=gen)
         rows_b = scenes.repeat_interleave(args.episodes_per_scene)
-        ep = run_search(CachedViews(train_s, rows_b, config, lookup), Agent(FUSION, net, lookup), generator=gen)
+        ep = run_search(CachedViews(train_s, rows_b, config, lookup), Agent(on_scores, net), generator=gen)
         G = step_returns(ep.maps.detach(), ep.labels, ep.revisit, args.r_re)
         adv = G - cov_returns[rows_b]
         adv_n = (adv - adv.mean()) / (adv.std() + 1e-8)
