@@ -63,9 +63,9 @@ def test_returns_follow_eq_13_to_15():
     labels = torch.tensor([[True, True, False, False]])
     final = torch.tensor([[0.9, 0.2, 0.7, 0.1]])  # 1 tp, 1 fp
     revisit = torch.tensor([[False, False, True, False, True]])
-    ep = Episode(None, None, None, None, revisit, None, labels)
+    ep = Episode(None, None, None, None, revisit, final[:, None].expand(1, 5, 4), labels)
     args = Args(r_tp=2.0, r_fp=-1.5, r_re=-0.5)
-    R, r_cls = returns(ep, final, labels, args)
+    R, r_cls = returns(ep, args)
     assert r_cls.tolist() == [0.5]
     # rewards per move: [0, -0.5, 0, -0.5 + 0.5] -> returns to go
     assert R.tolist() == [[-0.5, -0.5, 0.0, 0.0]]
