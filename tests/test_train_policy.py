@@ -11,7 +11,8 @@ from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
 from uavsearch.search.policy import load_search_model
 from uavsearch.search.search_loop import Episode
-from uavsearch.search.train.policy import Args, add_train_policy_parser, returns, train
+from uavsearch.cli_args import dataclass_from_args
+from uavsearch.search.train.policy import Args, add_train_policy_parser, cmd_train_policy, returns, train
 
 
 def _args(tmp_path, **kw):
@@ -84,8 +85,9 @@ def test_cli_parser_maps_flags_to_args():
     add_train_policy_parser(sub)
     ns = parser.parse_args(["policy", "--setting", "3", "--fusion", "bayes", "--out", "x.pt", "--r-re", "-2",
                             "--state-extras", "false"])
-    assert (ns.setting, ns.fusion, ns.out, ns.r_re, ns.state_extras) == (3, "bayes", "x.pt", -2.0, False)
-    assert callable(ns.func)
+    # what the command trains with: these flags, every other field at the dataclass's default
+    assert dataclass_from_args(Args, ns) == Args(setting=3, fusion="bayes", out="x.pt", r_re=-2.0, state_extras=False)
+    assert ns.func is cmd_train_policy
 
 
 def _per_episode_confidence_loss(conf, cache, rows, lattice_idx, pos_weight):
