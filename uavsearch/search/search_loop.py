@@ -368,7 +368,7 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
     )
 
 
-__all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "StepInfo",
-           "ViewSource", "R_FP", "R_RE", "R_TP", "classification_reward", "fuse_views", "lattice_cell_areas",
-           "lattice_cell_distances", "lattice_moves", "run_search", "sample_actions", "start_index",
-           "step_rewards"]
+__all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
+           "R_FP", "R_RE", "R_TP", "classification_reward", "fuse_views", "lattice_cell_areas",
+           "lattice_cell_distances", "lattice_moves", "run_search", "sample_actions", "start_index"]
+__all__ += ["StepInfo", "step_rewards"]
