@@ -73,6 +73,7 @@ def test_replay_draws_the_grid_with_the_flights_camera(tmp_path):
     import numpy as np
 
     from uavsearch.logs.flight_log import FlightLogWriter
+    from uavsearch.logs.step_record import StepRecord
     from uavsearch.replay.replay import replay_run_dir
 
     mission = mission_from_dict({"camera": WIDE, "search": {"allow_untrained": True}, "fusion": "average",
@@ -81,8 +82,8 @@ def test_replay_draws_the_grid_with_the_flights_camera(tmp_path):
     w.header(mission=mission.model_dump(mode="json"), labels=[0] * 100, grid={"n": 10, "cell_m": 5.0},
              fusion="average", agent="average fusion + random policy")
     p = np.full(100, 0.2)
-    w.step(t=0, waypoint_enu=[0.0, 0.0, 70.0], reported_position_enu=[0.0, 0.0, 70.0], reported_rpy_rad=[0, 0, 0],
-           image="images/img_0000.png", p_occ=p, valid=np.ones(100), cell_area_px=np.full(100, 100.0), scores=None,
-           fused=p, true_pose=None, sim_time_s=30.0)
+    w.step(StepRecord(t=0, waypoint_enu=[0.0, 0.0, 70.0], reported_position_enu=[0.0, 0.0, 70.0],
+                      reported_rpy_rad=[0, 0, 0], image="images/img_0000.png", p_occ=p, valid=np.ones(100, bool),
+                      cell_area_px=np.full(100, 100.0), fused=p, sim_time_s=30.0))
     w.close()
     assert replay_run_dir(tmp_path).intrinsics == CameraIntrinsics(320, 240, 75.0)

@@ -140,7 +140,7 @@ def test_env_and_search_loop_agree_step_for_step(env, actions):
     assert ep.lattice_idx[0].tolist() == env_idx
     assert ep.revisit[0].tolist() == env_rev
     np.testing.assert_array_equal(np.stack([v.position_enu for v in views.views]).astype(np.float32), env_pos)
-    R, r_cls = returns(ep, torch.zeros_like(ep.maps[:, -1]), ep.labels, Args())  # empty map: R_cls = 0
+    R, r_cls = returns(ep._replace(maps=torch.zeros_like(ep.maps)), Args())  # empty maps: R_cls = 0
     assert float(r_cls[0]) == 0.0
     per_move = (R[0] - torch.cat([R[0, 1:], torch.zeros(1)])).tolist()
     assert per_move == pytest.approx(env_r, abs=0) and sum(env_r) == R_RE * sum(env_rev)

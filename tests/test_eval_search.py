@@ -62,9 +62,14 @@ def test_eval_search_writes_table2_and_fig6(tmp_path):
     rows = list(csv.DictReader((out / "table2.csv").open()))
     assert len(rows) == len(ROWS)
     by = {r["key"]: r for r in rows}
-    # The oracle bounds every method that uses the same views; the single view has no spread over seeds.
-    assert float(by["oracle_policy"]["s2_af1"]) >= float(by["average_policy"]["s2_af1"]) - 1e-9
-    assert float(by["single_view"]["s2_af1_std"]) == 0.0
+    # Oracle fusion bounds any fusion of the same views: the two random-policy rows fly the same routes
+    # (same seeds), so it bounds learned fusion episode by episode and step by step, not only on average.
+    oracle, learned = res["results"][2]["oracle_random"], res["results"][2]["learned_random"]
+    assert np.array_equal(oracle["revisit"], learned["revisit"])  # the same routes
+    for m in ("acc", "f1"):
+        assert (oracle[m] >= learned[m]).all() and (oracle[m] > learned[m]).any(), m
+    assert float(by["oracle_random"]["s2_af1"]) > float(by["learned_random"]["s2_af1"])
+    assert float(by["single_view"]["s2_af1_std"]) == 0.0  # the single view has no spread over seeds
     assert (out / "fig6.png").stat().st_size > 10_000
     assert set(res["results"][2]) == {r[0] for r in ROWS}
 

@@ -11,6 +11,7 @@ from pymavlink import mavutil
 from uavsearch.errors import LogError
 from uavsearch.flight.sitl_process import free_udp_port
 from uavsearch.logs.flight_log import FlightLogWriter, read_flight_log
+from uavsearch.logs.step_record import StepRecord
 from uavsearch.replay.replay import read_tlog
 from uavsearch.logs.tlog import TlogWriter
 
@@ -84,19 +85,25 @@ def test_read_tlog_stops_at_truncation_and_corruption(recorded_tlog, tmp_path):
         read_tlog(garbage)
 
 
+def _step(t, **kw):
+    base = dict(t=t, waypoint_enu=[0.0, 0.0, 70.0], reported_position_enu=[0.1, 0.0, 70.0], reported_rpy_rad=[0.0] * 3,
+                image=f"images/img_{t:04d}.png", p_occ=np.full(100, 0.1), valid=np.ones(100, bool),
+                cell_area_px=np.full(100, 190.0), fused=np.full(100, 0.2), reward=0.0)
+    return StepRecord(**{**base, **kw})
+
+
 def test_flight_log_round_trip_and_torn_last_line(tmp_path):
     w = FlightLogWriter(tmp_path, tlog=False)
     labels = np.zeros(100, dtype=int)
     labels[[3, 50]] = 1
     w.header(labels=labels, fusion="bayes", grid={"n": 10, "cell_m": 5.0}, mission={})
     for t in range(3):
-        w.step(t=t, p_occ=np.full(100, 0.1 * t), fused=np.full(100, 0.2), valid=np.ones(100, bool), reward=0.0,
-               sim_time_s=float("nan"))
+        w.step(_step(t, p_occ=np.full(100, 0.1 * t), sim_time_s=float("nan")))
     w.close()
     log = read_flight_log(tmp_path)
-    assert [s["t"] for s in log.steps] == [0, 1, 2] and log.warning is None
+    assert [s.t for s in log.steps] == [0, 1, 2] and log.warning is None
     assert log.labels.sum() == 2 and log.array("p_occ").shape == (3, 100)
-    assert log.steps[0]["sim_time_s"] is None  # NaN is written as null: the file stays strict JSON
+    assert log.steps[0].sim_time_s is None  # NaN is written as null: the file stays strict JSON
     with open(tmp_path / "search.jsonl", "a") as f:
         f.write('{"type": "step", "t": 3, "p_oc')  # killed while writing
     with pytest.warns(UserWarning, match="damaged at line 5"):
@@ -109,4 +116,43 @@ def test_not_a_flight_log(tmp_path):
         read_flight_log(tmp_path)
     (tmp_path / "search.jsonl").write_text(json.dumps({"type": "step"}) + "\n")
     with pytest.raises(LogError, match="no header"):
+        read_flight_log(tmp_path)
+
+
+def test_step_record_reads_and_writes_a_flown_line_byte_for_byte():
+    """The typed record keeps search.jsonl's format exactly: key order, 6-decimal floats, ints as ints, nulls."""
+    line = ('{"type":"step","t":4,"sim_time_s":49.5,"wall_s":0.12059,"flight_time_s":6.0,"lattice_idx":4,'
+            '"waypoint_enu":[20.0,20.0,70.0],"reported_position_enu":[20.102919,20.31233,70.036],'
+            '"reported_rpy_rad":[0.046742,-0.024023,0.000543],"true_pose":{"position_enu":[19.827568,19.969327,'
+            '70.107888],"rpy_rad":[0.044812,-0.023704,-0.002379]},"image_index":4,"image":"images/img_0004.png",'
+            '"p_occ":[0.196198,0.013106],"scores":[0.282766,-7.680727],"valid":[true,false],'
+            '"cell_area_px":[191.912262,191.912262],"fused":[0.360248,null],"action":null,"action_name":null,'
+            '"revisit":false,"reward":-1.0,"acc":0.94,"f1":0.4}')
+    rec = StepRecord.from_json(line)
+    assert rec.to_json() == line
+    assert rec.true_pose.position_enu == [19.827568, 19.969327, 70.107888] and rec.valid.dtype == bool
+    assert np.isnan(rec.fused[1]) and rec.action is None and rec.reward == -1.0
+    fresh = _step(0, sim_time_s=25.7, reward=0.0, acc=np.float64(0.94))
+    assert StepRecord.from_json(fresh.to_json()).to_json() == fresh.to_json()
+
+
+@pytest.mark.parametrize("bad, why", [
+    ({"t": 0}, "lacks sim_time_s"),
+    ({"p_occ": "x"}, "field p_occ: 'x' is not a list"),
+    ({"t": 1.5}, "field t: 1.5 is not an integer"),
+    ({"valid": [1, 0]}, "field valid: 1 is not true/false"),
+])
+def test_a_malformed_step_line_is_a_one_line_log_error(tmp_path, bad, why):
+    good = json.loads(_step(0).to_json())
+    rec = bad if "t" in bad and len(bad) == 1 and bad["t"] == 0 else {**good, **bad}
+    rec = {"type": "step", **rec}
+    with pytest.raises(LogError, match=why) as e:
+        StepRecord.from_json(json.dumps(rec))
+    assert "\n" not in str(e.value)
+    w = FlightLogWriter(tmp_path, tlog=False)
+    w.header(labels=[0] * 100, grid={"n": 10, "cell_m": 5.0}, mission={})
+    w.close()
+    with open(tmp_path / "search.jsonl", "a") as f:
+        f.write(json.dumps(rec) + "\n")
+    with pytest.raises(LogError, match=f"search.jsonl: line 2: .*{why}"):
         read_flight_log(tmp_path)

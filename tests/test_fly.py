@@ -216,7 +216,7 @@ def test_killed_mid_air_leaves_a_readable_log(tmp_path):
     finally:
         proc.wait(timeout=30)
     log = read_flight_log(run)
-    assert len(log.steps) >= 1 and log.summary is None and log.steps[0]["waypoint_enu"] == [0.0, 0.0, 70.0]
+    assert len(log.steps) >= 1 and log.summary is None and log.steps[0].waypoint_enu == [0.0, 0.0, 70.0]
     tr = read_tlog(run / "telemetry.tlog")
     assert len(tr.captures) >= 1 and tr.lla[:, 2].max() > 488.0 + 69.0
     time.sleep(2)

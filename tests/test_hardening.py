@@ -18,6 +18,7 @@ import pytest
 from pymavlink import mavutil
 
 from uavsearch.testing.mavlink_client import Client
+from uavsearch.flight.mavlink.params import decode_param
 from uavsearch.flight.sitl_process import SitlProcess
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
@@ -178,12 +179,22 @@ def test_commands_with_hostile_params_get_exactly_one_ack(gcs):
     assert gcs.wait_heartbeat(3) is not None
 
 
+def _param(m) -> float:
+    """A PARAM_VALUE's value, int32 parameters decoded PX4's bytewise way."""
+    return decode_param(m.param_value, m.param_type, is_int=True)
+
+
 def test_params_take_px4_bounds_over_mavlink(gcs):
+    """A set outside the bounds (or NaN, or of a read-only parameter) is answered with the value kept."""
     for name, bad in (("MC_ROLLRATE_P", 0.0), ("MC_PITCHRATE_P", 0.0), ("MPC_XY_VEL_P_ACC", 0.5),
                       ("MC_ROLLRATE_P", NAN), ("SIM_SCENE_SEED", 4.0)):
+        gcs.mav.param_request_read_send(1, 1, name.encode(), -1)
+        before = gcs.recv("PARAM_VALUE", cond=lambda m, n=name: m.param_id == n)
+        assert before is not None, name
         gcs.mav.param_set_send(1, 1, name.encode(), bad, M.MAV_PARAM_TYPE_REAL32)
         m = gcs.recv("PARAM_VALUE", cond=lambda m, n=name: m.param_id == n)
-        assert m is not None and m.param_value != bad, name
+        assert m is not None and m.param_type == before.param_type, name
+        assert math.isfinite(_param(m)) and _param(m) == _param(before), (name, bad, _param(m))
 
 
 # ------------------------------------------------------------------------------------------------ signing

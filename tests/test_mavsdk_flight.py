@@ -35,6 +35,10 @@ async def _first(gen, cond, timeout_s: float):
     return await asyncio.wait_for(scan(), timeout_s)
 
 
+def _ned(pv) -> tuple[float, float, float]:
+    return pv.position.north_m, pv.position.east_m, pv.position.down_m
+
+
 async def _connect(port: int):
     md = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
     await md.add_any_connection(f"udpin://127.0.0.1:{port}")
@@ -183,14 +187,12 @@ def test_mavsdk_offboard_position_then_hold(sitl_no_scene):
             await offboard.start()
             await _first(tel.subscribe_flight_mode(), lambda m: m.name == "OFFBOARD", 10)
             await offboard.set_position_ned(PositionNedYaw(5.0, 5.0, -5.0, 0.0))
-            pv = await _first(
-                tel.subscribe_position_velocity_ned(),
-                lambda pv: math.dist((pv.position.north_m, pv.position.east_m, pv.position.down_m), (5, 5, -5)) < 0.4,
-                30,
-            )
-            assert pv is not None
+            await _first(tel.subscribe_position_velocity_ned(), lambda pv: math.dist(_ned(pv), (5, 5, -5)) < 0.4, 30)
             await offboard.stop()  # MAVSDK switches to Hold
             await _first(tel.subscribe_flight_mode(), lambda m: m.name == "HOLD", 10)
+            held = []  # Hold keeps the vehicle where offboard left it
+            await _first(tel.subscribe_position_velocity_ned(), lambda pv: held.append(_ned(pv)) or len(held) >= 30, 20)
+            assert max(math.dist(p, (5, 5, -5)) for p in held) < 0.8, held
             await action.land()
             await _first(tel.subscribe_armed(), lambda armed: not armed, 60)
         finally:

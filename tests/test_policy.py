@@ -25,7 +25,9 @@ from uavsearch.search.search_loop import (
     Agent,
     CachedViews,
     PolicyInput,
+    classification_reward,
     run_search,
+    step_rewards,
 )
 
 CONFIG = SearchConfig()
@@ -76,6 +78,46 @@ def test_run_search_revisits_and_start_view():
     # And the last one is the average over the five views taken.
     p = cache.log_probs[0, north, :, 1].exp()
     assert torch.allclose(ep.maps[0, -1].float(), p.mean(0), atol=1e-6)
+
+
+def test_on_step_reports_each_view_before_the_next_and_changes_nothing():
+    """The hook sees view t (its map, the move chosen after it, its reward) before view t+1 is taken; the
+    episode is the same with and without it, and the step rewards add up to R_cls + R_re."""
+    cache = synthetic_cache(2)
+    conf = ConfidenceNet(cache.cell_features.shape[-1]).eval()  # no dropout: two runs comparable
+    events, infos = [], []
+
+    class Watched(CachedViews):
+        def observe(self, lattice_idx):
+            events.append(("observe", lattice_idx.clone()))
+            return super().observe(lattice_idx)
+
+    def on_step(info):
+        events.append(("step", info.t))
+        infos.append(info)
+
+    def episode(views, **kw):
+        with torch.no_grad():
+            return run_search(views, Agent(LearnedFusion(conf), RandomPolicy()), generator=torch.Generator().manual_seed(3),
+                              **kw)
+
+    rows = [0, 1, 1]
+    plain = episode(CachedViews(cache, rows, confidence=conf))
+    ep = episode(Watched(cache, rows, confidence=conf), on_step=on_step)
+    assert all(torch.equal(getattr(ep, k), getattr(plain, k)) for k in ("lattice_idx", "actions", "revisit", "maps"))
+    T = CONFIG.budget_T
+    assert [e[0] for e in events] == ["observe", "step"] * T and [i.t for i in infos] == list(range(T))
+    for t, info in enumerate(infos):
+        assert torch.equal(info.viewpoint, ep.lattice_idx[:, t]) and torch.equal(info.fused, ep.maps[:, t])
+        assert torch.equal(info.revisit, ep.revisit[:, t]) and info.scores.shape == (3, 100)
+        assert torch.equal(info.p, cache.log_probs[torch.tensor(rows), ep.lattice_idx[:, t], :, 1].exp())
+        assert info.action is None if t == T - 1 else torch.equal(info.action, ep.actions[:, t])
+    rewards = torch.stack([i.reward for i in infos], 1)
+    assert torch.equal(rewards, step_rewards(ep.maps, ep.labels, ep.revisit))
+    total = classification_reward(ep.maps[:, -1], ep.labels).float() - 0.5 * ep.revisit.sum(1)
+    assert torch.equal(rewards.sum(1), total)
+    assert torch.equal(step_rewards(ep.maps, ep.labels, ep.revisit, shaped=True).sum(1), total)
+    assert ep.revisit.any(), "the seed should give a revisit, so R_re is tested"
 
 
 def test_learned_fusion_backpropagates_into_the_confidence_net():

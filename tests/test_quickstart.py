@@ -6,8 +6,10 @@ time. Two things differ from a reader's terminal so that the test can run beside
 machine: the well-known ports 14540 / 14550 become free ports (also `uavsearch sitl`'s defaults), and
 `uavsearch sitl` binds free source ports; a block that fails stops what it started in the background.
 A block preceded by `<!-- quickstart: slow -->` runs only with `-m slow`; its quick start keeps a fast block.
+A zero exit is not enough: every `--out` must hold what its line's comment promises, readable.
 """
 
+import json
 import os
 import re
 import signal
@@ -53,8 +55,61 @@ def _params():
         yield pytest.param(text, id=f"{title.split(':', 1)[-1].strip().split()[0]}-{i}", marks=marks)
 
 
+FILE_NAME = r"[\w.-]+\.(?:png|gif|mp4|md|csv|json|jsonl|tlog|pt|html|plan)"
+# what a block without an --out says it prints
+PRINTS = {"connect-1": r"system 1 in mode \S+, -?\d+\.\d m above home"}
+
+
+def promised_outputs(block: str) -> list[tuple[str, list[str]]]:
+    """(--out path, the file names its line's comment promises in it) for every command line of a block."""
+    out = []
+    for line in block.splitlines():
+        command, _, comment = line.partition("#")
+        m = re.search(r"--out\s+(\S+)", command)
+        if m:
+            out.append((m.group(1), re.findall(FILE_NAME, comment)))
+    return out
+
+
+def test_promised_outputs_are_read_from_the_commands_and_their_comments():
+    block = "uavsearch replay runs/a --out runs/b   # trajectory.png, maps.png (and more)\nuavsearch x --out c.pt\n"
+    assert promised_outputs(block) == [("runs/b", ["trajectory.png", "maps.png"]), ("c.pt", [])]
+    fly = next(b for t, _, b, _ in BLOCKS if t.endswith("fly a search"))
+    assert [p for p, _ in promised_outputs(fly)] == ["runs/scene7", "runs/scene7_replay", "runs/scene7.png"]
+    assert set(PRINTS) <= {p.id for p in _params()}
+
+
+def check_output(path: Path) -> None:
+    """What a block wrote is there and reads as what it is (a flight log, a picture, a table, a model)."""
+    assert path.exists(), f"{path} was not written"
+    if path.is_dir():
+        assert any(path.iterdir()), f"{path} is empty"
+        if (path / "search.jsonl").is_file():  # a flight log: a completed flight with its images and telemetry
+            from uavsearch.logs.flight_log import read_flight_log
+
+            log = read_flight_log(path)
+            assert log.steps and log.summary["status"] == "completed", path
+            assert len(list((path / "images").glob("*.png"))) == len(log.steps)
+            assert (path / "telemetry.tlog").stat().st_size > 0
+        return
+    assert path.stat().st_size > 0, f"{path} is empty"
+    kind = path.suffix
+    if kind in (".png", ".gif"):
+        import imageio.v2 as imageio
+
+        assert imageio.imread(path).shape[0] > 100, path
+    elif kind in (".json", ".plan"):
+        json.loads(path.read_text())
+    elif kind == ".csv":
+        assert len(path.read_text().splitlines()) >= 2, path
+    elif kind == ".pt":
+        from uavsearch.search.policy import load_search_model
+
+        load_search_model(path)
+
+
 @pytest.mark.parametrize("block", list(_params()))
-def test_quickstart_block_runs_as_written(block, tmp_path):
+def test_quickstart_block_runs_as_written(block, tmp_path, request):
     for name in ("tools", "missions", "models"):
         (tmp_path / name).symlink_to(REPO_ROOT / name)
     api, gcs = free_udp_port(), free_udp_port()
@@ -85,3 +140,10 @@ def test_quickstart_block_runs_as_written(block, tmp_path):
     assert proc.returncode == 0, f"$ {script}\n{out}"
     assert "Traceback" not in out, out
     assert "udpin:127.0.0.1:0 " not in out  # messages name the real port
+    # and it did what the README says: each --out holds what the line's comment names, and reads
+    for where, names in promised_outputs(block):
+        check_output(tmp_path / where)
+        for name in names:
+            check_output(tmp_path / where / name)
+    expect = PRINTS.get(request.node.callspec.id)
+    assert expect is None or re.search(expect, out), out

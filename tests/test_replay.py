@@ -8,6 +8,7 @@ import pytest
 
 from uavsearch.errors import LogError
 from uavsearch.logs.flight_log import FlightLogWriter
+from uavsearch.logs.step_record import StepRecord
 from uavsearch.replay.replay import replay_run_dir, write_replay
 from uavsearch.fly.missions import load_mission
 from uavsearch.search.fusion import fuse
@@ -38,9 +39,9 @@ def run_dir(tmp_path_factory):
         img = rng.integers(0, 255, (224, 224, 3), dtype=np.uint8)
         cv2.imwrite(str(d / "images" / f"img_{t:04d}.png"), img)
         pos = [10.0 * t, 0.0, 70.0]
-        w.step(t=t, waypoint_enu=pos, reported_position_enu=pos, reported_rpy_rad=[0, 0, 0], image=f"images/img_{t:04d}.png",
-               p_occ=p[t], valid=valid[t], cell_area_px=area[t], scores=scores[t],
-               fused=fuse("bayes", p[: t + 1], valid[: t + 1]), true_pose=None, sim_time_s=30.0 + t)
+        w.step(StepRecord(t=t, waypoint_enu=pos, reported_position_enu=pos, reported_rpy_rad=[0, 0, 0],
+                          image=f"images/img_{t:04d}.png", p_occ=p[t], valid=valid[t], cell_area_px=area[t],
+                          scores=scores[t], fused=fuse("bayes", p[: t + 1], valid[: t + 1]), sim_time_s=30.0 + t))
     w.close()
     return d, p, valid, area, scores, labels
 

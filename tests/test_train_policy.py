@@ -11,7 +11,8 @@ from uavsearch.testing.synthetic_views import synthetic_cache
 from uavsearch.errors import UavsearchError
 from uavsearch.search.policy import load_search_model
 from uavsearch.search.search_loop import Episode
-from uavsearch.search.train.policy import Args, add_train_policy_parser, returns, train
+from uavsearch.cli_args import dataclass_from_args
+from uavsearch.search.train.policy import Args, add_train_policy_parser, cmd_train_policy, returns, train
 
 
 def _args(tmp_path, **kw):
@@ -63,9 +64,9 @@ def test_returns_follow_eq_13_to_15():
     labels = torch.tensor([[True, True, False, False]])
     final = torch.tensor([[0.9, 0.2, 0.7, 0.1]])  # 1 tp, 1 fp
     revisit = torch.tensor([[False, False, True, False, True]])
-    ep = Episode(None, None, None, None, revisit, None, labels)
+    ep = Episode(None, None, None, None, revisit, final[:, None].expand(1, 5, 4), labels)
     args = Args(r_tp=2.0, r_fp=-1.5, r_re=-0.5)
-    R, r_cls = returns(ep, final, labels, args)
+    R, r_cls = returns(ep, args)
     assert r_cls.tolist() == [0.5]
     # rewards per move: [0, -0.5, 0, -0.5 + 0.5] -> returns to go
     assert R.tolist() == [[-0.5, -0.5, 0.0, 0.0]]
@@ -84,8 +85,9 @@ def test_cli_parser_maps_flags_to_args():
     add_train_policy_parser(sub)
     ns = parser.parse_args(["policy", "--setting", "3", "--fusion", "bayes", "--out", "x.pt", "--r-re", "-2",
                             "--state-extras", "false"])
-    assert (ns.setting, ns.fusion, ns.out, ns.r_re, ns.state_extras) == (3, "bayes", "x.pt", -2.0, False)
-    assert callable(ns.func)
+    # what the command trains with: these flags, every other field at the dataclass's default
+    assert dataclass_from_args(Args, ns) == Args(setting=3, fusion="bayes", out="x.pt", r_re=-2.0, state_extras=False)
+    assert ns.func is cmd_train_policy
 
 
 def _per_episode_confidence_loss(conf, cache, rows, lattice_idx, pos_weight):

@@ -4,8 +4,8 @@ There is no second loop here. `run_search` runs with `LiveViews(MavlinkVehicle, 
 source; this module only adds what a flight needs around it:
 
 - the agent from the mission (fusion + policy + checkpoints, built by agents.build_agent like every agent);
-- recording: a thin wrapper on the policy sees each fused map M-bar^t and the move chosen after view t,
-  so every step is written to search.jsonl (and flushed) before the vehicle flies on;
+- recording: run_search's `on_step` hook hands over each fused map M-bar^t and the move chosen after view t,
+  so every step is written to search.jsonl (a StepRecord, flushed) before the vehicle flies on;
 - the vehicle's life cycle: connect, take off, the search, then land / RTL even when a step fails;
 - `fly()`: by default it starts `uavsearch sitl` as a SEPARATE process on a free UDP port (real UDP,
   nothing shared but the run directory) and flies the mission over MAVLink.
@@ -33,6 +33,7 @@ from ..errors import MissionError
 from ..flight.camera import SCENE_FILE
 from ..flight.sitl_process import SitlProcess
 from ..logs.flight_log import FlightLogWriter
+from ..logs.step_record import StepRecord, TruePose
 from ..paths import RUNS_DIR
 from ..search.metrics import map_accuracy, map_f1
 from ..world.scene import load_scene
@@ -44,37 +45,7 @@ if TYPE_CHECKING:
 # This module imports no torch (nor the search loop, which does) at import time: `fly` starts the vehicle
 # process first and imports them while it starts (1-4 s, the longest part of a mission's start-up).
 
-# --------------------------------------------------------------------------------------------------
-# Recording wrappers (no loop of their own)
-
-
-class _RecordingPolicy:
-    """Passes act() through; reports (step, fused map, chosen action) to the controller."""
-
-    def __init__(self, inner, on_step):
-        self.inner, self.on_step = inner, on_step
-        self.net = getattr(inner, "net", inner)
-
-    def act(self, inp, generator=None):
-        a, lp, ent = self.inner.act(inp, generator)
-        self.on_step(inp.step, inp.fused[0], int(a[0]))
-        return a, lp, ent
-
-
-class _RecordingViews:
-    """A LiveViews that keeps the last Observation and lattice index for the step record."""
-
-    def __init__(self, live):
-        self.live = live
-        self.config, self.batch_size, self.labels = live.config, live.batch_size, live.labels
-
-    def observe(self, lattice_idx):
-        self.last_idx = int(lattice_idx.reshape(-1)[0])
-        self.last_obs = self.live.observe(lattice_idx)
-        return self.last_obs
-
-
-def _true_pose(camera_dir: Path, index: int) -> dict | None:
+def _true_pose(camera_dir: Path, index: int) -> TruePose | None:
     """The simulated camera's own record of image `index` (true pose), when the camera keeps one beside its
     images: a vehicle this controller started, or a `uavsearch sitl` reached with --connect on this machine."""
     path = Path(camera_dir) / "captures.jsonl"
@@ -87,7 +58,7 @@ def _true_pose(camera_dir: Path, index: int) -> dict | None:
             except ValueError:
                 continue
             if rec.get("index") == index:
-                return {"position_enu": rec.get("true_position_enu_m"), "rpy_rad": rec.get("true_rpy_rad")}
+                return TruePose(rec.get("true_position_enu_m"), rec.get("true_rpy_rad"))
     return None
 
 
@@ -109,53 +80,43 @@ class MissionResult:
 
 
 class SearchRecorder:
-    """Builds and writes one step record per view."""
+    """Writes one StepRecord per view: run_search's on_step hook, called before the vehicle flies on."""
 
-    def __init__(self, log, views: _RecordingViews, vehicle: MavlinkVehicle, loaded: LoadedAgent, labels, config,
-                 run_dir: Path, progress, T: int):
-        self.log, self.views, self.vehicle, self.loaded = log, views, vehicle, loaded
+    def __init__(self, log, vehicle: MavlinkVehicle, loaded: LoadedAgent, labels, config, run_dir: Path, progress,
+                 T: int):
+        self.log, self.vehicle, self.loaded = log, vehicle, loaded
         self.labels = np.asarray(labels, dtype=bool)
         self.config, self.run_dir, self.progress, self.T = config, run_dir, progress, T
-        self.visited: set[int] = set()
-        self.records: list[dict] = []
-        self.lattice = config.lattice.positions_enu
+        self.records: list[StepRecord] = []
 
-    def step(self, t: int, fused, action: int | None) -> None:
-        import torch
-
-        from ..search.search_loop import R_RE, classification_reward
-
-        o, cap = self.views.last_obs, self.vehicle.last_capture
-        idx = self.views.last_idx
-        revisit = idx in self.visited
-        self.visited.add(idx)
-        fused = np.asarray(fused.detach().float(), dtype=float).reshape(-1)
-        p = o.log_probs[0, :, 1].exp().numpy()
-        scores = None
-        if self.loaded.scores_net is not None:
-            with torch.no_grad():
-                scores = self.loaded.scores_net(o.cell_features).reshape(-1).numpy()
+    def step(self, info) -> None:
+        """Record view `info.t` (a search_loop.StepInfo of one episode)."""
+        cap, t = self.vehicle.last_capture, info.t
+        fused = np.asarray(info.fused[0].float(), dtype=float)
+        scores = info.scores
+        if scores is None and self.loaded.scores_net is not None:  # logged for replay's re-fusion
+            scores = self.loaded.scores_net(info.observation.cell_features)
         acc = float(map_accuracy(fused, self.labels))
         f1 = float(map_f1(fused, self.labels))
-        reward = (R_RE if revisit and t > 0 else 0.0)
-        if t == self.T - 1:
-            reward += float(classification_reward(fused, self.labels))
-        rec = dict(
+        action = None if info.action is None else int(info.action[0])
+        rec = StepRecord(
             t=t, sim_time_s=cap.time_boot_s, wall_s=cap.wall_s, flight_time_s=cap.flight_time_s,
-            lattice_idx=idx, waypoint_enu=cap.waypoint_enu,
+            lattice_idx=int(info.viewpoint[0]), waypoint_enu=cap.waypoint_enu,
             reported_position_enu=cap.reported_position_enu, reported_rpy_rad=cap.reported_rpy_rad,
             true_pose=_true_pose(cap.camera_dir, cap.index), image_index=cap.index,
             image=os.path.relpath(cap.image_path, self.run_dir) if Path(cap.image_path).is_absolute() else cap.image_path,
-            p_occ=p, scores=scores, valid=o.valid[0].numpy(), cell_area_px=o.cell_area_px[0].numpy(),
+            p_occ=info.p[0].numpy(), scores=None if scores is None else scores.reshape(-1).numpy(),
+            valid=info.valid[0].numpy(), cell_area_px=info.observation.cell_area_px[0].numpy(),
             fused=fused, action=action, action_name=self.config.actions[action] if action is not None else None,
-            revisit=revisit, reward=reward, acc=acc, f1=f1,
+            revisit=bool(info.revisit[0]), reward=None if info.reward is None else float(info.reward[0]),
+            acc=acc, f1=f1,
         )
-        self.log.step(**rec)
+        self.log.step(rec)
         self.records.append(rec)
         found = int((fused > 0.5).sum())
         hits = int(((fused > 0.5) & self.labels).sum())
         e, n, u = cap.reported_position_enu
-        nxt = f" -> {rec['action_name']}" if action is not None else ""
+        nxt = f" -> {rec.action_name}" if action is not None else ""
         self.progress(f"step {t + 1}/{self.T}  at E {e:6.1f} N {n:6.1f} U {u:5.1f} m  "
                       f"flew {cap.flight_time_s:5.1f} s  cells found {found} ({hits} of {int(self.labels.sum())} true)"
                       f"  acc {acc:.2f} F1 {f1:.2f}{nxt}")
@@ -208,9 +169,8 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
 
     phases = {} if phases is None else phases
     T = config.budget_T
-    views = _RecordingViews(LiveViews(vehicle, loaded.perception, labels))
-    rec = SearchRecorder(log, views, vehicle, loaded, labels, config, run_dir, progress, T)
-    agent = loaded.agent._replace(policy=_RecordingPolicy(loaded.agent.policy, rec.step))
+    views = LiveViews(vehicle, loaded.perception, labels)
+    rec = SearchRecorder(log, vehicle, loaded, labels, config, run_dir, progress, T)
     gen = torch.Generator().manual_seed(int(policy_seed))
     status = "completed"
     try:
@@ -220,8 +180,7 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
         vehicle.take_off()
         phases["took_off_s"] = time.monotonic() - wall0
         with torch.no_grad():
-            ep = run_search(views, agent, T, generator=gen)
-        rec.step(T - 1, ep.maps[0, -1], None)
+            run_search(views, loaded.agent, T, generator=gen, on_step=rec.step)
         phases["searched_s"] = time.monotonic() - wall0
     except StepFailed as e:
         status = f"failed: {e}"
@@ -356,13 +315,13 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             raise KeyboardInterrupt
         raise FlightError(f"{status.removeprefix('failed: ')}; nothing flown, no flight log kept "
                           f"(is a vehicle running and sending to {vehicle.link_text}?)")
-    fused = None if rec is None or not rec.records else np.asarray(rec.records[-1]["fused"])
+    fused = None if rec is None or not rec.records else np.asarray(rec.records[-1].fused)
     acc = None if fused is None else float(map_accuracy(fused, labels))
     f1 = None if fused is None else float(map_f1(fused, labels))
-    t_first = rec.records[0]["sim_time_s"] if rec and rec.records else None
+    t_first = rec.records[0].sim_time_s if rec and rec.records else None
     result = MissionResult(
         run_dir=run_dir, status=status, fused=fused, labels=labels, acc=acc, f1=f1,
-        steps=len(rec.records) if rec else 0, positions=[r["waypoint_enu"] for r in rec.records] if rec else [],
+        steps=len(rec.records) if rec else 0, positions=[r.waypoint_enu for r in rec.records] if rec else [],
         sim_time_s=None if vehicle.sim_time_s is None or vehicle.connected_sim_s is None
         else vehicle.sim_time_s - vehicle.connected_sim_s, wall_s=time.monotonic() - wall0,
         flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end, phases=phases)

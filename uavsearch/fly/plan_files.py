@@ -284,7 +284,7 @@ def write_flown_plan(run_dir, out=None) -> Path | None:
 
     run_dir = Path(run_dir)
     log = read_flight_log(run_dir)
-    wps = [s["waypoint_enu"] for s in log.steps if s.get("waypoint_enu") is not None]
+    wps = [s.waypoint_enu for s in log.steps]
     if not wps:
         return None
     mission = log.header.get("mission") or {}

@@ -25,28 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import LogError
+from .step_record import StepRecord, dumps_line, jsonable
 from .tlog import TlogWriter
 
 FORMAT = "uavsearch-flight-log/1"
-
-
-def _jsonable(x):
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        v = float(x)
-        return round(v, 6) if np.isfinite(v) else None
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (np.bool_,)):
-        return bool(x)
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if hasattr(x, "tolist"):
-        return _jsonable(x.tolist())
-    return x
 
 
 class FlightLogWriter:
@@ -59,8 +41,8 @@ class FlightLogWriter:
         self.tlog = TlogWriter(self.run_dir / "telemetry.tlog", clock="sim") if tlog else None
         self._f = open(self.run_dir / "search.jsonl", "a")
 
-    def _write(self, record: dict) -> None:
-        self._f.write(json.dumps(_jsonable(record), separators=(",", ":")) + "\n")
+    def _write(self, record: dict | str) -> None:
+        self._f.write((record if isinstance(record, str) else dumps_line(record)) + "\n")
         self._f.flush()
         os.fsync(self._f.fileno())
         if self.tlog is not None:
@@ -69,8 +51,8 @@ class FlightLogWriter:
     def header(self, **fields) -> None:
         self._write({"type": "header", "format": FORMAT, **fields})
 
-    def step(self, **fields) -> None:
-        self._write({"type": "step", **fields})
+    def step(self, record: StepRecord) -> None:
+        self._write(record.to_json())
 
     def failure(self, **fields) -> None:
         self._write({"type": "failure", **fields})
@@ -78,7 +60,7 @@ class FlightLogWriter:
     def summary(self, summary: dict) -> Path:
         path = self.run_dir / "summary.json"
         tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
+        tmp.write_text(json.dumps(jsonable(summary), indent=2) + "\n")
         os.replace(tmp, path)
         return path
 
@@ -96,7 +78,7 @@ class FlightLog:
 
     run_dir: Path
     header: dict
-    steps: list[dict]
+    steps: list[StepRecord]
     failure: dict | None
     summary: dict | None
     warning: str | None  # set when the file was damaged (read up to the damage)
@@ -107,11 +89,12 @@ class FlightLog:
 
     def array(self, key: str) -> np.ndarray:
         """A per-step field stacked over steps, e.g. array('p_occ') -> (T, N)."""
-        return np.asarray([s[key] for s in self.steps], dtype=float)
+        return np.asarray([getattr(s, key) for s in self.steps], dtype=float)
 
 
 def read_flight_log(run_dir) -> FlightLog:
-    """Read search.jsonl (and summary.json); a torn or corrupt line ends the read with a warning."""
+    """Read search.jsonl (and summary.json); a torn or corrupt line ends the read with a warning, a whole
+    JSON line that is no valid step record raises a one-line LogError."""
     run_dir = Path(run_dir)
     path = run_dir / "search.jsonl"
     if not path.is_file():
@@ -128,8 +111,13 @@ def read_flight_log(run_dir) -> FlightLog:
                 break
             if rec["type"] == "header":
                 header = rec
+            elif header is None:
+                break  # not a flight log (no header first): said below
             elif rec["type"] == "step":
-                steps.append(rec)
+                try:
+                    steps.append(StepRecord.from_json(rec))
+                except LogError as e:
+                    raise LogError(f"{path}: line {n}: {e}") from None
             elif rec["type"] == "failure":
                 failure = rec
     if header is None:
@@ -148,4 +136,4 @@ def read_flight_log(run_dir) -> FlightLog:
     return FlightLog(run_dir, header, steps, failure, summary, warning)
 
 
-__all__ = ["FORMAT", "FlightLog", "FlightLogWriter", "read_flight_log"]
+__all__ = ["FORMAT", "FlightLog", "FlightLogWriter", "StepRecord", "read_flight_log"]

@@ -388,8 +388,8 @@ def write_flight_review(log, out=None, mission_file=None) -> Path:
         d = replay_run_dir(log)
         views_enu = d.positions_enu
         area_m = d.grid.n * d.grid.cell_m
-        view_truth = [(s["sim_time_s"], s["reported_position_enu"], s["true_pose"]["position_enu"])
-                      for s in run.steps if s.get("true_pose")]
+        view_truth = [(s.sim_time_s, s.reported_position_enu, s.true_pose.position_enu)
+                      for s in run.steps if s.true_pose]
         s = run.summary or {}
         rows += [("agent", str(run.header.get("agent", ""))), ("views", f"{len(run.steps)}"),
                  ("status", str(s.get("status", "unknown"))), ("end", str(s.get("end", ""))),

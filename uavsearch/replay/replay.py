@@ -217,13 +217,13 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
     labels = log.labels
     method = fusion or h["fusion"]
     p, valid, area = log.array("p_occ"), log.array("valid") > 0.5, log.array("cell_area_px")
-    scores = None if any(s.get("scores") is None for s in log.steps) else log.array("scores")
+    scores = None if any(s.scores is None for s in log.steps) else log.array("scores")
     maps = _fuse_all(method, p, valid, area, scores, labels)
     images, poses = [], []
     for s in log.steps:
-        img = cv2.imread(str(run_dir / s["image"]), cv2.IMREAD_COLOR)
+        img = cv2.imread(str(run_dir / s.image), cv2.IMREAD_COLOR)
         images.append(None if img is None else img[..., ::-1].copy())
-        poses.append(camera_pose_from_vehicle(s["reported_position_enu"], *s["reported_rpy_rad"]))
+        poses.append(camera_pose_from_vehicle(s.reported_position_enu, *s.reported_rpy_rad))
     spec, intrinsics = None, None
     try:
         mission = mission_from_dict(h["mission"], h.get("mission_file"))
@@ -232,9 +232,9 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
         intrinsics = mission.search_config().intrinsics
     except UavsearchError:
         origin = GeodeticOrigin()
-    true_pos = [s["true_pose"]["position_enu"] if s.get("true_pose") else None for s in log.steps]
+    true_pos = [s.true_pose.position_enu if s.true_pose else None for s in log.steps]
     track, track_t, cap_t = _track_from_tlog(run_dir / "telemetry.tlog", origin)
-    view_t = [cap_t.get(s.get("image_index")) for s in log.steps]
+    view_t = [cap_t.get(s.image_index) for s in log.steps]
     data = ReplayData(
         title=f"{run_dir.name}: {h.get('agent', '')}" + (f", re-fused with {method}" if fusion else ""),
         grid=grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,

@@ -13,7 +13,7 @@ from ..errors import SceneError
 from ..world.scene import SceneSpec, generate_scene, scene_from_json, scene_to_json
 from ..world.settings import SETTINGS, scene_seeds
 from .config import SearchConfig
-from .search_loop import R_RE
+from .search_loop import R_RE, step_rewards
 from .views import TeleportVehicle, View
 
 
@@ -52,7 +52,8 @@ class ActiveSearchEnv(gym.Env):
     area, {-20..20 m}^2 for the paper) keeps the camera where it is; the view is re-taken and counts as a
     revisit.
 
-    **Reward.** ``r_revisit`` when a step returns to a position already visited in the episode, else 0; the
+    **Reward.** The revisit part of ``search_loop.step_rewards`` (the one reward of training and the flight
+    log): ``r_revisit`` when a step returns to a position already visited in the episode, else 0; the
     default is ``search_loop.R_RE`` (-0.5), the revisit reward R_re (Eq. 15) stage 2 trains with (the paper
     leaves its value open). The classification reward R_cls (Eq. 14) needs a map estimate, which
     belongs to the learner (fusion + perception), not to the env: ``info["occupancy"]`` gives the ground
@@ -194,7 +195,7 @@ class ActiveSearchEnv(gym.Env):
         self._t += 1
         revisit = self._idx in self._visited
         view = self._capture()
-        reward = self.r_revisit if revisit else 0.0
+        reward = step_rewards(None, None, revisit, r_re=self.r_revisit)
         terminated = self._t >= self.config.budget_T - 1
         return self._obs(view), reward, terminated, False, self._info(revisit)
 

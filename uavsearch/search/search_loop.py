@@ -41,6 +41,25 @@ def classification_reward(final_map, labels, r_tp: float = R_TP, r_fp: float = R
     return r_tp * (pred & labels).sum(-1) + r_fp * (pred & ~labels).sum(-1)
 
 
+def step_rewards(maps, labels, revisit, r_tp: float = R_TP, r_fp: float = R_FP, r_re: float = R_RE,
+                 shaped: bool = False):
+    """The reward of each view (Eq. 13-15), (B, T): r_re where view t is a revisit, plus R_cls of the last map
+    at the last view; their sum is the episode's R_cls + R_re. The one reward of training, the env and the log.
+
+    maps (B, T, N) fused after each view, labels (B, N) bool, revisit (B, T) bool. `shaped`: R_cls is paid
+    as it accrues instead, R_cls(map t) - R_cls(map t-1) at view t (the same sum, a denser signal). Without
+    `maps` (the env: the map belongs to the learner) only the revisit part; `revisit` may then be a bool.
+    """
+    r = r_re * revisit + 0.0  # + 0.0: no -0.0 where r_re * False
+    if maps is None:
+        return r
+    if shaped:
+        cls = classification_reward(maps, labels[:, None, :], r_tp, r_fp).float()
+        return r + torch.diff(cls, dim=1, prepend=torch.zeros_like(cls[:, :1]))
+    r[:, -1] += classification_reward(maps[:, -1], labels, r_tp, r_fp).float()
+    return r
+
+
 # --------------------------------------------------------------------------------------------------
 # Views in, per-view perception outputs out
 
@@ -204,6 +223,28 @@ class Agent(NamedTuple):
         return self.fusion.name
 
 
+class StepInfo(NamedTuple):
+    """What `run_search` reports after view t to its `on_step` hook, before the vehicle moves on."""
+
+    t: int
+    viewpoint: torch.Tensor  # (B,) lattice index of view t
+    p: torch.Tensor  # (B, N) the view's p(y=1)
+    scores: torch.Tensor | None  # (B, N) its confidence scores (learned fusion only)
+    valid: torch.Tensor  # (B, N) bool, the view measured the cell
+    fused: torch.Tensor  # (B, N) M-bar^t, the map after view t (detached)
+    action: torch.Tensor | None  # (B,) the move chosen after view t; None after the last view
+    revisit: torch.Tensor  # (B,) bool, view t re-visits a position
+    reward: torch.Tensor | None  # (B,) view t's step_rewards; None when the source knows no ground truth
+    observation: Observation  # everything else perception said about the view (cell areas, features)
+
+
+def _step_info(t: int, T: int, idx, o: Observation, score, fused, action, revisit, labels) -> StepInfo:
+    last = t == T - 1
+    reward = None if labels is None else step_rewards(fused[:, None] if last else None, labels, revisit[:, None])[:, 0]
+    return StepInfo(t, idx, o.log_probs[..., 1].exp(), None if score is None else score.detach(), o.valid,
+                    fused.detach(), action, revisit, reward, o)
+
+
 class Episode(NamedTuple):
     """B episodes of T views."""
 
@@ -225,12 +266,19 @@ def fusion_view(o: Observation, lattice_idx: torch.Tensor, labels: torch.Tensor 
                        one(o.cell_features), one(o.scores), lattice_idx[:, None], labels)
 
 
+def _last(view_scores: torch.Tensor | None) -> torch.Tensor | None:
+    """The latest view's scores of (B, t+1, N) per-view scores."""
+    return None if view_scores is None else view_scores[:, -1]
+
+
 def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
-               generator: torch.Generator | None = None, start_idx: int | None = None) -> Episode:
+               generator: torch.Generator | None = None, start_idx: int | None = None, on_step=None) -> Episode:
     """Run B episodes of `budget_T` views (default config.budget_T) from the lattice centre.
 
     Gradients flow where autograd is enabled: the last fused map w.r.t. the confidence net and the
     log-probabilities w.r.t. a learned policy. Wrap in torch.no_grad() to evaluate.
+    `on_step(StepInfo)` is called once the move after view t is chosen and before the next view is taken,
+    so a flight log can be written before the vehicle flies on; without it nothing extra is computed.
     """
     config = source.config
     T = int(budget_T or config.budget_T)
@@ -250,14 +298,18 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
         obs.append(o)
         state, fused = agent.fusion.update(state, fusion_view(o, idx, source.labels))
         maps.append(fused)
-        if t == T - 1:
-            break
         view_scores = agent.fusion.view_scores(state)
         view_scores = None if view_scores is None else view_scores.detach()
+        if t == T - 1:
+            if on_step is not None:
+                on_step(_step_info(t, T, idx, o, _last(view_scores), fused, None, revisits[-1], source.labels))
+            break
         inp = PolicyInput(o.global_feature, o.valid.float(), fused.detach().float(), idx, visited.clone(), t, T,
                           torch.stack(positions, 1), torch.stack([v.log_probs[..., 1].exp() for v in obs], 1),
                           torch.stack([v.valid for v in obs], 1), view_scores)
         a, lp, ent = agent.policy.act(inp, generator)
+        if on_step is not None:
+            on_step(_step_info(t, T, idx, o, _last(view_scores), fused, a, revisits[-1], source.labels))
         actions.append(a)
         if lp is not None:
             logps.append(lp)
@@ -277,3 +329,4 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
 
 __all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
            "R_FP", "R_RE", "R_TP", "classification_reward", "fusion_view", "run_search", "sample_actions"]
+__all__ += ["StepInfo", "step_rewards"]

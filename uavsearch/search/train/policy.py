@@ -46,9 +46,10 @@ from uavsearch.viz import pyplot
 from ..agents import FUSIONS, check_names, checkpoint_path, new_agent
 from ..config import config_to_dict
 from ..fusion import Fusion
+from ..metrics import map_f1
 from ..policy import save_search_model
 from ..scoring import evaluate_agent
-from ..search_loop import R_FP, R_RE, R_TP, Agent, CachedViews, classification_reward, run_search
+from ..search_loop import R_FP, R_RE, R_TP, Agent, CachedViews, classification_reward, run_search, step_rewards
 from .runs import RunArgs, copy_checkpoint, load_caches, seed_everything, start_run
 
 
@@ -104,11 +105,11 @@ def check_args(args: Args) -> None:
         raise UavsearchError("iterations, batch sizes, eval_every and eval_episodes must be positive")
 
 
-def returns(ep, final_map, labels, args: Args) -> tuple[torch.Tensor, torch.Tensor]:
+def returns(ep, args: Args) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, T-1) return from each move (Eq. 13-15, undiscounted) and the (B,) classification reward."""
-    r_cls = classification_reward(final_map.detach(), labels, args.r_tp, args.r_fp).float()
-    r = args.r_re * ep.revisit[:, 1:].float()  # move t lands on view t + 1
-    r[:, -1] += r_cls
+    maps = ep.maps.detach()
+    r_cls = classification_reward(maps[:, -1], ep.labels, args.r_tp, args.r_fp).float()
+    r = step_rewards(maps, ep.labels, ep.revisit, args.r_tp, args.r_fp, args.r_re)[:, 1:]  # move t lands on view t+1
     return r.flip(1).cumsum(1).flip(1), r_cls
 
 
@@ -189,7 +190,7 @@ def train(args: Args, caches=None) -> TrainResult:
                         generator=gen)
         y = ep.labels
         final = ep.maps[:, -1]
-        R, r_cls = returns(ep, final, y, args)
+        R, r_cls = returns(ep, args)
         if args.baseline == "loo":
             g = R.view(args.scenes_per_batch, args.episodes_per_scene, -1)
             b = (g.sum(1, keepdim=True) - g) / (args.episodes_per_scene - 1)
@@ -212,13 +213,10 @@ def train(args: Args, caches=None) -> TrainResult:
         roll_s += time.perf_counter() - t0
         roll_cpu += time.process_time() - c0
         steps += ep.actions.numel()
-        with torch.no_grad():
-            pred = final > 0.5
-            tp, fp, fn = (pred & y).sum(1), (pred & ~y).sum(1), (~pred & y).sum(1)
-            f1 = torch.where(2 * tp + fp + fn > 0, 2 * tp / (2 * tp + fp + fn).clamp(min=1), torch.ones(len(tp)))
+        f1 = map_f1(final.detach().numpy(), y.numpy())
         row = {"iteration": it, "losses/policy": float(loss_pg.detach()), "losses/entropy": float(-loss_ent.detach()),
                "losses/confidence": float(loss_conf.detach()), "charts/return": float(R[:, 0].mean()),
-               "charts/r_cls": float(r_cls.mean()), "charts/train_af1": float(f1.float().mean()),
+               "charts/r_cls": float(r_cls.mean()), "charts/train_af1": float(f1.mean()),
                "charts/revisit_rate": float(ep.revisit[:, 1:].float().mean()), "charts/entropy": float(-loss_ent.detach()),
                "charts/steps_per_s": steps / roll_s, "eval/aacc": None, "eval/af1": None}
         if it % args.eval_every == 0 or it == args.iterations:

@@ -49,7 +49,7 @@ from ..fusion import LearnedFusion
 from ..policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search_model
 from ..reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
 from ..scoring import evaluate_agent
-from ..search_loop import R_RE, Agent, CachedViews, classification_reward, run_search
+from ..search_loop import R_RE, Agent, CachedViews, classification_reward, run_search, step_rewards
 from .runs import RunArgs, copy_checkpoint, load_caches, seed_everything, start_run
 
 FUSION = "learned"
@@ -152,9 +152,8 @@ def imitation_loss(net, states, masks, targets, mirror: torch.Generator | None =
 
 def step_returns(maps, labels, revisit, r_re: float) -> torch.Tensor:
     """(B, T-1) return to go of each move: the change of N_tp - N_fp from the map after view t to the last
-    map, plus r_re per revisit still to come."""
-    cls = classification_reward(maps, labels[:, None, :]).float()  # (B, T)
-    r = cls[:, 1:] - cls[:, :-1] + r_re * revisit[:, 1:].float()
+    map, plus r_re per revisit still to come (the shaped step_rewards of the views after view 0)."""
+    r = step_rewards(maps, labels, revisit, r_re=r_re, shaped=True)[:, 1:]
     return r.flip(1).cumsum(1).flip(1)
 
 
