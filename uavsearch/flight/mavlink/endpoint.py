@@ -4,7 +4,8 @@ The runner calls `poll()` and `send_streams()` at a fixed simulation-time rate, 
 the endpoint never blocks and never advances time itself, and telemetry timestamps are simulation time.
 Each capability (streams, commands, params, mission, camera, offboard, ftp) is its own module, as MAVSDK
 splits plugins; this class owns what they share: the links, routing incoming messages to the module that
-serves them, the commander's events (texts, mission progress, captures) and the lockstep hold. Malformed
+serves them (each handler gets the Peer that sent the message, and replies to it alone), the commander's
+events (texts, mission progress, captures: to every destination of every link) and the lockstep hold. Malformed
 or badly signed packets are dropped and counted (SYS_STATUS.errors_comm), never raised.
 """
 
