@@ -1,6 +1,6 @@
 """Seeded MAVLink fuzzer: hostile and malformed packets at a real `uavsearch sitl` flying a hold.
 
-    python tools/fuzz_mavlink.py [--packets 10000] [--seeds 1 2 3] [--speed 1] [--rate 250]
+    python tools/fuzz_mavlink.py [--packets 10000] [--seeds 1 2 3] [--speed 1] [--rate 250] [--sources 1]
     python tools/fuzz_mavlink.py --signing [--count 1000]
 
 Fuzz run (per seed): start `uavsearch sitl` (camera scene on) on free loopback ports, take off to a
@@ -9,7 +9,9 @@ API link while reading both links. Measured: the largest wall-clock gap between 
 HEARTBEATs on each link, the largest distance of LOCAL_POSITION_NED from the hold point, the
 vehicle's RSS before and after, COMMAND_LONG/INT addressed to an existing component left without a
 COMMAND_ACK, whether the vehicle still answers (PARAM_REQUEST_READ and REQUEST_MESSAGE) and whether
-it still lands and disarms. Categories:
+it still lands and disarms. With --sources N the packets leave from N sockets (N peers of the API link,
+one chosen at random per packet): every COMMAND_ACK must come back to the socket that sent its command,
+and the flying client (a peer too) must keep its heartbeats. Categories:
 
   random_bytes     random datagrams (some starting with a MAVLink magic byte)
   truncated        valid frames cut short
@@ -29,7 +31,8 @@ survives what it must refuse, not that it refuses what it must do.
 Signing run (--signing): a sitl with a signing key; per link (API, GCS), how many of --count unsigned,
 wrong-key, replayed and far-future-timestamp (forged) REQUEST_MESSAGE commands were accepted
 (answered with a COMMAND_ACK), wrong-key frames hidden behind junk or an unsigned frame in one
-datagram, and whether the legitimate signed sender is still accepted after the forgeries.
+datagram, whether the legitimate signed sender is still accepted after the forgeries, and how many
+of 100 copies of a signed frame accepted on one link are accepted again on the other.
 """
 
 from __future__ import annotations
@@ -369,6 +372,8 @@ class FuzzResult:
     alive: bool
     exit_code: int | None
     notes: list = field(default_factory=list)
+    sources: int = 1
+    acks_misrouted: int = 0  # COMMAND_ACKs that reached another source than the one that asked
 
     @property
     def ok(self) -> bool:
@@ -434,9 +439,59 @@ def _hold_point(v: _Vehicle, seconds: float):
     return np.mean(np.asarray(pts), axis=0) if pts else None
 
 
+class _Sources:
+    """N sockets the fuzz packets leave from (peers of the API link); counts the COMMAND_ACKs each gets back."""
+
+    def __init__(self, n: int, seed: int):
+        self.rng = np.random.default_rng([seed, 7])  # its own stream: the packets are the same whatever N
+        self.socks = []
+        for _ in range(n):
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", 0))
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+            s.setblocking(False)
+            self.socks.append(s)
+        self.parsers = [M.MAVLink(None) for _ in self.socks]
+        for prs in self.parsers:
+            prs.robust_parsing = True
+        self.expected = [dict() for _ in self.socks]
+        self.got = [dict() for _ in self.socks]
+
+    def send(self, data: bytes, acks: dict, addr) -> None:
+        i = int(self.rng.integers(len(self.socks)))
+        for c, n in acks.items():
+            self.expected[i][c] = self.expected[i].get(c, 0) + n
+        self.socks[i].sendto(data, addr)
+
+    def drain(self) -> None:
+        for s, prs, got in zip(self.socks, self.parsers, self.got):
+            while True:
+                try:
+                    data, _ = s.recvfrom(65535)
+                except (BlockingIOError, InterruptedError):
+                    break
+                for m in prs.parse_buffer(data) or []:
+                    if m.get_type() == "COMMAND_ACK":
+                        got[m.command] = got.get(m.command, 0) + 1
+
+    def tally(self) -> tuple[int, int, int]:
+        """(expected, unanswered, misrouted): an ACK at the wrong socket counts as both."""
+        expected = unanswered = misrouted = 0
+        for exp, got in zip(self.expected, self.got):
+            expected += sum(exp.values())
+            unanswered += sum(max(0, n - got.get(c, 0)) for c, n in exp.items())
+            misrouted += sum(max(0, n - exp.get(c, 0)) for c, n in got.items())
+        return expected, unanswered, misrouted
+
+    def close(self) -> None:
+        for s in self.socks:
+            s.close()
+
+
 def fuzz_flight(seed: int, packets: int, speed: str = "1", rate_hz: float = 250.0, alt_m: float = 10.0,
-                categories=CATEGORIES, run_dir: Path | None = None, progress=print) -> FuzzResult:
-    """Take off to a hold, fuzz it with `packets` packets, check it still answers and lands."""
+                categories=CATEGORIES, run_dir: Path | None = None, progress=print, sources: int = 1) -> FuzzResult:
+    """Take off to a hold, fuzz it with `packets` packets, check it still answers and lands. `sources` > 1:
+    the packets leave from that many sockets besides the flying client's."""
     tmp = None
     if run_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="fuzz_")
@@ -444,6 +499,7 @@ def fuzz_flight(seed: int, packets: int, speed: str = "1", rate_hz: float = 250.
     sitl = SitlProcess(Path(run_dir), "--seed", str(seed), "--scene", "0", "--param", f"MIS_TAKEOFF_ALT={alt_m}",
                        speed=speed, camera=True)
     api_watch, gcs_watch = LinkWatch(), LinkWatch()
+    srcs = _Sources(sources, seed) if sources > 1 else None
     api = _Vehicle(sitl.api_port, api_watch)
     gcs = _Vehicle(sitl.gcs_port, gcs_watch)
     notes = []
@@ -499,9 +555,13 @@ def fuzz_flight(seed: int, packets: int, speed: str = "1", rate_hz: float = 250.
         for i in range(packets):
             cat, data, acks = gen.next()
             per_cat[cat] += 1
-            for c, n in acks.items():
-                expected_acks[c] = expected_acks.get(c, 0) + n
-            api.send_raw(data)
+            if srcs is not None:
+                srcs.send(data, acks, sitl.link_address("api"))
+                srcs.drain()
+            else:
+                for c, n in acks.items():
+                    expected_acks[c] = expected_acks.get(c, 0) + n
+                api.send_raw(data)
             for side in (api, gcs):
                 side.drain()
             if api.last_pos is not None:
@@ -521,6 +581,8 @@ def fuzz_flight(seed: int, packets: int, speed: str = "1", rate_hz: float = 250.
         while time.monotonic() < settle_end:
             for side in (api, gcs):
                 side.drain()
+            if srcs is not None:
+                srcs.drain()
             if api.last_pos is not None:
                 max_dev = max(max_dev, float(np.linalg.norm(np.asarray(api.last_pos) - hold)))
             time.sleep(0.005)
@@ -529,10 +591,17 @@ def fuzz_flight(seed: int, packets: int, speed: str = "1", rate_hz: float = 250.
         gcs_watch.close(now)
         api.sink = None
         rss1 = rss_kib(sitl.proc.pid)
-        missing = {c: n - got_acks.get(c, 0) for c, n in expected_acks.items() if n != got_acks.get(c, 0)}
-        unanswered = sum(max(0, n) for n in missing.values())
-        if missing:
-            notes.append(f"COMMAND_ACKs missing (+) or extra (-) by command: {missing}")
+        misrouted = 0
+        if srcs is not None:
+            n_expected, unanswered, misrouted = srcs.tally()
+            if unanswered or misrouted:
+                notes.append(f"COMMAND_ACKs: {unanswered} missing at the asking socket, {misrouted} at another")
+        else:
+            missing = {c: n - got_acks.get(c, 0) for c, n in expected_acks.items() if n != got_acks.get(c, 0)}
+            unanswered = sum(max(0, n) for n in missing.values())
+            n_expected = sum(expected_acks.values())
+            if missing:
+                notes.append(f"COMMAND_ACKs missing (+) or extra (-) by command: {missing}")
         alive = sitl.proc.poll() is None
         api.command(M.MAV_CMD_IMAGE_STOP_CAPTURE, comp=CAMERA, timeout=2)
         api.command(M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 0)  # HEARTBEAT back to its default rate, whatever happened
@@ -550,8 +619,10 @@ def fuzz_flight(seed: int, packets: int, speed: str = "1", rate_hz: float = 250.
                     landed = True
                     break
         return FuzzResult(seed, packets, per_cat, fuzz_wall, api_watch.max_gap_s, gcs_watch.max_gap_s, max_dev,
-                          rss0, rss1, sum(expected_acks.values()), unanswered, answers, landed, alive, None, notes)
+                          rss0, rss1, n_expected, unanswered, answers, landed, alive, None, notes, sources, misrouted)
     finally:
+        if srcs is not None:
+            srcs.close()
         api.conn.close()
         gcs.conn.close()
         code, out = sitl.stop()
@@ -619,6 +690,29 @@ def _count_acks(sock, vehicle_addr, datagrams, command=M.MAV_CMD_REQUEST_MESSAGE
     return n
 
 
+def _cross_link_replay(sitl, replays: int) -> dict:
+    """A signed frame accepted on one link, copied to the other `replays` times: how many were accepted there."""
+    socks = {}
+    for link, port in (("api", sitl.api_port), ("gcs", sitl.gcs_port)):
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.bind(("127.0.0.1", port))
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
+        s.setblocking(False)
+        socks[link] = s
+    out = {}
+    try:
+        good = _Signer(KEY, 255, 190)
+        for src, dst in (("api", "gcs"), ("gcs", "api")):
+            legit = good.frame(_request())
+            out[f"{src}_original"] = _count_acks(socks[src], sitl.link_address(src), [legit])
+            out[f"{src}_to_{dst}"] = _count_acks(socks[dst], sitl.link_address(dst), [legit] * replays)
+        out["offered"] = replays
+    finally:
+        for s in socks.values():
+            s.close()
+    return out
+
+
 def signing_check(count: int = 1000, replays: int = 100, speed: str = "max", strict_api: bool = False) -> dict:
     """Per link: accepted counts of unsigned, wrong-key, replayed, forged-timestamp and mixed-datagram frames."""
     key_hex = KEY.hex()
@@ -657,6 +751,7 @@ def signing_check(count: int = 1000, replays: int = 100, speed: str = "max", str
                 r["offered"] = dict(unsigned=count, wrong_key=count, mixed=count // 2, replayed=replays, forged=100, legit=20)
                 sock.close()
                 results[link] = r
+            results["cross_link"] = _cross_link_replay(sitl, replays)
         finally:
             code, out = sitl.stop()
         results["strict_api"] = strict_api
@@ -686,6 +781,8 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", default="1", help="sitl --speed (default 1: real time, heartbeat gaps in wall seconds)")
     ap.add_argument("--rate", type=float, default=250.0, help="packets per wall second (default 250)")
     ap.add_argument("--categories", nargs="+", default=list(CATEGORIES), choices=CATEGORIES)
+    ap.add_argument("--sources", type=int, default=1,
+                    help="send the packets from N sockets (peers of the API link); every ACK must reach its asker")
     ap.add_argument("--signing", action="store_true", help="run the signing check instead")
     ap.add_argument("--count", type=int, default=1000, help="(--signing) frames per kind")
     ap.add_argument("--json", type=Path, default=None, help="also write the results here")
@@ -704,15 +801,22 @@ def main(argv=None) -> int:
                       f"{r['wrong_key_after_junk_or_unsigned']}/{o['mixed']} | {r['replayed']}/{o['replayed']} | "
                       f"{r['forged_timestamp']}/{o['forged']} | {r['legit_before']}/{o['legit']} / "
                       f"{r['legit_after_forgery']}/{o['legit']} |")
+            x = res["cross_link"]
+            print(f"a signed frame accepted on one link, replayed on the other: API -> GCS "
+                  f"{x['api_to_gcs']}/{x['offered']} (original {x['api_original']}/1), GCS -> API "
+                  f"{x['gcs_to_api']}/{x['offered']} (original {x['gcs_original']}/1)")
         if a.json:
             a.json.write_text(json.dumps(out, indent=2) + "\n")
         return 0
     results = []
     for seed in a.seeds:
-        r = fuzz_flight(seed, a.packets, a.speed, a.rate, categories=a.categories)
+        r = fuzz_flight(seed, a.packets, a.speed, a.rate, categories=a.categories, sources=a.sources)
         results.append(r)
         print(f"seed {seed}: {'ok' if r.ok else 'FAILED'}; " + "; ".join(r.notes), flush=True)
     print(_table(results))
+    if a.sources > 1:
+        print(f"packets from {a.sources} sockets; COMMAND_ACKs at another socket than the asker's: "
+              + ", ".join(f"seed {r.seed} {r.acks_misrouted}" for r in results))
     print(f"(load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
     if a.json:
         a.json.write_text(json.dumps([asdict(r) for r in results], indent=2) + "\n")

@@ -5,8 +5,9 @@
 
 The script flies a lawnmower (boustrophedon) survey over the 50 m x 50 m search area at 70 m with a
 photo at every survey point (a MAVLink mission with TAKE_PHOTO items), returns to launch and lands.
-Like a ground station it records the telemetry the vehicle sends to the GCS port into a .tlog, so the
-flight can be replayed: `uavsearch replay survey.tlog --scene 3` re-renders each photo's view at the pose
+Like a ground station it records the telemetry the vehicle sends to the GCS port into a .tlog, and counts
+the CAMERA_IMAGE_CAPTURED it hears there: it reports photos received of photos asked (a photo the vehicle
+could not take or write arrives with capture_result 0 and counts as failed). The flight can be replayed: `uavsearch replay survey.tlog --scene 3` re-renders each photo's view at the pose
 in its CAMERA_IMAGE_CAPTURED and runs perception + fusion on them (no uavsearch code flies this survey).
 """
 
@@ -15,6 +16,7 @@ import asyncio
 import math
 import sys
 import threading
+import time
 
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
 from mavsdk.asyncio.plugins.action import ActionAsync
@@ -36,7 +38,23 @@ def lawnmower(half_m: float, spacing_m: float) -> list[tuple[float, float]]:
     return points
 
 
-def record_tlog(path: str, port: int, stop: threading.Event) -> None:
+class Photos:
+    """What the recorder heard of the camera: image indices received, and those that failed."""
+
+    def __init__(self):
+        self.ok: set[int] = set()
+        self.failed: set[int] = set()
+
+    def hear(self, m) -> None:
+        if m.get_type() == "CAMERA_IMAGE_CAPTURED":
+            (self.ok if m.capture_result == 1 else self.failed).add(m.image_index)
+
+    @property
+    def received(self) -> int:
+        return len(self.ok | self.failed)
+
+
+def record_tlog(path: str, port: int, stop: threading.Event, photos: Photos | None = None) -> None:
     """A passive ground station: every packet the vehicle sends to the GCS port goes into a .tlog."""
     import os
 
@@ -49,12 +67,15 @@ def record_tlog(path: str, port: int, stop: threading.Event) -> None:
     conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", dialect="common")
     tlog.attach(conn)
     while not stop.is_set():
-        conn.recv_match(blocking=True, timeout=0.2)
+        m = conn.recv_match(blocking=True, timeout=0.2)
+        if m is not None and photos is not None:
+            photos.hear(m)
     conn.close()
     tlog.close()
 
 
-async def survey(url: str, alt_m: float, half_m: float, spacing_m: float) -> None:
+async def survey(url: str, alt_m: float, half_m: float, spacing_m: float) -> int:
+    """Fly it; the number of photos asked."""
     mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
     try:
         await mavsdk.add_any_connection(url)
@@ -87,6 +108,7 @@ async def survey(url: str, alt_m: float, half_m: float, spacing_m: float) -> Non
             if not armed:
                 break
         print("landed and disarmed", flush=True)
+        return len(items)
     finally:
         mavsdk.destroy()
 
@@ -104,15 +126,24 @@ def main() -> int:
     ap.add_argument("--replay-out", default=None, help="after landing, run `uavsearch replay` into this folder")
     ap.add_argument("--mission", default=None, help="mission file whose perception / fusion the replay uses")
     ap.add_argument("--fusion", default=None, help="fusion method for the replay (default: the mission's)")
+    ap.add_argument("--photo-wait", type=float, default=30.0,
+                    help="after landing, wait up to this many seconds for photos still rendering (default 30)")
     args = ap.parse_args()
     stop = threading.Event()
-    rec = threading.Thread(target=record_tlog, args=(args.tlog, args.gcs_port, stop), daemon=True)
+    photos = Photos()
+    rec = threading.Thread(target=record_tlog, args=(args.tlog, args.gcs_port, stop, photos), daemon=True)
     rec.start()
+    asked = 0
     try:
-        asyncio.run(survey(args.url, args.alt, args.half, args.spacing))
+        asked = asyncio.run(survey(args.url, args.alt, args.half, args.spacing))
+        end = time.monotonic() + args.photo_wait
+        while photos.received < asked and time.monotonic() < end:
+            time.sleep(0.1)
     finally:
         stop.set()
         rec.join(timeout=5)
+    print(f"photos received {len(photos.ok)} of {asked} asked"
+          + (f" ({len(photos.failed)} more reported failed)" if photos.failed else ""), flush=True)
     print(f"telemetry log: {args.tlog}")
     if args.replay_out:
         if args.scene is None:
@@ -128,7 +159,7 @@ def main() -> int:
 
         return uavsearch_main(cmd)
     print(f"replay it: uavsearch replay {args.tlog} --scene SEED --out DIR")
-    return 0
+    return 0 if len(photos.ok) == asked else 1
 
 
 if __name__ == "__main__":

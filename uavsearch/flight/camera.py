@@ -5,6 +5,11 @@ simulation instant, writes `images/img_NNNN.png` in the run directory and return
 with the estimated pose the vehicle believed it had (what CAMERA_IMAGE_CAPTURED carries), so that
 downstream perception sees the same estimate-vs-truth gap a real drone has. Every capture is also
 appended to `captures.jsonl` with both poses, for evaluation and replay.
+
+Storage faults never stop the vehicle: a render or a write that fails (a full disk, a read-only folder) is a
+failed capture whose record says why, and interval capture stops by itself when the run directory's disk has
+less than a free-space floor left. No shot is lost in silence: a shot that cannot be queued is refused (the
+caller says so), a due interval shot waits for a free slot.
 """
 
 from __future__ import annotations
@@ -12,8 +17,10 @@ from __future__ import annotations
 import json
 import logging
 import math
+import shutil
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
+import dataclasses
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -41,6 +48,7 @@ class CaptureRecord:
     q_wxyz: tuple  # estimated vehicle attitude (as PX4 fills CAMERA_IMAGE_CAPTURED.q)
     true_position_enu_m: tuple
     true_rpy_rad: tuple
+    error: str = ""  # why the capture failed (a render or a write), for the operator; "" when ok
 
     @property
     def file_url(self) -> str:
@@ -53,7 +61,10 @@ class CaptureRejected(ValueError):
 
 CAPTURE_MIN_INTERVAL_S = 0.1  # 10 Hz of simulation time for a series
 CAPTURE_MAX_COUNT = 10_000  # per IMAGE_START_CAPTURE; 0 = until IMAGE_STOP_CAPTURE
-MAX_PENDING = 4  # shots triggered and not yet reported; a trigger beyond that is dropped (a busy camera)
+MAX_PENDING = 4  # shots commanded or interval-triggered and not yet reported; a command beyond that is refused
+NO_SCENE = "no scene to render"  # the error of every capture of a vehicle started without a camera scene
+MAX_QUEUED = 64  # shots a mission may queue (its photo items cannot be refused); beyond: skipped, with a notice
+CAPTURE_MIN_FREE_MB = 200.0  # interval capture stops below this much free disk (0.1 s interval: ~13 MB a minute)
 
 
 @dataclass(frozen=True)
@@ -77,19 +88,22 @@ class Camera:
     A trigger records the pose at once and hands the render to the camera's own thread (the renderer
     works in its worker process, so the thread mostly waits on a pipe and the GIL is free): the runner's
     loop keeps flying, heartbeating and answering while images render, whatever was asked. `update()`
-    returns the shots finished since the last call, in trigger order. At most MAX_PENDING shots wait;
-    a trigger beyond that is dropped and counted, as a busy camera skips frames.
+    returns the shots finished since the last call, in trigger order. `notices` collects what the operator
+    must hear (interval capture stopped, a mission photo skipped); the endpoint sends them as STATUSTEXT.
+    `min_free_mb()` is the free-space floor for interval capture.
     """
 
     def __init__(self, vehicle, intrinsics: CameraIntrinsics, run_dir: Path, render: Callable[[CameraPose], np.ndarray] | None,
-                 home_alt_amsl_m: Callable[[], float] | None = None):
+                 home_alt_amsl_m: Callable[[], float] | None = None, min_free_mb: Callable[[], float] | None = None):
         self.vehicle = vehicle
+        self.min_free_mb = min_free_mb or (lambda: CAPTURE_MIN_FREE_MB)
+        self.notices: list[str] = []
         self.home_alt_amsl_m = home_alt_amsl_m  # the autopilot's home, for relative altitudes
         self.intrinsics = intrinsics
         self.run_dir = Path(run_dir)
         self.render = render
         self.image_count = 0
-        self.dropped = 0  # triggers lost because MAX_PENDING shots were waiting
+        self.dropped = 0  # mission shots skipped because MAX_QUEUED were waiting (each one noticed)
         self.interval_s = 0.0
         self.remaining = 0  # interval captures left; -1 = until stopped
         self._next_us: int | None = None
@@ -117,6 +131,25 @@ class Camera:
         """Interval capture running or shots still rendering: the runner must keep calling update()."""
         return self.remaining != 0 or bool(self._inflight)
 
+    @property
+    def queue_full(self) -> bool:
+        """A commanded shot now would wait behind MAX_PENDING others: refuse it (TEMPORARILY_REJECTED)."""
+        return len(self._inflight) >= MAX_PENDING
+
+    def free_mb(self) -> float:
+        """Free space on the run directory's disk, MB (infinite when it cannot be read: never a reason to stop)."""
+        try:
+            return shutil.disk_usage(self.run_dir).free / 1e6
+        except OSError:
+            return math.inf
+
+    def low_on_disk(self) -> str | None:
+        """Why interval capture must not run (free space below the floor), else None."""
+        free, floor = self.free_mb(), float(self.min_free_mb())
+        if free >= floor:
+            return None
+        return f"{free:.0f} MB free on {self.run_dir} (floor {floor:g} MB)"
+
     @staticmethod
     def check_start(interval_s: float, count: float) -> tuple[float, int]:
         """IMAGE_START_CAPTURE's (interval, total images) as numbers the camera can honour, else CaptureRejected."""
@@ -143,23 +176,29 @@ class Camera:
         self._next_us = None
 
     def update(self) -> list[CaptureRecord]:
-        """Fire the interval trigger if due (missed ticks are skipped, never caught up); the shots rendered since."""
+        """Fire the interval trigger if due and a slot is free (a due shot waits for one; missed ticks are skipped,
+        never caught up); stop the series below the free-space floor. The shots rendered since the last call."""
         now = self.vehicle.time_us
-        if self.remaining != 0 and self._next_us is not None and now >= self._next_us:
-            self.trigger()
-            period = int(self.interval_s * 1e6)
-            self._next_us += period * max(1, (now - self._next_us) // period + 1)
-            if self.remaining > 0:
-                self.remaining -= 1
+        if self.remaining != 0 and self._next_us is not None and now >= self._next_us and not self.queue_full:
+            low = self.low_on_disk()
+            if low is not None:
+                self.stop()
+                self.notices.append(f"camera: interval capture stopped: {low}")
+            else:
+                self.trigger()
+                period = int(self.interval_s * 1e6)
+                self._next_us += period * max(1, (now - self._next_us) // period + 1)
+                if self.remaining > 0:
+                    self.remaining -= 1
         out = []
         while self._inflight and self._inflight[0].done():
             out.append(self._inflight.popleft().result())
         return out
 
-    def trigger(self) -> bool:
-        """The shutter: record the pose now and start its render; False (and counted) when the camera is busy."""
-        if len(self._inflight) >= MAX_PENDING:
-            self.dropped += 1
+    def trigger(self, limit: int = MAX_PENDING) -> bool:
+        """The shutter: record the pose now and start its render; False when `limit` shots already wait
+        (the caller refuses the shot or says it was skipped)."""
+        if len(self._inflight) >= limit:
             return False
         v = self.vehicle
         ts = v.true_state
@@ -205,30 +244,65 @@ class Camera:
             self._executor = None
         return out
 
+    def queue_mission_shot(self) -> None:
+        """A mission's photo item: queued even behind MAX_PENDING (it cannot be refused), skipped with a notice
+        only beyond MAX_QUEUED."""
+        if not self.trigger(limit=MAX_QUEUED):
+            self.dropped += 1
+            self.notices.append(f"camera: {MAX_QUEUED} photos waiting, mission photo skipped")
+
     def _record(self, shot: _Shot) -> CaptureRecord:
-        """Render (in the camera thread), write the PNG and the captures.jsonl line."""
+        """Render (in the camera thread), write the PNG and the captures.jsonl line; never raises: whatever fails
+        (render, PNG, the log line, e.g. on a full disk) makes a failed capture saying why."""
         path = self.run_dir / "images" / f"img_{shot.index:04d}.png"
-        ok = False
+        error = NO_SCENE if self.render is None else ""
         if self.render is not None:
             try:
                 r, p, y = shot.true_rpy_rad
                 pose = camera_pose_from_vehicle(np.asarray(shot.true_position_enu_m), r, p, y, gimbal_stabilised=True)
                 rgb = self.render(pose)
-                path.parent.mkdir(parents=True, exist_ok=True)
-                import cv2  # lazy: ~50 ms on every `uavsearch` command; the renderer has loaded it by now
-
-                ok = bool(cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., :3][..., ::-1])))
-            except Exception:  # noqa: BLE001 - a failed render is a failed capture (capture_result 0), not a crash
+            except Exception as e:  # noqa: BLE001 - a failed render is a failed capture (capture_result 0), not a crash
                 log.warning("capture %d failed", shot.index, exc_info=True)
+                error = f"render failed: {type(e).__name__}"
+            else:
+                error = _write_png(path, rgb)
         rec = CaptureRecord(
-            index=shot.index, time_us=shot.time_us, path=str(path), ok=ok, lat_deg=shot.lat_deg, lon_deg=shot.lon_deg,
-            alt_amsl_m=shot.alt_amsl_m, alt_rel_home_m=shot.alt_rel_home_m, q_wxyz=shot.q_wxyz,
-            true_position_enu_m=shot.true_position_enu_m, true_rpy_rad=shot.true_rpy_rad,
+            index=shot.index, time_us=shot.time_us, path=str(path), ok=not error, lat_deg=shot.lat_deg,
+            lon_deg=shot.lon_deg, alt_amsl_m=shot.alt_amsl_m, alt_rel_home_m=shot.alt_rel_home_m, q_wxyz=shot.q_wxyz,
+            true_position_enu_m=shot.true_position_enu_m, true_rpy_rad=shot.true_rpy_rad, error=error,
         )
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        with open(self.run_dir / "captures.jsonl", "a") as f:
-            f.write(json.dumps({**asdict(rec), "file_url": rec.file_url if ok else ""}) + "\n")
+        log_path = self.run_dir / "captures.jsonl"
+        try:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            with open(log_path, "a") as f:
+                f.write(json.dumps({**asdict(rec), "file_url": rec.file_url if rec.ok else ""}) + "\n")
+        except (OSError, ValueError) as e:  # a full disk: the image has no record, so the capture failed
+            rec = dataclasses.replace(rec, ok=False, error=error or f"{_why(e)} writing {log_path}")
         return rec
+
+
+def _why(e: Exception) -> str:
+    return getattr(e, "strerror", None) or type(e).__name__
+
+
+def _write_png(path: Path, rgb: np.ndarray) -> str:
+    """Write the image; "" when written, else why not (cv2 reports a failed write as False, or raises)."""
+    import cv2  # lazy: ~50 ms on every `uavsearch` command; the renderer has loaded it by now
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        ok, png = cv2.imencode(".png", np.ascontiguousarray(rgb[..., :3][..., ::-1]))
+        if not ok:
+            return "PNG encoding failed"
+        with open(path, "wb") as f:
+            f.write(png.tobytes())
+        return ""
+    except (OSError, cv2.error) as e:
+        try:
+            path.unlink(missing_ok=True)  # no half image for a reader to trip on
+        except OSError:
+            pass
+        return f"{_why(e)} writing {path}"
 
 
 SCENE_FILE = "scene.json"  # the vehicle's ground truth, beside its images (evaluation reads it, never the search)

@@ -6,6 +6,7 @@ mission file both go through it.
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from typing import Iterable, Literal
 
@@ -14,6 +15,14 @@ from ..errors import UavsearchError
 
 class ParamError(UavsearchError):
     pass
+
+
+def _float32(v: float) -> float:
+    """`v` rounded to float32 (what PARAM_VALUE / PARAM_SET carry); out-of-range values become +-inf."""
+    try:
+        return struct.unpack("<f", struct.pack("<f", v))[0]
+    except OverflowError:
+        return float("inf") if v > 0 else float("-inf")
 
 
 @dataclass(frozen=True)
@@ -77,9 +86,17 @@ class ParamStore:
         if d.readonly and not force:
             raise ParamError(f"{name} is read-only")
         v = float(value)
-        if v != v or not d.min <= v <= d.max:
-            raise ParamError(f"{name}={value} outside [{d.min}, {d.max}] {d.unit}".rstrip())
-        stored = int(round(v)) if d.type == "int" else v
+        if d.type == "float":
+            # A float parameter travels as float32: 0.01 arrives as 0.00999999977648. Bounds compare at float32
+            # (both sides rounded), and a value equal to a bound there is stored as the bound.
+            v32, lo, hi = _float32(v), _float32(d.min), _float32(d.max)
+            if v32 != v32 or not lo <= v32 <= hi:
+                raise ParamError(f"{name}={value} outside [{d.min}, {d.max}] {d.unit}".rstrip())
+            stored = d.min if v32 == lo else d.max if v32 == hi else v
+        else:
+            if v != v or not d.min <= v <= d.max:
+                raise ParamError(f"{name}={value} outside [{d.min}, {d.max}] {d.unit}".rstrip())
+            stored = int(round(v))
         self._values[name] = stored
         for cb in self._listeners:
             cb(name, stored)

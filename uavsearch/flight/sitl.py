@@ -24,7 +24,7 @@ from pathlib import Path
 from ..errors import UavsearchError, run_command
 from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import RUNS_DIR
-from .camera import Camera, background_scene_renderer
+from .camera import CAPTURE_MIN_FREE_MB, Camera, background_scene_renderer
 from .commander import Commander, autopilot_params
 from .lockstep import LockstepGate
 from .mavlink.endpoint import MavlinkEndpoint
@@ -69,6 +69,8 @@ SITL_PARAMS = [
              description="occupied cells of the simulated scene (-1: none)"),
     ParamDef("SIM_SCENE_HASH", 0, 0, 2**31 - 1, type="int", readonly=True,
              description="CRC-32 (31 bits) of the scene spec file it was given (0: generated from seed and cells)"),
+    ParamDef("SIM_CAM_FREE_MB", CAPTURE_MIN_FREE_MB, 0.0, 1e7, unit="MB",
+             description="interval capture stops (and does not start) below this much free disk in the run directory"),
 ]
 
 
@@ -130,7 +132,8 @@ class Sitl:
         self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)  # the scene builds meanwhile
         self.commander = Commander(self.params, self.vehicle, cfg.home, autopilot_hz=cfg.autopilot_hz)
         self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render,
-                             home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m)
+                             home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m,
+                             min_free_mb=lambda: self.params["SIM_CAM_FREE_MB"])
         links = []
         if cfg.api_port:
             links.append(LinkConfig("api", cfg.api_port, local_port=cfg.api_local_port, signing_key=cfg.signing_key,

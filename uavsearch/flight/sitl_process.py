@@ -49,11 +49,13 @@ class SitlProcess:
     `wait=False` returns as soon as the process is started, so its start-up (imports, physics) runs
     while the caller does its own; `wait_ready()` then waits for the ready line.
     `progress(line)`, when given, hears every 2 s how long the start has taken and what the vehicle last said.
+    `env`, when given, is the vehicle's whole environment (tests pass one built from scratch, so nothing an
+    earlier test exported can hide a bug); by default it inherits this process's.
     """
 
     def __init__(self, run_dir: Path, *args: str, api_port: int | None = None, gcs_port: int | None = None,
                  speed: str = "max", lockstep: bool = False, camera: bool = True, timeout_s: float = 120.0,
-                 wait: bool = True, progress=None):
+                 wait: bool = True, progress=None, env: dict | None = None):
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         self.run_dir = run_dir
@@ -69,7 +71,7 @@ class SitlProcess:
             cmd.append("--no-camera-scene")
         self._out = open(self.log_path, "w")
         self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
+                                     env={**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
                                      start_new_session=True)  # Ctrl-C reaches the client only: it lands first
         self.banner: list[str] = []  # the lines up to "ready" (ports, signing, run directory)
         self._start = time.monotonic()
@@ -102,6 +104,15 @@ class SitlProcess:
                 said = [ln.strip() for ln in text.splitlines() if ln.strip()][-1:] or ["starting Python"]
                 self.progress(f"vehicle   starting ({said[0]})  {time.monotonic() - self._start:4.0f} s")
             time.sleep(0.02)
+
+    def link_address(self, name: str) -> tuple[str, int]:
+        """Where link `name` ("api" or "gcs") listens (its source port): a client that talks first sends here."""
+        for line in self.banner:
+            words = line.split()
+            if words[:2] == [name.upper(), "link"] and "from" in words:
+                host, _, port = words[words.index("from") + 1].rpartition(":")
+                return host, int(port)
+        raise SitlStartError(f"no {name} link in the banner")
 
     def wait_file(self, name: str) -> Path:
         """A file the vehicle writes into its run directory at start (written whole, by rename)."""

@@ -68,3 +68,51 @@ class Client:
 
     def close(self) -> None:
         self.conn.close()
+
+
+def clean_env(home) -> dict:
+    """An environment built from scratch for a vehicle process: nothing an earlier test exported leaks in."""
+    import os
+    import sys
+
+    return {"PATH": f"{os.path.dirname(sys.executable)}:/usr/local/bin:/usr/bin:/bin", "HOME": str(home),
+            "LANG": "C.UTF-8", "TMPDIR": str(home)}
+
+
+class PeerClient:
+    """A pymavlink client on its own UDP socket that talks first (udpout), as a script beside a ground station
+    does: the vehicle learns its address from its first frame and answers it there."""
+
+    def __init__(self, addr: tuple[str, int], sysid: int, compid: int = 190, signing_key: bytes | None = None):
+        from pymavlink.dialects.v20 import common as v20
+
+        self.conn = mavutil.mavlink_connection(f"udpout:{addr[0]}:{addr[1]}", source_system=sysid,
+                                               source_component=compid, dialect="common")
+        self.conn.mav = v20.MAVLink(self.conn, srcSystem=sysid, srcComponent=compid)  # MAVLink 2 from the first frame
+        self.conn.mav.robust_parsing = True
+        self.conn.WIRE_PROTOCOL_VERSION = v20.WIRE_PROTOCOL_VERSION
+        self.conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        if signing_key is not None:
+            self.conn.setup_signing(signing_key, sign_outgoing=True)
+        self.sysid = sysid
+        self.send_heartbeat()
+
+    @property
+    def mav(self):
+        return self.conn.mav
+
+    def send_heartbeat(self) -> None:
+        self.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+
+    def drain(self) -> list:
+        """Every message waiting now (non-blocking)."""
+        out = []
+        while True:
+            m = self.conn.recv_msg()
+            if m is None:
+                return out
+            if m.get_type() != "BAD_DATA":
+                out.append(m)
+
+    def close(self) -> None:
+        self.conn.close()

@@ -8,12 +8,13 @@ believed it had and the file:// URL of the PNG.
 from __future__ import annotations
 
 import math
+import shutil
 
 from pymavlink.dialects.v20 import common as M
 
-from ..camera import CAMERA_COMPID, Camera, CaptureRecord, CaptureRejected
+from ..camera import CAMERA_COMPID, MAX_PENDING, NO_SCENE, Camera, CaptureRecord, CaptureRejected
 from ..commander import Result
-from .links import Link
+from .links import Link, Peer
 from .streams import message_id
 
 CAMERA_COMMANDS = {
@@ -33,6 +34,15 @@ _REQUESTS = {
 }
 
 
+def _disk_mib(path) -> tuple[float, float, float]:
+    """(total, used, free) MiB of the disk holding `path` (zeros when it cannot be read)."""
+    try:
+        u = shutil.disk_usage(path)
+    except OSError:
+        return 0.0, 0.0, 0.0
+    return u.total / 2**20, u.used / 2**20, u.free / 2**20
+
+
 class CameraProtocol:
     """Serves the camera component's commands and messages for one Camera."""
 
@@ -45,14 +55,22 @@ class CameraProtocol:
                   CAMERA_COMPID)
 
     def broadcast_capture(self, rec: CaptureRecord) -> None:
+        """CAMERA_IMAGE_CAPTURED to every destination; a failed write or render also says why (STATUSTEXT)."""
         self.ep.broadcast(self._capture_message(rec), CAMERA_COMPID)
+        if rec.error and rec.error != NO_SCENE:
+            self.ep.statustext(3, f"camera: capture {rec.index} failed: {rec.error}", CAMERA_COMPID)
 
-    def command(self, link: Link, m, command: int, p: list) -> None:
-        result = self._command(link, m, command, p)
+    def send_notices(self) -> None:
+        for text in self.camera.notices:
+            self.ep.statustext(4, text, CAMERA_COMPID)
+        self.camera.notices.clear()
+
+    def command(self, peer: Peer, m, command: int, p: list) -> None:
+        result = self._command(peer, m, command, p)
         if result is not None:
-            self.ep.ack(link, m, command, result, CAMERA_COMPID)
+            self.ep.ack(peer, m, command, result, CAMERA_COMPID)
 
-    def _command(self, link: Link, m, command: int, p: list) -> Result | None:
+    def _command(self, peer: Peer, m, command: int, p: list) -> Result | None:
         """None when the command was already acknowledged."""
         c = self.camera
         if command == M.MAV_CMD_REQUEST_MESSAGE:
@@ -62,8 +80,8 @@ class CameraProtocol:
             msg = self._message(mid)
             if msg is None:
                 return Result.UNSUPPORTED
-            self.ep.ack(link, m, command, Result.ACCEPTED, CAMERA_COMPID)
-            link.send(msg, CAMERA_COMPID)
+            self.ep.ack(peer, m, command, Result.ACCEPTED, CAMERA_COMPID)
+            peer.send(msg, CAMERA_COMPID)
             return None
         if command == M.MAV_CMD_IMAGE_START_CAPTURE:
             if not c.available:
@@ -71,11 +89,18 @@ class CameraProtocol:
             try:  # bounded count and interval, checked before anything is promised
                 interval, count = c.check_start(p[1], p[2])
             except CaptureRejected as e:
-                self.ep.cmd.text(4, f"capture denied: {e}"[:50])
+                self.ep.cmd.text(4, f"capture denied: {e}")
+                return Result.DENIED
+            if c.queue_full:  # refused, never accepted and then skipped: the client knows to try again
+                self.ep.cmd.text(4, f"camera busy: {MAX_PENDING} photos rendering, try again")
+                return Result.TEMPORARILY_REJECTED
+            low = c.low_on_disk() if count != 1 else None
+            if low is not None:
+                self.ep.cmd.text(4, f"interval capture denied: {low}")
                 return Result.DENIED
             # ACK now; the images follow as CAMERA_IMAGE_CAPTURED once rendered (Camera renders in its own
             # thread, the endpoint broadcasts what update() returns): clients wait for the ACK, then listen.
-            self.ep.ack(link, m, command, Result.ACCEPTED, CAMERA_COMPID)
+            self.ep.ack(peer, m, command, Result.ACCEPTED, CAMERA_COMPID)
             c.start(interval, count)
             return None
         if command == M.MAV_CMD_IMAGE_STOP_CAPTURE:
@@ -85,8 +110,8 @@ class CameraProtocol:
             return Result.ACCEPTED if p[1] == M.CAMERA_MODE_IMAGE else Result.DENIED
         req = _REQUESTS.get(command)
         if req is not None:
-            self.ep.ack(link, m, command, Result.ACCEPTED, CAMERA_COMPID)
-            link.send(self._message(req), CAMERA_COMPID)
+            self.ep.ack(peer, m, command, Result.ACCEPTED, CAMERA_COMPID)
+            peer.send(self._message(req), CAMERA_COMPID)
             return None
         return Result.UNSUPPORTED
 
@@ -103,12 +128,13 @@ class CameraProtocol:
             )
         if mid == M.MAVLINK_MSG_ID_CAMERA_SETTINGS:
             return M.MAVLink_camera_settings_message(t, M.CAMERA_MODE_IMAGE, math.nan, math.nan, 0)
-        if mid == M.MAVLINK_MSG_ID_STORAGE_INFORMATION:
-            return M.MAVLink_storage_information_message(t, 1, 1, M.STORAGE_STATUS_READY, 100000.0, 0.0, 100000.0, 100.0,
+        if mid == M.MAVLINK_MSG_ID_STORAGE_INFORMATION:  # the run directory's disk, in MiB
+            total, used, free = _disk_mib(c.run_dir)
+            return M.MAVLink_storage_information_message(t, 1, 1, M.STORAGE_STATUS_READY, total, used, free, 100.0,
                                                          100.0, 0, b"run", 0)
         if mid == M.MAVLINK_MSG_ID_CAMERA_CAPTURE_STATUS:
             return M.MAVLink_camera_capture_status_message(
-                t, 3 if c.capturing_interval else 0, 0, float(c.interval_s), 0, 100000.0, c.image_count, 0
+                t, 3 if c.capturing_interval else 0, 0, float(c.interval_s), 0, _disk_mib(c.run_dir)[2], c.image_count, 0
             )
         return None
 

@@ -4,7 +4,8 @@ The runner calls `poll()` and `send_streams()` at a fixed simulation-time rate, 
 the endpoint never blocks and never advances time itself, and telemetry timestamps are simulation time.
 Each capability (streams, commands, params, mission, camera, offboard, ftp) is its own module, as MAVSDK
 splits plugins; this class owns what they share: the links, routing incoming messages to the module that
-serves them, the commander's events (texts, mission progress, captures) and the lockstep hold. Malformed
+serves them (each handler gets the Peer that sent the message, and replies to it alone), the commander's
+events (texts, mission progress, captures: to every destination of every link) and the lockstep hold. Malformed
 or badly signed packets are dropped and counted (SYS_STATUS.errors_comm), never raised.
 """
 
@@ -23,7 +24,8 @@ from ..params import ParamStore
 from .camera import CameraProtocol
 from .commands import Commands
 from .ftp import FtpProtocol
-from .links import AUTOPILOT_COMPID, Link, LinkConfig
+from .links import AUTOPILOT_COMPID, Link, LinkConfig, Peer
+from .signing import SigningRecord
 from .mission import MissionProtocol
 from .offboard import Offboard
 from .params import ParamProtocol
@@ -42,12 +44,15 @@ class MavlinkEndpoint:
         self.vehicle = commander.vehicle
         self.camera = camera
         self.sysid = sysid
-        self.links = [Link(c, sysid) for c in links]
+        records: dict = {}  # one signing record per key, shared by the links that hold it
+        self.links = [Link(c, sysid, records.setdefault(c.signing_key, SigningRecord()) if c.signing_key else None, i)
+                      for i, c in enumerate(links)]
         self.wall_s = 0.0
         self.lockstep: LockstepGate | None = None  # set by a runner in lockstep (see lockstep.py)
         self._sent_state = None
         self.acks_sent = 0  # COMMAND_ACKs sent (commands.py checks each command got exactly one)
         self._hold_hb_wall = -math.inf
+        self._text_id = 0  # the id of the last chunked STATUSTEXT
         self._fds = [link.sock.fileno() for link in self.links]
         self.telemetry = Telemetry(commander, lambda: self.rx_dropped)
         self.camera_protocol = CameraProtocol(self, camera) if camera is not None else None
@@ -85,11 +90,12 @@ class MavlinkEndpoint:
         for l in self.links:
             l.send(msg, compid)
 
-    def ack(self, link: Link, m, command: int, result: int, compid: int = AUTOPILOT_COMPID,
+    def ack(self, peer: Peer, m, command: int, result: int, compid: int = AUTOPILOT_COMPID,
             result_param2: int = 0) -> None:
+        """COMMAND_ACK to the peer that sent command `m` (and to nobody else)."""
         self.acks_sent += 1
-        link.send(link.mav.command_ack_encode(command, int(result), 0, result_param2, m.get_srcSystem(),
-                                              m.get_srcComponent()), compid)
+        peer.send(M.MAVLink_command_ack_message(command, int(result), 0, result_param2, m.get_srcSystem(),
+                                                m.get_srcComponent()), compid)
 
     def send_state_if_changed(self) -> None:
         """HEARTBEAT + EXTENDED_SYS_STATE at once when arming, mode or landed state changed."""
@@ -103,7 +109,7 @@ class MavlinkEndpoint:
     def flush_events(self) -> None:
         """The commander's outbox: status texts, mission progress, captures it triggered (mission items)."""
         for t in self.cmd.texts:
-            self.broadcast(M.MAVLink_statustext_message(t.severity, t.text.encode()[:50], 0, 0))
+            self.statustext(t.severity, t.text)
         self.cmd.texts.clear()
         for kind, seq in self.cmd.mission_events:
             if kind == "reached":
@@ -113,14 +119,30 @@ class MavlinkEndpoint:
         self.cmd.mission_events.clear()
         for _item in self.cmd.captures:
             if self.camera is not None:
-                self.camera.trigger()  # reported by send_captures() once rendered
+                self.camera.queue_mission_shot()  # reported by send_captures() once rendered
         self.cmd.captures.clear()
 
     def send_captures(self) -> None:
-        """CAMERA_IMAGE_CAPTURED for every shot the camera finished (interval triggers fire here too)."""
+        """CAMERA_IMAGE_CAPTURED for every shot the camera finished (interval triggers fire here too), and what
+        the camera has to say (interval capture stopped, a photo skipped)."""
         if self.camera is not None and self.camera.busy:
             for rec in self.camera.update():
                 self.camera_protocol.broadcast_capture(rec)
+        if self.camera is not None and self.camera.notices:
+            self.camera_protocol.send_notices()
+
+    def statustext(self, severity: int, text: str, compid: int = AUTOPILOT_COMPID) -> None:
+        """STATUSTEXT to every destination; a text longer than one message (50 characters) goes in chunks
+        sharing an id, as MAVLink 2 defines (a short or empty chunk ends it)."""
+        data = text.encode("utf-8", "replace")
+        if len(data) <= 50:
+            return self.broadcast(M.MAVLink_statustext_message(severity, data, 0, 0), compid)
+        self._text_id = self._text_id % 0xFFFF + 1
+        chunks = [data[i:i + 50] for i in range(0, len(data), 50)][:255]
+        if len(chunks[-1]) == 50 and len(chunks) < 255:
+            chunks.append(b"")
+        for seq, chunk in enumerate(chunks):
+            self.broadcast(M.MAVLink_statustext_message(severity, chunk, self._text_id, seq), compid)
 
     def _flush_links(self) -> None:
         for link in self.links:
@@ -136,15 +158,15 @@ class MavlinkEndpoint:
             readable = set(select.select(self._fds, [], [], 0)[0])
         except (OSError, ValueError):
             readable = set(self._fds)
+        self.mission.retry()
         for link in self.links:
-            if link.upload is not None:
-                self.mission.retry(link)
+            link.expire(wall_s)
             if link.sock.fileno() not in readable:
                 continue
-            for m in link.receive():
+            for peer, m in link.receive(wall_s):
                 n += 1
                 try:
-                    self._handle(link, m)
+                    self._handle(peer, m)
                 except Exception as e:  # a packet must never take the vehicle down
                     link.rx_dropped += 1
                     log.debug("dropped %s", m, exc_info=True)
@@ -174,17 +196,18 @@ class MavlinkEndpoint:
         self._flush_links()
 
     # ------------------------------------------------------------------ incoming
-    def _handle(self, link: Link, m) -> None:
+    def _handle(self, peer: Peer, m) -> None:
+        """Route `m` to its handler with the peer that sent it: every reply goes back to that peer."""
         if m.get_srcSystem() == self.sysid and m.get_srcComponent() in (AUTOPILOT_COMPID, CAMERA_COMPID):
             return  # our own echo
         h = self._handlers.get(m.get_type())
         if h is not None:
-            h(link, m)
+            h(peer, m)
 
-    def _on_heartbeat(self, link: Link, m) -> None:
+    def _on_heartbeat(self, peer: Peer, m) -> None:
         if m.type not in (M.MAV_TYPE_CAMERA, M.MAV_TYPE_GIMBAL) and m.get_srcSystem() != self.sysid:
             self.cmd.on_gcs_heartbeat()
 
-    def _on_timesync(self, link: Link, m) -> None:
+    def _on_timesync(self, peer: Peer, m) -> None:
         if m.tc1 == 0:
-            link.send(M.MAVLink_timesync_message(int(self.vehicle.time_us) * 1000, m.ts1))
+            peer.send(M.MAVLink_timesync_message(int(self.vehicle.time_us) * 1000, m.ts1))

@@ -12,7 +12,7 @@ import struct
 
 from pymavlink.dialects.v20 import common as M
 
-from .links import AUTOPILOT_COMPID, Link
+from .links import AUTOPILOT_COMPID, Peer
 
 # Opcodes and error codes (MAVLink FTP).
 OP_TERMINATE_SESSION, OP_RESET_SESSIONS, OP_LIST_DIRECTORY, OP_OPEN_FILE_RO = 1, 2, 3, 4
@@ -29,7 +29,7 @@ class FtpProtocol:
         self.ep = ep
         self.messages = {"FILE_TRANSFER_PROTOCOL": self._on_ftp}
 
-    def _on_ftp(self, link: Link, m) -> None:
+    def _on_ftp(self, peer: Peer, m) -> None:
         if not self.ep.for_me(m.target_system) or m.target_component not in (0, AUTOPILOT_COMPID):
             return
         payload = bytes(m.payload)
@@ -45,5 +45,5 @@ class FtpProtocol:
         else:
             reply, data = OP_NAK, bytes([ERR_UNKNOWN_COMMAND])
         out = _HEADER.pack((seq + 1) & 0xFFFF, session, reply, len(data), opcode, 0, 0, offset) + data
-        link.send(M.MAVLink_file_transfer_protocol_message(0, m.get_srcSystem(), m.get_srcComponent(),
+        peer.send(M.MAVLink_file_transfer_protocol_message(0, m.get_srcSystem(), m.get_srcComponent(),
                                                            list(out.ljust(251, b"\0"))))

@@ -12,7 +12,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as M
 
 from ..messages import TrajectorySetpoint
-from .links import AUTOPILOT_COMPID, Link
+from .links import AUTOPILOT_COMPID, Peer
 
 
 class Offboard:
@@ -20,7 +20,7 @@ class Offboard:
         self.ep = ep
         self.messages = {"SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target_local_ned}
 
-    def _on_set_position_target_local_ned(self, link: Link, m) -> None:
+    def _on_set_position_target_local_ned(self, peer: Peer, m) -> None:
         ep = self.ep
         if not (ep.for_me(m.target_system) and m.target_component in (0, AUTOPILOT_COMPID)):
             return
@@ -32,7 +32,7 @@ class Offboard:
         yaw = nan if mask & 1024 else float(m.yaw)
         yawrate = nan if mask & 2048 else float(m.yaw_rate)
         if any(math.isinf(x) for x in (*p, *v, *a, yaw, yawrate)):
-            link.rx_dropped += 1  # NaN means "not controlled"; infinity means nothing
+            peer.link.rx_dropped += 1  # NaN means "not controlled"; infinity means nothing
             return
         frame = m.coordinate_frame
         if frame == M.MAV_FRAME_BODY_NED or frame == M.MAV_FRAME_BODY_OFFSET_NED:

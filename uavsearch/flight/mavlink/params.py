@@ -12,7 +12,7 @@ import struct
 from pymavlink.dialects.v20 import common as M
 
 from ..params import ParamError, ParamStore
-from .links import AUTOPILOT_COMPID, Link
+from .links import AUTOPILOT_COMPID, Peer
 
 _INT_TYPES = (M.MAV_PARAM_TYPE_INT32, M.MAV_PARAM_TYPE_UINT32, M.MAV_PARAM_TYPE_INT8, M.MAV_PARAM_TYPE_UINT8,
               M.MAV_PARAM_TYPE_INT16, M.MAV_PARAM_TYPE_UINT16)
@@ -38,7 +38,7 @@ def param_name(raw) -> str:
 
 
 class ParamProtocol:
-    """Serves one ParamStore to every link."""
+    """Serves one ParamStore to every link; reads and lists answer the asker alone."""
 
     def __init__(self, ep, params: ParamStore):
         self.ep = ep
@@ -57,28 +57,28 @@ class ParamProtocol:
         val, ptype = encode_param(self.params[name], d.type == "int")
         return M.MAVLink_param_value_message(name.encode(), val, ptype, len(self.params), self.params.index(name))
 
-    def _on_param_request_list(self, link: Link, m) -> None:
+    def _on_param_request_list(self, peer: Peer, m) -> None:
         if not self._addressed(m):
             return
         for name in self.params.names():
-            link.send(self._param_value(name))
+            peer.send(self._param_value(name))
 
-    def _on_param_request_read(self, link: Link, m) -> None:
+    def _on_param_request_read(self, peer: Peer, m) -> None:
         if not self._addressed(m):
             return
         names = self.params.names()
         if m.param_index >= 0:
             if m.param_index < len(names):
-                link.send(self._param_value(names[m.param_index]))
+                peer.send(self._param_value(names[m.param_index]))
             return
         name = param_name(m.param_id)
         if name in self.params:
-            link.send(self._param_value(name))
+            peer.send(self._param_value(name))
         else:
             self.ep.cmd.text(4, f"unknown parameter {name}")
             self.ep.flush_events()
 
-    def _on_param_set(self, link: Link, m) -> None:
+    def _on_param_set(self, peer: Peer, m) -> None:
         if not self._addressed(m):
             return
         name = param_name(m.param_id)
@@ -90,5 +90,9 @@ class ParamProtocol:
             self.params.set(name, decode_param(m.param_value, m.param_type, d.type == "int"))
         except ParamError as e:
             self.ep.cmd.text(4, str(e))
-        # PX4 answers with the (possibly unchanged) value, so the client sees what is stored.
-        self.ep.broadcast(self._param_value(name))
+        # PX4 answers with the (possibly unchanged) value, so the client sees what is stored, and tells every
+        # ground station of the change: every stream destination hears it, the asker in any case.
+        msg = self._param_value(name)
+        self.ep.broadcast(msg)
+        if peer.addr not in peer.link.destinations():
+            peer.send(msg)

@@ -15,7 +15,7 @@ from typing import Callable
 from pymavlink.dialects.v20 import common as M
 
 from ..commander import Result
-from .links import Link
+from .links import Link, Peer
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +64,8 @@ def message_id(value: float) -> int | None:
 
 
 class Streams:
-    """Per-link message intervals and the send schedule; answers the message-interval commands."""
+    """Per-link message intervals and the send schedule (to every destination of the link); answers the
+    message-interval commands (a rate belongs to the link, as on PX4: every peer of it gets the new rate)."""
 
     def __init__(self, ep, links: list[Link], extra_heartbeat: Callable[[Link], None] | None = None):
         self.ep = ep
@@ -124,8 +125,8 @@ class Streams:
             link.next_due_us[hb] = now + link.intervals_us[hb]
 
     # ------------------------------------------------------------------ commands
-    def _on_set_message_interval(self, link: Link, m, command: int, p: list) -> None:
-        self.ep.ack(link, m, command, self._set_interval(link, p))
+    def _on_set_message_interval(self, peer: Peer, m, command: int, p: list) -> None:
+        self.ep.ack(peer, m, command, self._set_interval(peer.link, p))
 
     def _set_interval(self, link: Link, p) -> Result:
         """PX4's rules (param2: -1 off, 0 default rate, > 0 interval in us), except that HEARTBEAT is never off nor
@@ -148,26 +149,26 @@ class Streams:
         self._next_due_any = 0
         return Result.ACCEPTED
 
-    def _on_get_message_interval(self, link: Link, m, command: int, p: list) -> None:
+    def _on_get_message_interval(self, peer: Peer, m, command: int, p: list) -> None:
         mid = message_id(p[0])
         if mid is None or mid > 0xFFFF:  # MESSAGE_INTERVAL carries the id in 16 bits
-            return self.ep.ack(link, m, command, Result.DENIED)
-        iv = link.intervals_us.get(mid)
-        self.ep.ack(link, m, command, Result.ACCEPTED)
+            return self.ep.ack(peer, m, command, Result.DENIED)
+        iv = peer.link.intervals_us.get(mid)
+        self.ep.ack(peer, m, command, Result.ACCEPTED)
         # MESSAGE_INTERVAL: -1 = not sent, 0 = not available here
-        link.send(M.MAVLink_message_interval_message(mid, 0 if iv is None else iv if iv > 0 else -1))
+        peer.send(M.MAVLink_message_interval_message(mid, 0 if iv is None else iv if iv > 0 else -1))
 
-    def _on_request_message(self, link: Link, m, command: int, p: list) -> None:
+    def _on_request_message(self, peer: Peer, m, command: int, p: list) -> None:
         mid = message_id(p[0])
         if mid is None:
-            return self.ep.ack(link, m, command, Result.DENIED)
+            return self.ep.ack(peer, m, command, Result.DENIED)
         msg = self.ep.telemetry.build(mid) if mid != M.MAVLINK_MSG_ID_HOME_POSITION or self.ep.cmd.home_set else None
         if msg is None:
             result = Result.TEMPORARILY_REJECTED if mid == M.MAVLINK_MSG_ID_HOME_POSITION else Result.UNSUPPORTED
-            return self.ep.ack(link, m, command, result)
-        self.ep.ack(link, m, command, Result.ACCEPTED)  # the ACK first, then the message (as PX4)
-        link.send(msg)
+            return self.ep.ack(peer, m, command, result)
+        self.ep.ack(peer, m, command, Result.ACCEPTED)  # the ACK first, then the message (as PX4)
+        peer.send(msg)
 
-    def _on_request_autopilot_capabilities(self, link: Link, m, command: int, p: list) -> None:
-        self.ep.ack(link, m, command, Result.ACCEPTED)
-        link.send(self.ep.telemetry.autopilot_version())
+    def _on_request_autopilot_capabilities(self, peer: Peer, m, command: int, p: list) -> None:
+        self.ep.ack(peer, m, command, Result.ACCEPTED)
+        peer.send(self.ep.telemetry.autopilot_version())
