@@ -19,7 +19,7 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as v20
 
-from mavlink_client import Client, PeerClient, clean_env
+from uavsearch.testing.mavlink_client import Client, PeerClient, clean_env
 from uavsearch.flight.mavlink.links import MAX_PEERS, PEER_TIMEOUT_S, Link, LinkConfig
 from uavsearch.flight.params import ParamStore
 from uavsearch.flight.sitl_process import SitlProcess

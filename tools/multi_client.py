@@ -25,10 +25,8 @@ from pathlib import Path
 
 from pymavlink import mavutil
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from mavlink_client import PeerClient  # noqa: E402
-
-from uavsearch.flight.sitl_process import SitlProcess  # noqa: E402
+from uavsearch.flight.sitl_process import SitlProcess
+from uavsearch.testing.mavlink_client import PeerClient
 
 M = mavutil.mavlink
 M_PER_DEG_LAT = 111_200.0
