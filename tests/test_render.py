@@ -198,3 +198,22 @@ def test_a_scene_generated_in_the_render_worker_is_the_scene_generated_here():
     from uavsearch.world.scene import generate_scene, scene_to_json
 
     assert scene_to_json(generate_in_worker(3, 5)) == scene_to_json(generate_scene(3, 5))
+
+
+# sha256 of (rgb, person_index, person_fraction) bytes of paper views, computed before people got their own
+# palette and palettes could grow: a paper scene's pixels must not change.
+PAPER_VIEW_SHA256 = {
+    (1000, 2, (0, 0, 70), "composite"): "baa305807a8d876512881ee0a7dd5b9da18aa8b744d5607a70da2102a455fe1b",
+    (3, 5, (0, 0, 70), "mesh"): "b7847c07d639e9679926dd8c59792f7159d73eace16f2ae9f9b5bb1f6b3d5112",
+}
+
+
+@pytest.mark.parametrize("key", sorted(PAPER_VIEW_SHA256))
+def test_paper_views_keep_their_pixels(key):
+    import hashlib
+
+    seed, k, pos, ground = key
+    with SceneRenderer(generate_scene(seed, k), CameraIntrinsics(), RenderOptions(isolate=False, ground=ground)) as r:
+        v = r.render(nadir_camera_pose(pos))
+    digest = hashlib.sha256(v.rgb.tobytes() + v.person_index.tobytes() + v.person_fraction.tobytes()).hexdigest()
+    assert digest == PAPER_VIEW_SHA256[key]

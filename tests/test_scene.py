@@ -1,5 +1,6 @@
 """Scene generation: determinism, exact K, exact round trips, clear errors, disjoint splits."""
 
+import hashlib
 import json
 
 import numpy as np
@@ -15,7 +16,17 @@ from uavsearch.world.scene import (
     scene_from_json,
     scene_to_json,
 )
-from uavsearch.world.settings import SETTINGS, all_seed_sets, density_scenes, resolve_k, scene_seeds
+from uavsearch.world.settings import SCENE_FAMILIES, SETTINGS, all_seed_sets, density_scenes, resolve_k, scene_seeds
+
+# sha256 of scene_to_json(generate_scene(seed, K)), computed before the scene parameters (grid, placement)
+# existed: the paper's scenes must keep their bytes.
+PAPER_SCENE_SHA256 = {
+    (0, 2): "902351d84f054fdc9d6b522f2ab5b8fe90c28bb296c1e1de4a1a7bef5ba62716",
+    (1000, 2): "76c1d51dd000e6527e2caf6e3d52a63ecc8b49de2112df8ba413993e5cf51d7e",
+    (2205, 10): "d96792e246976162b29eb88aa4c11b99107c35f5d78b6cb3bdf939f81271f34f",
+    (11, 100): "ff4b36640ba62c3d44685674ec2a568d8b91549c883aa4060e25b2c536e7d964",
+    (7, 0): "d36da3d2df47c799ee4829d49f4d7a6169441d23c5749912e983303f95e3641e",
+}
 
 
 @pytest.fixture(scope="module")
@@ -26,6 +37,15 @@ def scene5():
 def test_same_seed_gives_byte_identical_json(scene5):
     assert scene_to_json(generate_scene(3, 5)) == scene_to_json(scene5)
     assert scene_to_json(generate_scene(4, 5)) != scene_to_json(scene5)
+    assert hashlib.sha256(scene_to_json(scene5).encode()).hexdigest() == \
+        "1f1c00c9036a15f5498b19ab85a3cfd12f01071cc8d62a38661ce761a7889e52"
+
+
+@pytest.mark.parametrize("seed_k", sorted(PAPER_SCENE_SHA256))
+def test_paper_scenes_keep_their_bytes(seed_k):
+    text = scene_to_json(generate_scene(*seed_k))
+    assert hashlib.sha256(text.encode()).hexdigest() == PAPER_SCENE_SHA256[seed_k]
+    assert '"placement"' not in text and '"group' not in text
 
 
 @pytest.mark.parametrize("k", [0, 1, 2, 5, 10, 100])
@@ -120,6 +140,8 @@ def test_settings_and_splits():
     assert [len(scene_seeds(s, "paper", p)) for s in (1, 2, 3) for p in ("train", "val", "test")] == [20, 10, 10] * 3
     assert len(scene_seeds(2, "large", "train")) == 500 and len(scene_seeds(2, "large", "test")) == 100
     sets = all_seed_sets()
+    assert {f"large/setting{f}/{p}" for f in ("wide", "wide-uniform") for p in ("train", "val", "test")} <= set(sets)
+    assert list(SCENE_FAMILIES) == [1, 2, 3, "wide", "wide-uniform"]
     seen: dict[int, str] = {}
     for name, seeds in sets.items():
         assert len(set(seeds)) == len(seeds)
@@ -133,7 +155,7 @@ def test_settings_and_splits():
 
 @pytest.mark.parametrize(
     "args, match",
-    [((4, "paper", "train"), "unknown setting 4; valid: 1, 2, 3"), ((1, "huge", "train"), "unknown split"),
+    [((4, "paper", "train"), "unknown setting 4; valid: 1, 2, 3, wide, wide-uniform"), ((1, "huge", "train"), "unknown split"),
      ((1, "paper", "dev"), "unknown part")],  # fmt: skip
 )
 def test_bad_settings_are_one_line_errors(args, match):

@@ -26,18 +26,15 @@ from .flight.sitl import add_sitl_parser
 
 def _scene_from_args(args):
     # lazy: world.scene costs --help 0.3-0.45 s (pydantic + OpenCV)
-    from .world.scene import generate_scene, load_scene
-    from .world.settings import SETTINGS
+    from .world.scene import load_scene
+    from .world.settings import setting_params
 
     if args.scene_file:
         return load_scene(args.scene_file)
-    if args.occupied_cells is not None:
-        k = args.occupied_cells
-    else:
-        if args.setting not in SETTINGS:
-            raise UavsearchError(f"unknown setting {args.setting}; valid: {sorted(SETTINGS)} (or use --occupied-cells K)")
-        k = SETTINGS[args.setting]
-    return generate_scene(args.seed, k)
+    family = setting_params(args.setting)
+    if args.occupied_cells is not None:  # the setting's scene parameters with another K
+        family = family.model_copy(update={"k": args.occupied_cells})
+    return family.scene(args.seed)
 
 
 def _cmd_scene_show(args) -> int:
@@ -47,7 +44,7 @@ def _cmd_scene_show(args) -> int:
     from .viz import scene_show_figure
 
     spec = _scene_from_args(args)
-    config = SearchConfig(altitude_m=args.altitude)
+    config = SearchConfig(altitude_m=args.altitude, grid=spec.grid)
     with TeleportVehicle(spec, config) as vehicle:
         view = vehicle.capture([0.0, 0.0, config.altitude_m])
     out = scene_show_figure(spec, view, config.grid, config.intrinsics, args.out)
@@ -75,8 +72,10 @@ def _add_scene_parser(sub) -> None:
 
     def common(p):
         p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
-        p.add_argument("--setting", type=int, default=2, help="paper setting 1|2|3 = 2|5|10 occupied cells (default 2)")
-        p.add_argument("--occupied-cells", type=int, default=None, metavar="K", help="any K in 0..100 instead of --setting")
+        p.add_argument("--setting", default="2", help="paper setting 1|2|3 = 2|5|10 occupied cells, or a scene family: "
+                       "wide (30 x 30 cells, people in groups), wide-uniform (default 2)")
+        p.add_argument("--occupied-cells", type=int, default=None, metavar="K",
+                       help="any K (0..cells of the setting's grid) instead of the setting's")
         p.add_argument("--scene", dest="scene_file", default=None, metavar="JSON", help="load a saved scene spec instead")
 
     show = ssub.add_parser("show", help="PNG: the start view with the grid and occupied cells, beside a top-down map")

@@ -97,5 +97,9 @@ def scene_figure(spec, view, grid: Grid, intrinsics: CameraIntrinsics):
     )
     axes[0].axis("off")
     draw_topdown(spec, ax=axes[1])
-    axes[1].set_title(f"scene seed {spec.seed}: {int(occ.sum())} occupied cells")
+    title = f"scene seed {spec.seed}: {int(occ.sum())} occupied cells of {grid.n} x {grid.n}"
+    if spec.group_centres_m:
+        title += (f" in {len(spec.group_centres_m)} groups\n(cyan: 1 and 2 sigma = {spec.placement.sigma_m:g} m "
+                  "around each group centre)")  # fmt: skip
+    axes[1].set_title(title)
     return fig

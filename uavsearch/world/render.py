@@ -72,7 +72,7 @@ pb = _LazyPybullet()
 
 NEAR_M = 1.0
 FAR_M = 1000.0
-PALETTE_SIDE = 64  # texels per side of the palette texture: up to 4096 distinct colours
+PALETTE_SIDE = 64  # texels per side of a palette texture, at least: 4096 colours; it doubles when more are needed
 MAX_VERTICES = 90_000  # PyBullet refuses meshes of about 131k vertices and more
 GROUND_MODES = ("composite", "mesh")
 CULL_TILE_M = 20.0  # side of the square tiles the static objects are grouped into (composite ground)
@@ -224,22 +224,40 @@ def _rot(yaw: float, pitch: float = 0.0) -> np.ndarray:
     return rz @ ry
 
 
+class Palette:
+    """Distinct colours -> texels of one palette texture (one texel per colour). Its side is the smallest
+    power of two from PALETTE_SIDE that holds them all, so a palette never overflows; the world keeps one
+    for the static objects and one for the people, so many people never crowd the city's colours."""
+
+    def __init__(self):
+        self.index: dict[tuple[int, int, int], int] = {}
+
+    def colour_index(self, rgb) -> int:
+        return self.index.setdefault(tuple(int(c) for c in rgb), len(self.index))
+
+    @property
+    def side(self) -> int:
+        side = PALETTE_SIDE
+        while side * side < len(self.index):
+            side *= 2
+        return side
+
+    def image(self) -> np.ndarray:
+        """(side, side, 3) uint8: colour i at row i // side, column i % side."""
+        img = np.zeros((self.side, self.side, 3), np.uint8)
+        for rgb, i in self.index.items():
+            img[i // self.side, i % self.side] = rgb
+        return img
+
+
 class MeshBuilder:
     """Accumulates coloured primitives into triangle soup with palette uvs."""
 
-    def __init__(self, palette: dict):
+    def __init__(self, palette: Palette):
         self.palette = palette
         self.pos: list[np.ndarray] = []
         self.nrm: list[np.ndarray] = []
         self.col: list[np.ndarray] = []
-
-    def colour_index(self, rgb) -> int:
-        key = tuple(int(c) for c in rgb)
-        if key not in self.palette:
-            if len(self.palette) >= PALETTE_SIDE * PALETTE_SIDE:
-                raise ValueError("too many distinct colours for the palette texture")
-            self.palette[key] = len(self.palette)
-        return self.palette[key]
 
     def add(self, unit, centre, scale, rot: np.ndarray, colours) -> None:
         """Place a unit primitive: scale (3,), rotation, base centre (3,); colours per face group."""
@@ -248,7 +266,7 @@ class MeshBuilder:
         p = (tris * scale) @ rot.T + np.asarray(centre, float)
         n = (norms / np.where(scale == 0, 1, scale)) @ rot.T
         n /= np.linalg.norm(n, axis=-1, keepdims=True) + 1e-12
-        idx = np.array([self.colour_index(colours[min(g, len(colours) - 1)]) for g in range(3)])
+        idx = np.array([self.palette.colour_index(colours[min(g, len(colours) - 1)]) for g in range(3)])
         self.pos.append(p.reshape(-1, 3))
         self.nrm.append(n.reshape(-1, 3))
         self.col.append(np.repeat(idx[groups], 3))
@@ -257,10 +275,12 @@ class MeshBuilder:
         add_object_parts(self, o)
 
     def arrays(self):
+        """Vertices, normals and uvs at texel centres (call once the palette holds every colour)."""
         if not self.pos:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2))
         pos, nrm, col = np.concatenate(self.pos), np.concatenate(self.nrm), np.concatenate(self.col)
-        uv = np.stack([(col % PALETTE_SIDE + 0.5) / PALETTE_SIDE, 1.0 - (col // PALETTE_SIDE + 0.5) / PALETTE_SIDE], -1)
+        side = self.palette.side
+        uv = np.stack([(col % side + 0.5) / side, 1.0 - (col // side + 0.5) / side], -1)
         return pos, nrm, uv
 
 
@@ -491,10 +511,12 @@ class _World:
 
     def _build(self) -> None:
         spec, c = self.spec, self._client
-        palette: dict = {}
+        if len(spec.people) > np.iinfo(np.int16).max:
+            raise ValueError(f"{len(spec.people)} people: person indices are int16, at most 32767")
+        palette, person_palette = Palette(), Palette()
         person_meshes = []
         for o in spec.people:
-            mb = MeshBuilder(palette)
+            mb = MeshBuilder(person_palette)
             add_person_parts(mb, o)
             person_meshes.append(mb)
         composite = self.options.ground == "composite"
@@ -513,14 +535,14 @@ class _World:
             for x0, y0, x1, y1 in ((-g, t, g, g), (-g, -g, g, -t), (-g, -t, -t, t), (t, -t, g, t)):
                 static.add(BOX, ((x0 + x1) / 2, (y0 + y1) / 2, -0.02), (x1 - x0, y1 - y0, 0.02), np.eye(3),
                            [base.color, base.color])  # fmt: skip
-        pal_img = np.zeros((PALETTE_SIDE, PALETTE_SIDE, 3), np.uint8)
-        for rgb, i in palette.items():
-            pal_img[i // PALETTE_SIDE, i % PALETTE_SIDE] = rgb
-        pal_tex = _write_texture(pal_img, c)
+        pal_tex = _write_texture(palette.image(), c)
         self._bounds: list[tuple[np.ndarray, np.ndarray]] = []
-        person_bodies, static_bodies = [], []
-        for mb in person_meshes:
-            person_bodies += self._mesh_body(mb, pal_tex)
+        person_bodies, static_bodies, person_of_body = [], [], []
+        person_tex = _write_texture(person_palette.image(), c) if person_meshes else -1
+        for i, mb in enumerate(person_meshes):  # one body per person: its segmentation id names it
+            bodies = self._mesh_body(mb, person_tex)
+            person_bodies += bodies
+            person_of_body += [i] * len(bodies)
         for mb in tiles.values():
             static_bodies += self._mesh_body(mb, pal_tex)
         self._bodies = np.array([*person_bodies, *static_bodies], np.int64)
@@ -541,10 +563,11 @@ class _World:
                                       uvs=[[0, 0], [1, 0], [1, 1], [0, 1]], physicsClientId=c)  # fmt: skip
             ground = pb.createMultiBody(0, -1, vs, physicsClientId=c)
             pb.changeVisualShape(ground, -1, textureUniqueId=ground_tex, rgbaColor=[1, 1, 1, 1], physicsClientId=c)
-        # segmentation id -> person index (-1 for everything else, including background -1 = last entry)
+        # segmentation id (a body's unique id) -> person index (-1 for everything else, including
+        # the background, -1 = the last entry)
         ids = np.array(person_bodies, dtype=np.int64)
         self._seg_lut = np.full(int(max([ground, *static_bodies, *person_bodies]) + 2), -1, np.int16)
-        self._seg_lut[ids] = np.arange(len(ids), dtype=np.int16)
+        self._seg_lut[ids] = np.array(person_of_body, dtype=np.int16)
         self._proj = projection_matrix(self.intrinsics.scaled(int(self.options.supersample)))
 
     def capture(self, pose: CameraPose) -> tuple[np.ndarray, np.ndarray]:
@@ -828,5 +851,5 @@ def _majority(pidx: np.ndarray, s: int, has: np.ndarray) -> np.ndarray:
     return out
 
 
-__all__ = ["RenderOptions", "Render", "SceneRenderer", "GroundCompositor", "GROUND_MODES", "area_downsample",
+__all__ = ["RenderOptions", "Render", "SceneRenderer", "GroundCompositor", "Palette", "GROUND_MODES", "area_downsample",
            "ground_homography", "ground_shading", "view_matrix", "projection_matrix"]

@@ -1,12 +1,16 @@
 """Procedural city scenes: a seed and K -> a JSON scene spec with every object and the ground-truth map.
 
-The search area (the N x N grid, 50 m in the paper) sits inside a larger city (180 m by default) so
-edge views see city, not void. Streets run on a jittered grid with at least one street crossing the
+The search area (the N x N grid, 50 m in the paper; any n and cell size) sits inside a larger city
+(180 m by default, `SceneParams.city_half_m`) so edge views see city, not void. Streets run on a jittered grid with at least one street crossing the
 search area each way; blocks become buildings (recursive lot split, varied heights, roof units),
 parks, plazas or parking lots. People stand on walkable ground (sidewalks, plazas, parks, yards,
 sometimes the road), never inside an obstacle, and exactly K grid cells hold at least one person:
 a person's position (the point between the feet) lies at least `cell_margin_m` inside its cell, so
 occupancy is never ambiguous. People outside the grid stand at least `outside_margin_m` away from it.
+
+Which K cells are occupied is the `Placement`: "uniform" (the paper's) draws them independently,
+weighted by walkable ground; "clustered" draws 1-3 groups around places people gather and each
+occupied cell near one of them (Gaussian, sigma 7.5 m), so that where one person is, others are likely.
 
 Everything is drawn from one numpy Generator seeded with the scene seed; coordinates are rounded to
 millimetres so the JSON round trip is exact and the same seed gives byte-identical JSON.
@@ -80,6 +84,20 @@ class SceneParams(BaseModel):
     person_clearance_m: float = Field(0.55, description="distance kept from obstacles and other people")
 
 
+class Placement(BaseModel):
+    """How the K occupied cells are drawn. Stored in a scene only when it is not the paper's uniform one,
+    so the paper's scenes keep their bytes (a spec without it was made with the default)."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    kind: Literal["uniform", "clustered"] = "uniform"
+    groups: tuple[int, int] = Field((1, 3), description="clustered: the number of groups is drawn in this range")
+    sigma_m: float = Field(7.5, gt=0, description="clustered: spread of a group's cells around its centre")
+    gather_weight: float = Field(4.0, ge=0, description="clustered: extra weight of plazas and street corners "
+                                                        "as group centres, over plain walkable ground")  # fmt: skip
+    corner_radius_m: float = Field(12.0, description="clustered: how far from a street crossing counts as its corner")
+
+
 class SceneObject(BaseModel):
     """One object: a footprint rectangle (centre, size, yaw) extruded from z_m, with up to three colours.
 
@@ -105,6 +123,7 @@ class SceneObject(BaseModel):
     color4: RGB | None = None
     variant: str = ""
     cell: int = Field(-1, description="person only: the grid cell it stands in, -1 outside the grid")
+    group: int = Field(-1, description="person only, clustered placement: index of its group, -1 none")
 
 
 class SceneSpec(BaseModel):
@@ -122,6 +141,8 @@ class SceneSpec(BaseModel):
     sun_elevation_deg: float = 55.0
     objects: list[SceneObject]
     occupancy: list[int]
+    placement: Placement = Field(default_factory=Placement)
+    group_centres_m: list[tuple[float, float]] = Field(default_factory=list, description="clustered: (x, y) of each group")
 
     def occupancy_array(self) -> np.ndarray:
         return np.asarray(self.occupancy, dtype=np.int8)
@@ -530,7 +551,7 @@ def _block(b: _Builder, x0, y0, x1, y1) -> None:
                           variant="car")  # fmt: skip
 
 
-def _person(b: _Builder, x, y, cell: int) -> None:
+def _person(b: _Builder, x, y, cell: int, group: int = -1) -> None:
     rng, p = b.rng, b.p
     child = rng.random() < p.child_prob
     scale = rng.uniform(0.6, 0.75) if child else rng.uniform(*p.person_scale)
@@ -538,7 +559,7 @@ def _person(b: _Builder, x, y, cell: int) -> None:
     height = 1.75 * scale * (0.65 if pose == "crouching" else 1.0)
     b.add("person", x, y, 0.5 * scale, 0.3 * scale, height, yaw=rng.uniform(-math.pi, math.pi),
           color=_pick(rng, SHIRTS, 12), color2=_pick(rng, TROUSERS, 10), color3=_pick(rng, SKIN, 8),
-          color4=_pick(rng, HAIR, 8), variant=pose, cell=cell)  # fmt: skip
+          color4=_pick(rng, HAIR, 8), variant=pose, cell=cell, group=group)  # fmt: skip
 
 
 def _sample_point(rng, weights: np.ndarray, raster: Raster) -> tuple[float, float]:
@@ -551,10 +572,18 @@ def _sample_point(rng, weights: np.ndarray, raster: Raster) -> tuple[float, floa
     return float(xy[0]), float(xy[1])
 
 
-def generate_scene(seed: int, occupied_cells: int, params: SceneParams | None = None) -> SceneSpec:
-    """A city scene in which exactly `occupied_cells` grid cells hold at least one person."""
+def generate_scene(
+    seed: int,
+    occupied_cells: int,
+    params: SceneParams | None = None,
+    grid: Grid | None = None,
+    placement: Placement | None = None,
+) -> SceneSpec:
+    """A city scene in which exactly `occupied_cells` cells of `grid` (default: the paper's 10 x 10 of
+    5 m) hold at least one person, drawn as `placement` says (default: uniform, the paper's)."""
     p = params or SceneParams()
-    grid = Grid()
+    grid = grid or Grid()
+    placement = placement or Placement()
     try:
         seed = int(seed)
         k = int(occupied_cells)
@@ -564,6 +593,12 @@ def generate_scene(seed: int, occupied_cells: int, params: SceneParams | None = 
         raise SceneError(f"scene seed must be >= 0, got {seed}")
     if not 0 <= k <= grid.num_cells:
         raise SceneError(f"occupied cells K={k} out of range: 0 <= K <= {grid.num_cells}")
+    if grid.n < 1 or grid.cell_m <= 2 * p.cell_margin_m or grid.half_m + p.outside_margin_m > p.city_half_m:
+        raise SceneError(f"a {grid.n} x {grid.n} grid of {grid.cell_m:g} m cells does not fit a city of "
+                         f"{2 * p.city_half_m:g} m (cells must be wider than 2 x {p.cell_margin_m:g} m)")  # fmt: skip
+    lo_g, hi_g = placement.groups
+    if placement.kind == "clustered" and not 1 <= lo_g <= hi_g:
+        raise SceneError(f"clustered placement needs 1 <= groups[0] <= groups[1], got {lo_g}, {hi_g}")
     rng = np.random.default_rng([seed, 0x5CE4E])
     b = _Builder(rng, p)
     h = p.city_half_m
@@ -589,7 +624,12 @@ def generate_scene(seed: int, occupied_cells: int, params: SceneParams | None = 
         if o.kind == "tree" or (o.kind == "clutter" and o.variant == "parasol"):
             raster.disk(shade, (o.x_m, o.y_m), 0.45 * (o.sx_m + o.sy_m) / 2, 1)
     surface = np.where(shade > 0, surface * p.shade_weight, surface).astype(np.float32)
-    occupied = _choose_cells(b, grid, raster, surface, k)
+    cell_w, ok = _make_room(b, grid, raster, surface, k)
+    if placement.kind == "clustered":
+        gather = _gather_weight(b, raster, surface, xs, ys, placement)
+        occupied, group_of, centres = _clustered_cells(rng, grid, raster, gather, cell_w, ok, k, placement)
+    else:
+        occupied, group_of, centres = _uniform_cells(rng, grid, cell_w, ok, k), {}, []
     blocked = obstacle_raster(b.solids, raster)
     cell_img = _cell_raster(grid, raster, p.cell_margin_m)
     obstacles_only = _free(blocked, raster, p.person_clearance_m)
@@ -604,7 +644,7 @@ def generate_scene(seed: int, occupied_cells: int, params: SceneParams | None = 
                 continue  # no room left for an extra person
             w = np.where(in_cell & obstacles_only, surface, 0.0)  # crowded: may stand close to someone
         x, y = _sample_point(rng, w, raster)
-        _person(b, x, y, cell)
+        _person(b, x, y, cell, group_of.get(cell, -1))
         raster.disk(blocked, (x, y), 0.3, 1)
     outside = _cell_raster(grid, raster, -p.outside_margin_m) < -1  # outside the grid grown by the margin
     walk_area_m2 = float((surface > 0)[outside].sum()) * raster.m_per_px**2
@@ -626,7 +666,8 @@ def generate_scene(seed: int, occupied_cells: int, params: SceneParams | None = 
     return SceneSpec(
         generator_version=GENERATOR_VERSION, seed=seed, occupied_cells_k=k, params=p, grid=grid,
         home=GeodeticOrigin(), sun_azimuth_deg=_r(sun_az), sun_elevation_deg=_r(sun_el),
-        objects=b.ground + b.solids, occupancy=[int(v) for v in occ],
+        objects=b.ground + b.solids, occupancy=[int(v) for v in occ], placement=placement,
+        group_centres_m=[(_r(x), _r(y)) for x, y in centres],
     )  # fmt: skip
 
 
@@ -661,8 +702,9 @@ def _overlaps(o: SceneObject, lo, hi) -> bool:
     return bool(np.all(b > lo) and np.all(a < hi))
 
 
-def _choose_cells(b: _Builder, grid: Grid, raster: Raster, surface: np.ndarray, k: int) -> list[int]:
-    """K cells with room for a person, drawn by walkable weight; clears obstacles when too few have room."""
+def _make_room(b: _Builder, grid: Grid, raster: Raster, surface: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell, the walkable weight where a person has room, and which cells have any; clears obstacles
+    when fewer than K cells have room."""
     p, rng = b.p, b.rng
     cell_img = _cell_raster(grid, raster, p.cell_margin_m)
     order = rng.permutation(grid.num_cells)
@@ -672,7 +714,7 @@ def _choose_cells(b: _Builder, grid: Grid, raster: Raster, surface: np.ndarray, 
         cell_w = np.bincount(cell_img[cell_img >= 0], weights=w[cell_img >= 0], minlength=grid.num_cells)
         ok = cell_w > 0
         if ok.sum() >= k:
-            break
+            return cell_w, ok
         # Too crowded for K: demolish everything solid in the next full cell (deterministic order).
         target = next(int(c) for c in order if not ok[c])
         corners = grid.cell_corners_enu(target)[:, :2]
@@ -683,12 +725,52 @@ def _choose_cells(b: _Builder, grid: Grid, raster: Raster, surface: np.ndarray, 
             if o.kind == "roof_unit" and any(s.kind == "building" and _overlaps(o, *_box(s)) for s in removed):
                 gone.add(id(o))
         b.solids = [o for o in b.solids if id(o) not in gone]
+
+
+def _uniform_cells(rng, grid: Grid, cell_w: np.ndarray, ok: np.ndarray, k: int) -> list[int]:
+    """The paper's placement: K cells with room, drawn independently by walkable weight."""
     if k == 0:
         return []
     prob = cell_w / cell_w.sum()
     chosen = rng.choice(grid.num_cells, size=k, replace=False, p=np.where(ok, np.maximum(prob, 1e-9), 0.0) /
                         np.where(ok, np.maximum(prob, 1e-9), 0.0).sum())  # fmt: skip
     return sorted(int(c) for c in chosen)
+
+
+def _gather_weight(b: _Builder, raster: Raster, surface: np.ndarray, xs, ys, pl: Placement) -> np.ndarray:
+    """Where groups gather: walkable ground (the people weights), `gather_weight` times more on plazas and
+    within `corner_radius_m` of a street crossing (its sidewalk corners, crosswalks and the curb)."""
+    plaza = surface_raster(b.ground, raster, {"plaza": 1.0}) > 0  # visible plaza: painted over by nothing
+    corner = np.zeros(surface.shape, np.uint8)
+    for cx, *_ in xs:
+        for cy, *_ in ys:
+            raster.disk(corner, (cx, cy), pl.corner_radius_m, 1)
+    return surface * (1.0 + pl.gather_weight * (plaza | (corner > 0)))
+
+
+def _clustered_cells(rng, grid: Grid, raster: Raster, gather: np.ndarray, cell_w: np.ndarray, ok: np.ndarray,
+                     k: int, pl: Placement) -> tuple[list[int], dict[int, int], list[tuple[float, float]]]:  # fmt: skip
+    """K cells in groups: group centres drawn by gathering weight inside the search area, then each
+    occupied cell from a group chosen at random, by walkable weight times a Gaussian around its centre.
+    Returns the sorted cells, cell -> group, and the group centres."""
+    if k == 0:
+        return [], {}, []
+    inside = _cell_raster(grid, raster, 0.0) >= 0
+    n_groups = int(rng.integers(pl.groups[0], pl.groups[1] + 1))
+    centres = [_sample_point(rng, np.where(inside, gather, 0.0), raster) for _ in range(n_groups)]
+    xy = grid.centers_enu[:, :2]
+    log_w = np.log(np.where(ok, cell_w, 1.0))
+    free = ok.copy()
+    group_of: dict[int, int] = {}
+    for _ in range(k):
+        g = int(rng.integers(n_groups))
+        d2 = ((xy - centres[g]) ** 2).sum(1)
+        logit = np.where(free, log_w - d2 / (2.0 * pl.sigma_m**2), -np.inf)
+        prob = np.exp(logit - logit.max())
+        cell = int(rng.choice(grid.num_cells, p=prob / prob.sum()))
+        free[cell] = False
+        group_of[cell] = g
+    return sorted(group_of), group_of, centres
 
 
 # --------------------------------------------------------------------------------------------------
@@ -701,9 +783,19 @@ def scene_to_json(spec: SceneSpec) -> str:
     Objects leave out their default fields (z, yaw, unused colours) to stay small; everything else is
     written in full so that a saved scene never depends on today's defaults.
     """
-    d = spec.model_dump(mode="json", exclude={"objects"})
+    d = spec.model_dump(mode="json", exclude={"objects", *_unset_optional(spec)})
     d["objects"] = [o.model_dump(mode="json", exclude_defaults=True) for o in spec.objects]
     return json.dumps(d, separators=(",", ":"))
+
+
+def _unset_optional(spec: SceneSpec) -> set[str]:
+    """Fields newer than the paper's scenes, left out at their defaults so those scenes keep their bytes."""
+    out = set()
+    if spec.placement == Placement():
+        out.add("placement")
+    if not spec.group_centres_m:
+        out.add("group_centres_m")
+    return out
 
 
 def scene_from_json(text: str | bytes) -> SceneSpec:
@@ -749,6 +841,6 @@ def scene_summary(spec: SceneSpec) -> dict:
 
 
 __all__ = [
-    "GENERATOR_VERSION", "SceneParams", "SceneObject", "SceneSpec", "generate_scene", "save_scene", "load_scene",
+    "GENERATOR_VERSION", "SceneParams", "Placement", "SceneObject", "SceneSpec", "generate_scene", "save_scene", "load_scene",
     "scene_to_json", "scene_from_json", "footprint_corners", "Raster", "scene_summary",
 ]  # fmt: skip

@@ -14,12 +14,16 @@ import numpy as np
 
 from .scene import GROUND_KINDS, Raster, SceneObject, SceneSpec, footprint_corners
 
-GROUND_TEXTURE_PX = 1536
+GROUND_TEXTURE_PX = 1536  # texels per side for the paper's 180 m city (+ rim): 13 cm a texel
+GROUND_TEXTURE_REF_HALF_M = 100.0  # the half side that GROUND_TEXTURE_PX covers
 
 
-def ground_raster(spec: SceneSpec, texture_px: int = GROUND_TEXTURE_PX) -> Raster:
-    """The square the ground texture covers: the city plus a 10 m rim."""
+def ground_raster(spec: SceneSpec, texture_px: int | None = None) -> Raster:
+    """The square the ground texture covers: the city plus a 10 m rim; by default a larger city gets
+    more texels (a multiple of 64), so its ground is as sharp as the paper's."""
     half = spec.params.city_half_m + 10.0
+    if texture_px is None:
+        texture_px = max(GROUND_TEXTURE_PX, 64 * math.ceil(GROUND_TEXTURE_PX * half / GROUND_TEXTURE_REF_HALF_M / 64))
     return Raster(half, 2 * half / texture_px)
 
 
@@ -129,20 +133,43 @@ def draw_topdown(spec: SceneSpec, ax=None, half_m: float | None = None, m_per_px
         for p0, p1 in (((a, -grid.half_m), (a, grid.half_m)), ((-grid.half_m, a), (grid.half_m, a))):
             q0, q1 = (np.round(raster.to_px(np.array(p)) * 16 - 8).astype(int) for p in (p0, p1))
             cv2.line(img, tuple(int(v) for v in q0), tuple(int(v) for v in q1), (255, 255, 255), 1, cv2.LINE_AA, 4)
+    grow = max(1.0, half / 45.0)  # a wider map is shown smaller: thicker outlines and dots keep it legible
     for i in np.flatnonzero(occ):
         pts = np.round(raster.to_px(grid.cell_corners_enu(int(i))[:, :2]) * 16 - 8).astype(np.int32)
-        cv2.polylines(img, [pts], True, (255, 200, 0), 2, cv2.LINE_AA, 4)
+        cv2.polylines(img, [pts], True, (255, 200, 0), int(round(2 * grow)), cv2.LINE_AA, 4)
     for o in spec.people:
-        raster.disk(img, (o.x_m, o.y_m), 0.55, (255, 255, 255))
-        raster.disk(img, (o.x_m, o.y_m), 0.38, (230, 0, 160) if o.cell >= 0 else (255, 120, 0))
+        raster.disk(img, (o.x_m, o.y_m), 0.55 * grow, (255, 255, 255))
+        raster.disk(img, (o.x_m, o.y_m), 0.38 * grow, (230, 0, 160) if o.cell >= 0 else (255, 120, 0))
+    _draw_groups(img, spec, raster)
     if ax is None:
         return img
     ax.imshow(img, extent=[raster.centre[0] - half, raster.centre[0] + half, raster.centre[1] - half,
                            raster.centre[1] + half])  # fmt: skip
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
-    ax.set_title(f"scene {spec.seed}: K={spec.occupied_cells_k} occupied cells (yellow), people (dots)")
+    title = f"scene {spec.seed}: K={spec.occupied_cells_k} occupied cells (yellow), people (dots)"
+    if spec.group_centres_m:
+        title += f"\n{len(spec.group_centres_m)} groups (cyan: 1 and 2 sigma = {spec.placement.sigma_m:g} m around the centre)"
+        for j, (x, y) in enumerate(spec.group_centres_m):
+            ax.annotate(f"G{j + 1}", (x, y), xytext=(x + 1.5 * spec.placement.sigma_m, y + spec.placement.sigma_m),
+                        color="black", fontsize=9, fontweight="bold",
+                        bbox=dict(boxstyle="round,pad=0.2", fc=(0.0, 0.86, 1.0), ec="none"))  # fmt: skip
+    ax.set_title(title)
     return ax
+
+
+def _draw_groups(img: np.ndarray, spec: SceneSpec, raster: Raster) -> None:
+    """Clustered scenes: each group centre (a cross) with circles at 1 and 2 sigma."""
+    sigma = spec.placement.sigma_m
+    for x, y in spec.group_centres_m:
+        c = np.round(raster.to_px(np.array([x, y])) * 16 - 8).astype(int)
+        centre = (int(c[0]), int(c[1]))
+        for k, thick in ((1, 3), (2, 2)):
+            cv2.circle(img, centre, int(round(k * sigma / raster.m_per_px * 16)), (0, 220, 255), thick, cv2.LINE_AA, 4)
+        arm = int(round(1.5 / raster.m_per_px * 16))
+        for d in ((arm, 0), (0, arm)):
+            cv2.line(img, (centre[0] - d[0], centre[1] - d[1]), (centre[0] + d[0], centre[1] + d[1]), (0, 220, 255), 3,
+                     cv2.LINE_AA, 4)  # fmt: skip
 
 
 __all__ = ["paint_ground", "ground_raster", "draw_topdown", "GROUND_TEXTURE_PX"]
