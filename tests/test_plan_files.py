@@ -17,6 +17,7 @@ from pymavlink import mavutil
 from uavsearch.errors import MissionError
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
 from uavsearch.fly.plan_files import flown_search_items, load_plan, mission_items, plan_from_dict, save_plan
+from uavsearch.testing.clean_env import clean_env
 
 M = mavutil.mavlink
 DATA = Path(__file__).parent / "data"
@@ -84,18 +85,18 @@ def test_unflyable_commands_and_broken_files_are_one_line(tmp_path):
     with pytest.raises(MissionError, match="not JSON"):
         load_plan(bad)
     r = subprocess.run([sys.executable, "-m", "uavsearch", "mission", "upload", str(bad)], capture_output=True,
-                       text=True, timeout=60)
+                       text=True, timeout=60, env=clean_env())
     assert r.returncode == 2 and r.stderr.startswith("uavsearch: error: plan ") and "Traceback" not in r.stderr
 
 
 def test_a_qgc_plan_flies_and_downloads_as_uploaded(tmp_path):
     """`uavsearch mission upload survey.plan --start` on a running vehicle: every item is reached, it
     returns and lands; the mission downloaded afterwards is the file's items."""
-    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="max", camera=False)
+    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="max", camera=False, env=clean_env())
     try:
         r = subprocess.run([sys.executable, "-m", "uavsearch", "mission", "upload", str(DATA / "survey.plan"),
                             "--connect", f"udpin:127.0.0.1:{sitl.gcs_port}", "--start", "--timeout", "150"],
-                           capture_output=True, text=True, timeout=200)
+                           capture_output=True, text=True, timeout=200, env=clean_env())
         assert r.returncode == 0, r.stdout + r.stderr
         assert "uploaded 7 mission item(s)" in r.stdout
         assert "GF_MAX_HOR_DIST = 300 m" in r.stdout and "1 polygon / exclusion shape(s) skipped" in r.stdout

@@ -49,11 +49,12 @@ class SitlProcess:
     `wait=False` returns as soon as the process is started, so its start-up (imports, physics) runs
     while the caller does its own; `wait_ready()` then waits for the ready line.
     `progress(line)`, when given, hears every 2 s how long the start has taken and what the vehicle last said.
+    `env`: the process's whole environment (tests give a clean one); default this process's, unbuffered.
     """
 
     def __init__(self, run_dir: Path, *args: str, api_port: int | None = None, gcs_port: int | None = None,
                  speed: str = "max", lockstep: bool = False, camera: bool = True, timeout_s: float = 120.0,
-                 wait: bool = True, progress=None):
+                 wait: bool = True, progress=None, env: dict | None = None):
         run_dir = Path(run_dir)
         run_dir.mkdir(parents=True, exist_ok=True)
         self.run_dir = run_dir
@@ -69,7 +70,8 @@ class SitlProcess:
             cmd.append("--no-camera-scene")
         self._out = open(self.log_path, "w")
         self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
+                                     env={**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"},
+                                     preexec_fn=_die_with_parent,
                                      start_new_session=True)  # Ctrl-C reaches the client only: it lands first
         self.banner: list[str] = []  # the lines up to "ready" (ports, signing, run directory)
         self._start = time.monotonic()
@@ -82,6 +84,18 @@ class SitlProcess:
     def _failed(self, why: str) -> SitlStartError:
         self.stop()
         return SitlStartError(why)
+
+    def exit_reason(self) -> str | None:
+        """None while the vehicle runs; else how it ended: 'exited with code 3', 'was killed by SIGKILL'."""
+        code = self.proc.poll()
+        if code is None:
+            return None
+        if code < 0:
+            try:
+                return f"was killed by {signal.Signals(-code).name}"
+            except ValueError:
+                return f"was killed by signal {-code}"
+        return f"exited with code {code}"
 
     def wait_ready(self) -> None:
         """Until the vehicle printed its ready line; SitlStartError if it exited or the start timed out."""

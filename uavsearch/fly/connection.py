@@ -57,6 +57,7 @@ class MavlinkConnection:
         f = self.mavfile
         # MAVLink 2 from the first packet, whatever dialect pymavlink's import picked from the environment
         f.mav = M.MAVLink(f, srcSystem=source_system, srcComponent=source_component)
+        f.mav.robust_parsing = f.robust_parsing  # a bad frame (CRC, signature) is BAD_DATA, not an exception
         f.WIRE_PROTOCOL_VERSION, f.first_byte = "2.0", False
         if tlog is not None:
             tlog.attach(f)
@@ -121,6 +122,10 @@ class MavlinkConnection:
             self._last_hb_sent = now
             self.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE)
 
+    def send_bytes(self, data: bytes) -> None:
+        """Raw bytes to the peer(s), as they are (tests of malformed input)."""
+        self.mavfile.write(data)
+
     def _route(self, m):
         """Hand the frame to its system (creating it on a first heartbeat); the frame, or None if dropped."""
         if m.get_type() == "BAD_DATA":
@@ -144,7 +149,10 @@ class MavlinkConnection:
             self.send_heartbeat()
         end = time.monotonic() + timeout_s
         while True:
-            m = self.mavfile.recv_match(blocking=True, timeout=max(0.0, end - time.monotonic()))
+            left = end - time.monotonic()
+            # pymavlink's recv_match reads nothing when given a timeout of 0: ask it not to block instead
+            m = self.mavfile.recv_match(blocking=True, timeout=left) if left > 0 else \
+                self.mavfile.recv_match(blocking=False)
             if m is not None and self._route(m) is not None:
                 return m
             if m is None and time.monotonic() >= end:

@@ -327,7 +327,7 @@ class MavlinkVehicle:
             self.image_dir.mkdir(parents=True, exist_ok=True)
             copy = self.image_dir / path.name
             if not cv2.imwrite(str(copy), bgr):
-                raise _write_failed(copy)
+                raise StepFailed(f"cannot write the image copy {copy}")
             path = copy
         rgb = np.ascontiguousarray(bgr[..., ::-1])
         pos = wire.position_enu(msg, self.origin)
@@ -386,20 +386,6 @@ class MavlinkVehicle:
 
     def __exit__(self, *exc):
         self.close()
-
-
-def _write_failed(path: Path) -> OSError:
-    """Why a file could not be written: a full disk says which."""
-    import errno
-    import shutil
-
-    try:
-        free = shutil.disk_usage(path.parent).free
-    except OSError:
-        free = None
-    if free is not None and free < (1 << 20):
-        return OSError(errno.ENOSPC, "No space left on device", str(path))
-    return OSError(errno.EIO, "cannot write", str(path))
 
 
 __all__ = ["AUTOPILOT_COMPID", "CAMERA_COMPID", "HEALTH_BITS", "MODE_HOLD", "MODE_LAND", "MODE_RTL", "MODE_TAKEOFF",
