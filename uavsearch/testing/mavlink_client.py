@@ -68,9 +68,10 @@ class Client:
                 m = self.inbox.popleft()
                 if (want is None or m.get_type() in want) and (cond is None or cond(m)):
                     return m
-            if time.monotonic() >= deadline:
+            # timeout 0 still reads what is waiting, as pymavlink's recv_match(blocking=False) does
+            got = self.connection.recv(max(0.0, min(0.2, deadline - time.monotonic())))
+            if got is None and not self.inbox and time.monotonic() >= deadline:
                 return None
-            self.connection.recv(max(0.0, min(0.2, deadline - time.monotonic())))
 
     def wait_heartbeat(self, timeout: float = 10.0):
         """The next autopilot heartbeat (compid 1), skipping the camera's."""
