@@ -404,3 +404,20 @@ def test_a_full_disk_is_one_line_and_keeps_what_was_recorded(tmp_path, tiny_disk
     from uavsearch.logs.flight_log import read_flight_log
 
     assert read_flight_log(run).header["mission"]["name"] == mission["name"]  # what it recorded is kept
+
+
+def test_a_torn_log_s_review_page_warns_in_one_line(flown, tmp_path):
+    """`replay --html` on a damaged search.jsonl says so as plain replay does: one line, no Python warning."""
+    import shutil
+
+    _, run, _ = flown
+    d = tmp_path / "torn"
+    shutil.copytree(run, d)
+    text = (d / "search.jsonl").read_text()
+    (d / "search.jsonl").write_text(text[: len(text) - 40])  # killed while writing the last record
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(d), "--html", str(tmp_path / "p.html")],
+                       capture_output=True, text=True, timeout=300, env=clean_env())
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("uavsearch: warning: ") and "damaged at line" in lines[0], r.stderr
+    assert "UserWarning" not in r.stderr and (tmp_path / "p.html").is_file()

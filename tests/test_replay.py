@@ -120,22 +120,3 @@ def test_mp4_video_through_opencv(run_dir, tmp_path):
         n += 1
     assert n == 2 * T  # 10 fps x 0.2 s per view
 
-
-def test_torn_log_review_page_warns_in_one_line(run_dir, tmp_path):
-    """`replay --html` on a damaged search.jsonl says so as plain replay does: one line, no Python warning."""
-    import shutil
-    import subprocess
-    import sys
-
-    from uavsearch.testing.clean_env import clean_env
-
-    d = tmp_path / "torn"
-    shutil.copytree(run_dir[0], d)
-    text = (d / "search.jsonl").read_text()
-    (d / "search.jsonl").write_text(text[: len(text) - 40])
-    r = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(d), "--html", str(tmp_path / "p.html")],
-                       capture_output=True, text=True, timeout=300, env=clean_env())
-    assert r.returncode == 0, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("uavsearch: warning: ") and "damaged at line 4" in lines[0], r.stderr
-    assert "UserWarning" not in r.stderr and (tmp_path / "p.html").is_file()
