@@ -95,11 +95,12 @@ class MavlinkConnection:
         return [self._systems[k] for k in sorted(self._systems)]
 
     def wait_system(self, sysid: int | None = None, timeout_s: float = 10.0):
-        """The `System` of `sysid` (None: the first autopilot) once its heartbeat arrived; None after timeout_s."""
+        """The `System` of `sysid` (None: the first autopilot) once its autopilot's heartbeat arrived (a camera's
+        is not enough); None after timeout_s."""
         end = time.monotonic() + timeout_s
         while True:
             for s in self.systems():
-                if s.is_autopilot if sysid is None else s.sysid == sysid:
+                if s.is_autopilot and (sysid is None or s.sysid == sysid):
                     return s
             if time.monotonic() >= end:
                 return None

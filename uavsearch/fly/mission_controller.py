@@ -236,9 +236,10 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
         if full is None:  # a full disk is said once, at the end
             progress(f"step {len(rec.records) + 1} failed: {e}")
     except OSError as e:  # the run directory's disk: the flight log cannot grow, the vehicle still flies
-        if disk_full(run_dir, e) is None:
+        full = disk_full(run_dir, e)
+        if full is None:
             raise
-        status = f"failed: {disk_full(run_dir, e)}"
+        status = f"failed: {full}"
     except FlightError as e:
         status = f"failed: {e}"
         _log_failure(log, step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
@@ -390,8 +391,9 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             status = f"failed: {e}"
             _log_failure(log, step=None, error=str(e), sim_time_s=vehicle.sim_time_s)
         try:
-            end = "not landed: the vehicle is gone" if status.startswith(VEHICLE_LOST) else vehicle.finish()
-            if end != "not flown":
+            lost = status.startswith(VEHICLE_LOST)
+            end = "not landed: the vehicle is gone" if lost else vehicle.finish()
+            if end != "not flown" and not lost:  # a lost vehicle is said once, by the caller
                 progress(end)
         except VehicleLost as e:
             end = f"end action failed: {e}"

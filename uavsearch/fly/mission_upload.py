@@ -115,7 +115,7 @@ __all__ = ["UploadReport", "add_mission_parser", "resolve_plan", "upload_plan"]
 
 def _cmd_mission_upload(args) -> int:
     r = upload_plan(args.plan, connect=args.connect, start=args.start, timeout_s=args.timeout,
-                    progress=lambda line: print(line, flush=True))
+                    progress=lambda line: print(line, flush=True), system_id=args.system_id)
     if args.start:
         print(f"flown: {r.flown}; {len(r.reached)} item(s) reached")
     return 0
@@ -132,6 +132,8 @@ def add_mission_parser(sub) -> None:
     up.add_argument("plan", type=Path, metavar="FILE.plan|MISSION.yaml")
     up.add_argument("--connect", default="udpin:127.0.0.1:14550", metavar="URL",
                     help="the vehicle's link (default udpin:127.0.0.1:14550, the ground-station link of uavsearch sitl)")
+    up.add_argument("--system-id", type=int, default=None, metavar="N",
+                    help="the vehicle with MAVLink system id N on the link (default: the first autopilot heard)")
     up.add_argument("--start", action="store_true", help="arm, start the mission, wait until landed or complete")
     up.add_argument("--timeout", type=float, default=600.0, metavar="S", help="wall-clock limit (default 600 s)")
     up.set_defaults(func=_cmd_mission_upload)

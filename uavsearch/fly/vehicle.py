@@ -221,7 +221,7 @@ class MavlinkVehicle:
             if self.watchdog is not None:
                 self.watchdog()
             s = c.wait_system(self.system_id, timeout_s=0.0)
-            if s is not None and s.is_autopilot:
+            if s is not None:
                 return s
             now = time.monotonic()
             if now >= next_note:
