@@ -196,6 +196,28 @@ class MavlinkVehicle:
         if self._settle is not None:
             self._settle.update(self.position_enu(), self.velocity_enu(), wire.seconds(m.time_boot_ms))
 
+    @property
+    def target_system(self) -> int | None:
+        """The system id this vehicle flies (None before its heartbeat)."""
+        return None if self.system is None else self.system.sysid
+
+    @property
+    def lockstep(self) -> bool:
+        """This client drives the vehicle's clock (the vehicle accepted a grant)."""
+        return self.system is not None and self.system.lockstep.enabled
+
+    def pump(self, timeout_s: float = 0.05) -> None:
+        """Read the link for up to timeout_s."""
+        (self.system or self.connection).pump(timeout_s)
+
+    def command_long(self, command: int, *params: float, **kw) -> int:
+        """COMMAND_LONG to the vehicle (system.commands.long); its MAV_RESULT."""
+        return self._need_system().commands.long(command, *params, **kw)
+
+    def command_int(self, command: int, *args, **kw) -> int:
+        """COMMAND_INT to the vehicle (system.commands.int); its MAV_RESULT."""
+        return self._need_system().commands.int(command, *args, **kw)
+
     # ------------------------------------------------------------------ queries
     def read_param(self, name: str) -> float | None:
         """A parameter's value (int32 parameters decoded bytewise, as PX4 sends them), None if the vehicle has none."""
