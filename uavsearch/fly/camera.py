@@ -10,7 +10,7 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
-from .connection import CAMERA_COMPID, M
+from .dialect import CAMERA_COMPID, M
 from .errors import StepFailed
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 
-from .connection import AUTOPILOT_COMPID, M, command_name, result_name
+from .dialect import AUTOPILOT_COMPID, M, command_name, result_name
 from .errors import CommandError
 
 

@@ -5,8 +5,8 @@ its system id and sees only that system's frames, so a second vehicle on the lin
 never takes over the first one's state. `wait_system(sysid)` or `first_autopilot()` gives a user the
 vehicle they want; `systems()` lists what is on the link.
 
-The wire protocol is MAVLink 2 with the `common` dialect, chosen here and not from the environment
-(pymavlink otherwise picks MAVLink 1 unless MAVLINK20 is set before it is imported).
+The wire protocol is MAVLink 2 with the `common` dialect (dialect.py), chosen here and not from the
+environment (pymavlink otherwise picks MAVLink 1 unless MAVLINK20 is set before it is imported).
 """
 
 from __future__ import annotations
@@ -16,26 +16,10 @@ import io
 import time
 
 from pymavlink import mavutil
-from pymavlink.dialects.v20 import common as M
 
+from .dialect import AUTOPILOT_COMPID, CAMERA_COMPID, M, command_name, result_name
 from .errors import FlightError
-
-AUTOPILOT_COMPID = 1
-CAMERA_COMPID = 100
-
-
-def command_name(command: int) -> str:
-    """'MAV_CMD_NAV_TAKEOFF (22)', or the number alone for a command the dialect does not name."""
-    e = M.enums["MAV_CMD"].get(command)
-    return f"{e.name} ({command})" if e is not None else f"command {command}"
-
-
-def result_name(result: int | None) -> str:
-    if result is None:
-        return "no COMMAND_ACK"
-    e = M.enums["MAV_RESULT"].get(result)
-    return e.name if e is not None else f"MAV_RESULT {result}"
-
+from .system import System
 
 class MavlinkConnection:
     """The socket of one MAVLink link (`udpin:HOST:PORT`, `udpout:...`, `tcp:...`) and the systems on it.
@@ -136,8 +120,6 @@ class MavlinkConnection:
         if system is None:
             if m.get_type() != "HEARTBEAT":
                 return None
-            from .system import System
-
             system = self._systems[sysid] = System(self, sysid)
         system.dispatch(m)
         for fn in self._listeners:

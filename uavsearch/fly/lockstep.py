@@ -9,7 +9,7 @@ UNSUPPORTED and the client stays free-running.
 from __future__ import annotations
 
 from ..flight.lockstep import MAV_CMD_SIM_ADVANCE
-from .connection import M
+from .dialect import M
 
 
 class Lockstep:

@@ -11,7 +11,7 @@ import time
 
 from ..errors import MissionError
 from ..flight.mission import MissionItem
-from .connection import AUTOPILOT_COMPID, M
+from .dialect import AUTOPILOT_COMPID, M
 
 MISSION_STATE_COMPLETE = 5
 

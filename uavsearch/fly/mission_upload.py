@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..errors import MissionError
 from ..flight.mission import NAV_LAND, NAV_RETURN_TO_LAUNCH
-from .connection import M
+from .dialect import M
 from .plan_files import Plan, load_plan, mission_items
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import struct
 
-from .connection import AUTOPILOT_COMPID, M
+from .dialect import AUTOPILOT_COMPID, M
 
 
 class Params:

@@ -14,7 +14,7 @@ from collections import defaultdict
 
 from .camera import Camera
 from .commands import Commands
-from .connection import M
+from .dialect import M
 from .errors import FlightError, StepFailed
 from .lockstep import Lockstep
 from .mission_transfer import Mission

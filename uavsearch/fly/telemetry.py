@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from ..flight.mavlink import wire_units as wire
-from .connection import AUTOPILOT_COMPID, M
+from .dialect import AUTOPILOT_COMPID, M
 
 # PX4 custom modes (main, sub) as HEARTBEAT.custom_mode = sub << 24 | main << 16.
 MODE_HOLD = (4, 3)

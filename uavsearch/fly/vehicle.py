@@ -36,7 +36,8 @@ from ..geometry import GeodeticOrigin, camera_pose_from_vehicle
 from ..search.config import SearchConfig
 from ..search.views import View, make_view
 from .camera import image_path
-from .connection import AUTOPILOT_COMPID, CAMERA_COMPID, M, MavlinkConnection
+from .connection import MavlinkConnection
+from .dialect import AUTOPILOT_COMPID, CAMERA_COMPID, M
 from .errors import CommandError, FlightError, StepFailed, VehicleLost
 from .system import PROGRESS_EVERY_S, PROGRESS_FIRST_S
 from .telemetry import HEALTH_BITS, MODE_HOLD, MODE_LAND, MODE_RTL, MODE_TAKEOFF, STREAM_RATES_HZ

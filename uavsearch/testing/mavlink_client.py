@@ -13,7 +13,8 @@ import socket
 import time
 from collections import deque
 
-from uavsearch.fly.connection import AUTOPILOT_COMPID, M, MavlinkConnection
+from uavsearch.fly.connection import MavlinkConnection
+from uavsearch.fly.dialect import AUTOPILOT_COMPID, M
 from uavsearch.fly.errors import CommandError
 
 NAN = math.nan
