@@ -14,6 +14,7 @@ from uavsearch.geometry import CameraIntrinsics
 from uavsearch.fly.missions import TRAINED_CAMERA, load_mission, mission_from_dict
 
 from uavsearch.testing.mavlink_client import Client
+from uavsearch.testing.clean_env import clean_env
 
 WIDE = {"hfov_deg": 75, "width_px": 320, "height_px": 240}
 
@@ -44,14 +45,14 @@ def test_bad_camera_fields_are_one_line(bad):
 def test_sitl_camera_options_reach_camera_information(tmp_path):
     port = free_udp_port()
     sitl = SitlProcess(tmp_path, "--camera-hfov", "75", "--camera-size", "320x240", api_port=port, gcs_port=0,
-                       camera=False)
+                       camera=False, env=clean_env())
     try:
         assert "camera    320x240 px, 75 deg horizontal FOV" in "".join(sitl.banner)
         c = Client(port)
         c.mav.command_long_send(1, 100, M.MAV_CMD_REQUEST_MESSAGE, 0, M.MAVLINK_MSG_ID_CAMERA_INFORMATION,
                                 0, 0, 0, 0, 0, 0)
         info = c.recv("CAMERA_INFORMATION", timeout=10.0)
-        c.conn.close()
+        c.close()
     finally:
         sitl.stop()
     assert info is not None and (info.resolution_h, info.resolution_v) == (320, 240)
@@ -63,7 +64,7 @@ def test_sitl_camera_options_reach_camera_information(tmp_path):
 @pytest.mark.parametrize("args", [["--camera-size", "320"], ["--camera-size", "8x8"], ["--camera-hfov", "wide"]])
 def test_bad_sitl_camera_options_are_one_line(args):
     r = subprocess.run([sys.executable, "-m", "uavsearch.flight.sitl", *args], capture_output=True, text=True,
-                       timeout=60)
+                       timeout=60, env=clean_env())
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1].startswith("uavsearch sitl: error: argument --camera-")
 

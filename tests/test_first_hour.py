@@ -10,6 +10,7 @@ import yaml
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
 from uavsearch.search.config import SearchConfig
 from uavsearch.fly.vehicle import FlightError, FlightSettings, MavlinkVehicle
+from uavsearch.testing.clean_env import clean_env
 
 
 def test_client_names_the_port_it_listens_on():
@@ -42,7 +43,7 @@ def test_connect_to_nothing_says_so_and_leaves_no_run_folder(tmp_path):
     (tmp_path / "m.yaml").write_text(yaml.safe_dump({"name": "nothing", "flight": {"connect_timeout_s": 4.5}}))
     r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp_path / "m.yaml"),
                         "--connect", f"udpin:127.0.0.1:{port}", "--out", str(tmp_path / "run")],
-                       capture_output=True, text=True, timeout=120)
+                       capture_output=True, text=True, timeout=120, env=clean_env())
     assert r.returncode == 2, r.stdout + r.stderr
     assert f"connecting  no heartbeat yet on udpin:127.0.0.1:{port}  2 s of 4 s" in r.stdout
     assert "not flown" not in r.stdout and "flight log:" not in r.stdout
@@ -52,7 +53,7 @@ def test_connect_to_nothing_says_so_and_leaves_no_run_folder(tmp_path):
 
 def test_real_time_take_off_reports_progress(tmp_path):
     """A take-off that lasts seconds of wall clock prints where the vehicle is, in the per-step lines' style."""
-    sitl = SitlProcess(tmp_path, api_port=free_udp_port(), gcs_port=0, speed="1", camera=False)
+    sitl = SitlProcess(tmp_path, api_port=free_udp_port(), gcs_port=0, speed="1", camera=False, env=clean_env())
     lines = []
     v = MavlinkVehicle(f"udpin:127.0.0.1:{sitl.api_port}", SearchConfig(altitude_m=6.0),
                        settings=FlightSettings(end_action="none"), progress=lines.append)

@@ -7,6 +7,7 @@ perception net stands in (the flight and the log do not depend on the weights).
 """
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -17,6 +18,7 @@ import yaml
 from pymavlink import mavutil
 
 from uavsearch.flight.sitl_process import SitlProcess
+from uavsearch.testing.clean_env import clean_env
 from uavsearch.paths import MODELS_DIR
 from uavsearch.search.config import ACTIONS
 from uavsearch.search.fusion import fuse
@@ -49,7 +51,7 @@ def flown(tmp_path_factory):
     (tmp / "m.yaml").write_text(yaml.safe_dump(mission))
     run = tmp / "run"
     r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp / "m.yaml"), "--out", str(run),
-                        "--gcs-port", "0"], capture_output=True, text=True, timeout=240)
+                        "--gcs-port", "0"], capture_output=True, text=True, timeout=240, env=clean_env())
     return r, run, mission
 
 
@@ -63,8 +65,11 @@ def test_fly_prints_progress_map_and_metrics(flown):
     assert "found" in out and "truth" in out and out.count("\n. ") + out.count("\n# ") + out.count("\n! ") + \
         out.count("\nx ") == 10
     assert "completed: 2 view(s); Aacc" in out and "F1" in out and "sim time" in out and "wall time" in out
+    assert "photos 2 of 2 received" in out
     assert str(run) in out
     assert "Traceback" not in r.stderr
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["photos_asked"] == 2 and summary["photos_received"] == 2
 
 
 def test_flight_log_records_every_step(flown):
@@ -123,7 +128,7 @@ def test_replay_the_flight_and_its_tlog(flown, tmp_path):
     r, run, mission = flown
     out = tmp_path / "replay"
     rr = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(run), "--out", str(out)],
-                        capture_output=True, text=True, timeout=120)
+                        capture_output=True, text=True, timeout=120, env=clean_env())
     assert rr.returncode == 0, rr.stderr
     res = json.loads((out / "replay.json").read_text())
     summary = json.loads((run / "summary.json").read_text())
@@ -135,7 +140,8 @@ def test_replay_the_flight_and_its_tlog(flown, tmp_path):
     mfile.write_text(yaml.safe_dump(mission))
     out2 = tmp_path / "replay_tlog"
     rr = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(run / "telemetry.tlog"), "--scene", "3",
-                         "--mission", str(mfile), "--out", str(out2)], capture_output=True, text=True, timeout=120)
+                         "--mission", str(mfile), "--out", str(out2)], capture_output=True, text=True, timeout=120,
+                        env=clean_env())
     assert rr.returncode == 0, rr.stderr
     res2 = json.loads((out2 / "replay.json").read_text())
     assert res2["views"] == T and res2["labels"] == res["labels"]
@@ -157,10 +163,11 @@ def test_the_same_mission_flies_the_same_flight_on_a_busy_machine(flown, tmp_pat
     r, run, _ = flown
     assert r.returncode == 0, r.stdout + r.stderr
     run2 = tmp_path / "again"
-    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"], env=clean_env())
     try:
         r2 = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(run.parent / "m.yaml"),
-                             "--out", str(run2), "--gcs-port", "0"], capture_output=True, text=True, timeout=240)
+                             "--out", str(run2), "--gcs-port", "0"], capture_output=True, text=True, timeout=240,
+                            env=clean_env())
     finally:
         hog.kill()
         hog.wait()
@@ -176,11 +183,11 @@ def test_connect_to_a_running_vehicle_flies_the_same_flight(flown, tmp_path):
     """--connect: a `uavsearch sitl --lockstep` started by someone else, same scene and seeds -> same flight,
     with the true poses read from the camera's captures.jsonl beside its images."""
     _, run, _ = flown
-    sitl = SitlProcess(tmp_path / "vehicle", "--scene", "3", "--cells", "5", lockstep=True)
+    sitl = SitlProcess(tmp_path / "vehicle", "--scene", "3", "--cells", "5", lockstep=True, env=clean_env())
     try:
         r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--connect", f"udpin:127.0.0.1:{sitl.api_port}",
                             "--mission", str(run.parent / "m.yaml"), "--out", str(tmp_path / "run")],
-                           capture_output=True, text=True, timeout=240)
+                           capture_output=True, text=True, timeout=240, env=clean_env())
     finally:
         sitl.stop()
     assert r.returncode == 0, r.stdout + r.stderr
@@ -204,7 +211,8 @@ def test_killed_mid_air_leaves_a_readable_log(tmp_path):
     (tmp_path / "m.yaml").write_text(yaml.safe_dump(mission))
     run = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp_path / "m.yaml"), "--out",
-                             str(run), "--gcs-port", "0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                             str(run), "--gcs-port", "0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env=clean_env())
     try:
         end = time.monotonic() + 180
         while time.monotonic() < end:
@@ -221,7 +229,8 @@ def test_killed_mid_air_leaves_a_readable_log(tmp_path):
     assert len(tr.captures) >= 1 and tr.lla[:, 2].max() > 488.0 + 69.0
     time.sleep(2)
     sitl_log = (run / "sitl.log").read_text()
-    out = subprocess.run(["pgrep", "-f", f"uavsearch.flight.sitl.*{run}"], capture_output=True, text=True)
+    out = subprocess.run(["pgrep", "-f", f"uavsearch.flight.sitl.*{run}"], capture_output=True, text=True,
+                         env=clean_env())
     assert out.stdout.strip() == "", sitl_log
 
 
@@ -232,7 +241,7 @@ def test_a_step_that_does_not_settle_fails_cleanly_and_lands(tmp_path):
     (tmp_path / "m.yaml").write_text(yaml.safe_dump(mission))
     run = tmp_path / "run"
     r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp_path / "m.yaml"), "--out", str(run),
-                        "--gcs-port", "0"], capture_output=True, text=True, timeout=240)
+                        "--gcs-port", "0"], capture_output=True, text=True, timeout=240, env=clean_env())
     assert r.returncode == 1 and "Traceback" not in r.stderr
     assert "step 1 failed: goto [0.0, 0.0, 70.0]: not done after 0.2 s of flight" in r.stdout
     assert "\nlanded\n" in r.stdout
@@ -268,7 +277,7 @@ def test_flight_review_page_renders_in_chromium(flown, tmp_path):
     _, run, _ = flown
     page, shot = tmp_path / "review.html", tmp_path / "review.png"
     rr = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(run), "--html", str(page)],
-                        capture_output=True, text=True, timeout=120)
+                        capture_output=True, text=True, timeout=120, env=clean_env())
     assert rr.returncode == 0, rr.stderr
     # the log, independently
     home = json.loads((run / "mission.json").read_text())["home"]
@@ -296,7 +305,7 @@ def test_flight_review_page_renders_in_chromium(flown, tmp_path):
         # a bare .tlog gets the same page without the per-view panels
         tlog_page = tmp_path / "tlog.html"
         rr = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(run / "telemetry.tlog"), "--html",
-                             str(tlog_page)], capture_output=True, text=True, timeout=120)
+                             str(tlog_page)], capture_output=True, text=True, timeout=120, env=clean_env())
         assert rr.returncode == 0, rr.stderr
         tlog_severe, tlog_plots = open_page(drv, tlog_page, tmp_path / "tlog.png")
     finally:
@@ -323,3 +332,93 @@ def test_flight_review_page_renders_in_chromium(flown, tmp_path):
     fused_last = [t for t in steps["traces"] if t["name"] == f"fused {T}"][0]["z"]
     np.testing.assert_allclose(np.array(fused_last).ravel(), summary["fused"], atol=1e-5)
     assert shot.stat().st_size > 50_000
+
+
+def _vehicle_pid(run: Path) -> int | None:
+    out = subprocess.run(["pgrep", "-f", f"uavsearch.flight.sitl.*{run}"], capture_output=True, text=True,
+                         env=clean_env())
+    pids = [int(p) for p in out.stdout.split()]
+    return pids[0] if pids else None
+
+
+def test_a_killed_vehicle_is_one_line_within_3_s(tmp_path):
+    """kill -9 of the vehicle mid-mission: fly says so at once (how it died, the step, its log), exits non-zero."""
+    import signal
+    import time
+
+    mission = _mission(tmp_path)
+    mission["search"]["budget_T"] = 5
+    mission["flight"]["speed"] = 1  # real time: the kill lands mid-mission
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(mission))
+    run = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp_path / "m.yaml"), "--out",
+                             str(run), "--gcs-port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=clean_env())
+    try:
+        end = time.monotonic() + 180
+        while time.monotonic() < end and not ((run / "search.jsonl").is_file()
+                                              and '"type":"step"' in (run / "search.jsonl").read_text()):
+            time.sleep(0.1)
+        pid = _vehicle_pid(run)
+        assert pid is not None
+        os.kill(pid, signal.SIGKILL)
+        killed = time.monotonic()
+        out, err = proc.communicate(timeout=30)
+        took = time.monotonic() - killed
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1, out + err
+    assert took < 3.0, f"{took:.1f} s"
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert "vehicle lost at step 2 of 5" in err and "killed by SIGKILL" in err and str(run / "sitl.log") in err
+    assert (run / "sitl.log").is_file() and (run / "search.jsonl").is_file()
+    assert "not acknowledged" not in out + err
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 640 KiB tmpfs: room for the scene and two or three images of a flight, not for all of it."""
+    where = tmp_path / "disk"
+    where.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=640k", "tmpfs", str(where)], capture_output=True,
+                       env=clean_env())
+    if r.returncode != 0:
+        pytest.skip("cannot mount a tmpfs here (needs root)")
+    yield where
+    # the vehicle process may still be closing its files: detach the mount now, it goes when they are closed
+    subprocess.run(["umount", "-l", str(where)], capture_output=True, env=clean_env())
+
+
+def test_a_full_disk_is_one_line_and_keeps_what_was_recorded(tmp_path, tiny_disk):
+    mission = _mission(tmp_path)
+    mission["search"]["budget_T"] = 5
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(mission))
+    run = tiny_disk / "run"
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp_path / "m.yaml"), "--out",
+                        str(run), "--gcs-port", "0"], capture_output=True, text=True, timeout=300, env=clean_env())
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "no space left on device" in r.stderr and str(tiny_disk) in r.stderr
+    assert "the camera reported a failed capture" not in r.stdout
+    assert "\nlanded\n" in r.stdout
+    from uavsearch.logs.flight_log import read_flight_log
+
+    assert read_flight_log(run).header["mission"]["name"] == mission["name"]  # what it recorded is kept
+
+
+def test_a_torn_log_s_review_page_warns_in_one_line(flown, tmp_path):
+    """`replay --html` on a damaged search.jsonl says so as plain replay does: one line, no Python warning."""
+    import shutil
+
+    _, run, _ = flown
+    d = tmp_path / "torn"
+    shutil.copytree(run, d)
+    text = (d / "search.jsonl").read_text()
+    (d / "search.jsonl").write_text(text[: len(text) - 40])  # killed while writing the last record
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "replay", str(d), "--html", str(tmp_path / "p.html")],
+                       capture_output=True, text=True, timeout=300, env=clean_env())
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("uavsearch: warning: ") and "damaged at line" in lines[0], r.stderr
+    assert "UserWarning" not in r.stderr and (tmp_path / "p.html").is_file()

@@ -23,6 +23,7 @@ from uavsearch.flight.sitl_process import SitlProcess
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import fuzz_mavlink  # noqa: E402
+from uavsearch.testing.clean_env import clean_env
 
 M = mavutil.mavlink
 NAN, INF = math.nan, math.inf
@@ -34,7 +35,7 @@ def _acks(c: Client, command: int, seconds: float) -> list:
     """Every COMMAND_ACK for `command` within `seconds` (to check there is exactly one)."""
     out, end = [], time.monotonic() + seconds
     while time.monotonic() < end:
-        m = c.conn.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.1)
+        m = c.recv("COMMAND_ACK", 0.1)
         if m is not None and m.command == command:
             out.append(m)
     return out
@@ -62,7 +63,7 @@ def _heartbeat_gap(c: Client, seconds: float) -> float:
 
 def _sitl_at_speed_1(tmp_path_factory, name: str, camera: bool):
     """A module's vehicle at --speed 1; yields it, then returns its log after checking it exited cleanly."""
-    p = SitlProcess(tmp_path_factory.mktemp(name), speed="1", camera=camera)
+    p = SitlProcess(tmp_path_factory.mktemp(name), speed="1", camera=camera, env=clean_env())
     yield p
     code, out = p.stop()
     assert code == 0, out
@@ -164,14 +165,14 @@ def test_commands_with_hostile_params_get_exactly_one_ack(gcs):
     sent: dict = {}
     for _ in range(150):
         _, data, acks = gen.next()
-        gcs.conn.port.sendto(data, next(iter(gcs.conn.clients)))
+        gcs.send_raw(data)
         for k, n in acks.items():
             sent[k] = sent.get(k, 0) + n
         time.sleep(0.01)
     got: dict = {}
     end = time.monotonic() + 3.0
     while time.monotonic() < end:
-        m = gcs.conn.recv_match(type="COMMAND_ACK", blocking=True, timeout=0.1)
+        m = gcs.recv("COMMAND_ACK", 0.1)
         if m is not None:
             got[m.command] = got.get(m.command, 0) + 1
     assert got == sent
@@ -229,7 +230,7 @@ def test_fuzz_mid_flight_leaves_it_flying_answering_and_landing():
 
 def _uavsearch(*args, timeout=240):
     return subprocess.run([sys.executable, "-m", "uavsearch", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout)
+                          timeout=timeout, env=clean_env())
 
 
 def _one_line_error(r, *words):
@@ -267,14 +268,14 @@ def test_mission_outside_what_the_models_were_trained_for_is_refused(tmp_path):
 
 
 def test_fly_connect_refuses_a_vehicle_simulating_another_scene(tmp_path):
-    sitl = SitlProcess(tmp_path / "vehicle", "--scene", "5", "--cells", "5", lockstep=True)
+    sitl = SitlProcess(tmp_path / "vehicle", "--scene", "5", "--cells", "5", lockstep=True, env=clean_env())
     try:
         r = _uavsearch("fly", "--connect", f"udpin:127.0.0.1:{sitl.api_port}", "--out", tmp_path / "run")
         _one_line_error(r, "simulates scene 5", "scene 3")
     finally:
         sitl.stop()
     c = None
-    sitl = SitlProcess(tmp_path / "vehicle2", "--scene", "3", "--cells", "5")
+    sitl = SitlProcess(tmp_path / "vehicle2", "--scene", "3", "--cells", "5", env=clean_env())
     try:  # what the vehicle reports, over plain PARAM_REQUEST_READ
         c = Client(sitl.gcs_port)
         values = {}
@@ -291,7 +292,8 @@ def test_fly_connect_refuses_a_vehicle_simulating_another_scene(tmp_path):
 
 def test_second_ctrl_c_says_what_became_of_the_end_action(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "uavsearch", "fly", "--speed", "1", "--out", str(tmp_path / "run"),
-                             "--gcs-port", "0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                             "--gcs-port", "0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=clean_env())
     out = []
     try:
         end = time.monotonic() + 180

@@ -10,12 +10,13 @@ from pymavlink import mavutil
 from uavsearch.testing.mavlink_client import Client
 from uavsearch.flight.lockstep import MAV_CMD_SIM_ADVANCE
 from uavsearch.flight.sitl_process import SitlProcess
+from uavsearch.testing.clean_env import clean_env
 
 M = mavutil.mavlink
 
 
 def _grant(c: Client, until_ms: int, timeout: float = 5.0):
-    c.mav.command_int_send(c.conn.target_system, 1, M.MAV_FRAME_MISSION, MAV_CMD_SIM_ADVANCE, 0, 0, 0, 0, 0, 0,
+    c.mav.command_int_send(c.sysid, 1, M.MAV_FRAME_MISSION, MAV_CMD_SIM_ADVANCE, 0, 0, 0, 0, 0, 0,
                            until_ms, 0, 0.0)
     return c.recv("COMMAND_ACK", timeout, cond=lambda m: m.command == MAV_CMD_SIM_ADVANCE)
 
@@ -24,7 +25,7 @@ def _drain(c: Client, seconds: float) -> list:
     """Every message that arrives within `seconds` of wall time."""
     out, end = [], time.monotonic() + seconds
     while time.monotonic() < end:
-        m = c.conn.recv_match(blocking=True, timeout=0.05)
+        m = c.recv(None, 0.05)
         if m is not None:
             out.append(m)
     return out
@@ -32,7 +33,7 @@ def _drain(c: Client, seconds: float) -> list:
 
 @pytest.fixture
 def lockstep(tmp_path):
-    p = SitlProcess(tmp_path, lockstep=True, gcs_port=0, camera=False)
+    p = SitlProcess(tmp_path, lockstep=True, gcs_port=0, camera=False, env=clean_env())
     assert "lockstep" in "".join(p.banner)
     c = Client(p.api_port)  # the vehicle heartbeats while it waits for its first grant
     yield c
@@ -65,10 +66,10 @@ def test_telemetry_stamps_follow_the_grants(lockstep):
     _drain(c, 0.2)
     seen = []
     for until in (200, 400, 600):
-        c.mav.command_int_send(c.conn.target_system, 1, M.MAV_FRAME_MISSION, MAV_CMD_SIM_ADVANCE, 0, 0, 0, 0, 0, 0,
+        c.mav.command_int_send(c.sysid, 1, M.MAV_FRAME_MISSION, MAV_CMD_SIM_ADVANCE, 0, 0, 0, 0, 0, 0,
                                until, 0, 0.0)
         while True:  # everything up to the ACK belongs to this grant
-            m = c.conn.recv_match(blocking=True, timeout=5)
+            m = c.recv(None, 5)
             assert m is not None
             if m.get_type() == "COMMAND_ACK" and m.command == MAV_CMD_SIM_ADVANCE:
                 assert m.result_param2 == until
@@ -91,7 +92,7 @@ def test_bad_grants_are_denied(lockstep):
 
 
 def test_a_free_running_vehicle_refuses_grants(tmp_path):
-    p = SitlProcess(tmp_path, gcs_port=0, camera=False)
+    p = SitlProcess(tmp_path, gcs_port=0, camera=False, env=clean_env())
     c = Client(p.api_port)
     try:
         assert _grant(c, 10_000).result == M.MAV_RESULT_UNSUPPORTED

@@ -19,7 +19,8 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as v20
 
-from uavsearch.testing.mavlink_client import Client, PeerClient, clean_env
+from uavsearch.testing.clean_env import clean_env
+from uavsearch.testing.mavlink_client import Client, PeerClient
 from uavsearch.flight.mavlink.links import MAX_PEERS, PEER_TIMEOUT_S, Link, LinkConfig
 from uavsearch.flight.params import ParamStore
 from uavsearch.flight.sitl_process import SitlProcess
@@ -29,11 +30,16 @@ KEY = bytes(range(32))
 CLIENTS = 8
 
 
+def _env(home) -> dict:
+    """A vehicle's environment from scratch, its home and temporary files in the test's folder."""
+    return clean_env(HOME=str(home), TMPDIR=str(home), LANG="C.UTF-8")
+
+
 @pytest.fixture(scope="module")
 def vehicle(tmp_path_factory):
     """A signing vehicle (the API link accepts unsigned input, as MAVSDK cannot sign), no camera scene."""
     tmp = tmp_path_factory.mktemp("many")
-    p = SitlProcess(tmp / "run", "--signing-key", KEY.hex(), speed="4", camera=False, env=clean_env(tmp))
+    p = SitlProcess(tmp / "run", "--signing-key", KEY.hex(), speed="4", camera=False, env=_env(tmp))
     yield p
     code, out = p.stop()
     assert code == 0 and "Traceback" not in out, out
@@ -268,7 +274,7 @@ def test_full_disk_makes_failed_captures_and_the_vehicle_keeps_answering(tmp_pat
             for i in range(8):
                 (run / "images" / f"img_{i:04d}.png").symlink_to("/dev/full")
         floor = [] if mounted else ["--param", "SIM_CAM_FREE_MB=1e7"]
-        sitl = SitlProcess(run, "--camera-size", "64x48", *floor, speed="2", gcs_port=0, env=clean_env(tmp_path))
+        sitl = SitlProcess(run, "--camera-size", "64x48", *floor, speed="2", gcs_port=0, env=_env(tmp_path))
         try:
             sitl.wait_file("scene.json")
             if mounted:
@@ -297,7 +303,7 @@ def test_full_disk_makes_failed_captures_and_the_vehicle_keeps_answering(tmp_pat
 @pytest.fixture(scope="module")
 def camera_vehicle(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("cam")
-    p = SitlProcess(tmp / "run", "--camera-size", "64x48", speed="2", gcs_port=0, env=clean_env(tmp))
+    p = SitlProcess(tmp / "run", "--camera-size", "64x48", speed="2", gcs_port=0, env=_env(tmp))
     yield p
     code, out = p.stop()
     assert code == 0 and "Traceback" not in out, out

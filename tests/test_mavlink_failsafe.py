@@ -8,6 +8,7 @@ from pymavlink import mavutil
 
 from uavsearch.testing.mavlink_client import NAN, Client
 from uavsearch.flight.sitl_process import SitlProcess
+from uavsearch.testing.clean_env import clean_env
 
 M = mavutil.mavlink
 ORIGIN_ALT = 488.0
@@ -23,7 +24,8 @@ def _latlon(north_m, east_m):
 @pytest.fixture(scope="module")
 def flying(tmp_path_factory):
     p = SitlProcess(tmp_path_factory.mktemp("sitl"), "--param", "GF_MAX_HOR_DIST=40", "--param", "COM_DL_LOSS_T=1",
-                    "--param", "NAV_DLL_ACT=2", "--param", "MIS_TAKEOFF_ALT=4", "--param", "RTL_RETURN_ALT=6", camera=False)
+                    "--param", "NAV_DLL_ACT=2", "--param", "MIS_TAKEOFF_ALT=4", "--param", "RTL_RETURN_ALT=6",
+                    camera=False, env=clean_env())
     c = Client(p.gcs_port)
     assert c.command(M.MAV_CMD_COMPONENT_ARM_DISARM, 1).result == M.MAV_RESULT_ACCEPTED
     assert c.command(M.MAV_CMD_NAV_TAKEOFF, *[NAN] * 7).result == M.MAV_RESULT_ACCEPTED
@@ -88,7 +90,7 @@ def _signed_frame(m) -> bool:
 
 @pytest.fixture(scope="module")
 def signed(tmp_path_factory):
-    p = SitlProcess(tmp_path_factory.mktemp("sitl"), "--signing-key", KEY.hex(), camera=False)
+    p = SitlProcess(tmp_path_factory.mktemp("sitl"), "--signing-key", KEY.hex(), camera=False, env=clean_env())
     yield p
     code, out = p.stop()
     assert code == 0, out
@@ -99,9 +101,9 @@ def test_signing_gcs_link_rejects_unsigned_and_wrong_key(signed):
     hb = c.wait_heartbeat()
     assert _signed_frame(hb)  # the vehicle signs what it sends
     assert c.command(31999, timeout=1.0) is None  # unsigned: dropped, no answer
-    c.conn.setup_signing(hashlib.sha256(b"wrong").digest(), sign_outgoing=True)
+    c.setup_signing(hashlib.sha256(b"wrong").digest())
     assert c.command(31999, timeout=1.0) is None  # wrong key: dropped
-    c.conn.setup_signing(KEY, sign_outgoing=True)
+    c.setup_signing(KEY)
     ack = c.command(31999)
     assert ack is not None and ack.result == M.MAV_RESULT_UNSUPPORTED and ack._signed  # verified with KEY
     st = c.recv("SYS_STATUS", cond=lambda m: m.errors_comm >= 2)
@@ -113,6 +115,6 @@ def test_signing_api_link_signs_output_and_accepts_unsigned(signed):
     c = Client(signed.api_port)  # MAVSDK cannot sign, so the API link accepts unsigned input ...
     assert _signed_frame(c.wait_heartbeat())
     assert c.command(31999).result == M.MAV_RESULT_UNSUPPORTED
-    c.conn.setup_signing(hashlib.sha256(b"wrong").digest(), sign_outgoing=True)
+    c.setup_signing(hashlib.sha256(b"wrong").digest())
     assert c.command(31999, timeout=1.0) is None  # ... but never a frame signed with the wrong key
     c.close()

@@ -9,13 +9,14 @@ from pymavlink import mavutil
 
 from uavsearch.testing.mavlink_client import NAN, Client
 from uavsearch.flight.sitl_process import SitlProcess
+from uavsearch.testing.clean_env import clean_env
 
 M = mavutil.mavlink
 
 
 @pytest.fixture(scope="module")
 def sitl(tmp_path_factory):
-    p = SitlProcess(tmp_path_factory.mktemp("sitl"), camera=False)
+    p = SitlProcess(tmp_path_factory.mktemp("sitl"), camera=False, env=clean_env())
     yield p
     code, out = p.stop()
     assert code == 0, out  # Ctrl-C stops it cleanly
@@ -172,16 +173,14 @@ def test_malformed_bytes_are_dropped_and_counted(gcs):
     rng = np.random.default_rng(3)
     before = gcs.recv("SYS_STATUS").errors_comm
     valid = gcs.mav.command_long_encode(1, 1, 31999, 0, 0, 0, 0, 0, 0, 0, 0).pack(gcs.mav)
-    sock = gcs.conn.port
-    addr = next(iter(gcs.conn.clients))  # the vehicle's source address
     for _ in range(100):
-        sock.sendto(rng.integers(0, 256, rng.integers(1, 300), dtype=np.uint8).tobytes(), addr)
+        gcs.send_raw(rng.integers(0, 256, rng.integers(1, 300), dtype=np.uint8).tobytes())
     for cut in range(1, len(valid)):
-        sock.sendto(valid[:cut], addr)  # truncated frames
+        gcs.send_raw(valid[:cut])  # truncated frames
     corrupt = bytearray(valid)
     corrupt[-1] ^= 0xFF  # bad CRC
-    sock.sendto(bytes(corrupt), addr)
-    sock.sendto(b"\xfd" + b"\xff" * 600, addr)  # a length that does not fit
+    gcs.send_raw(bytes(corrupt))
+    gcs.send_raw(b"\xfd" + b"\xff" * 600)  # a length that does not fit
     # Still alive and answering, and the drops show in SYS_STATUS.errors_comm.
     assert gcs.command(31999).result == M.MAV_RESULT_UNSUPPORTED
     st = gcs.recv("SYS_STATUS", timeout=5.0, cond=lambda m: m.errors_comm > before)

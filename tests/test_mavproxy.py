@@ -11,7 +11,6 @@ each wait is bounded.
 from __future__ import annotations
 
 import importlib.util
-import os
 import queue
 import re
 import subprocess
@@ -23,6 +22,7 @@ import pytest
 
 from uavsearch.testing.mavlink_client import Client
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
+from uavsearch.testing.clean_env import clean_env
 
 needs_mavproxy = pytest.mark.skipif(importlib.util.find_spec("MAVProxy") is None,
                                     reason="MAVProxy not installed (make setup installs mavproxy==1.8.75 --no-deps)")
@@ -41,7 +41,7 @@ class MavProxy:
                "--load-module=uavsearch.mavproxy_px4"]
         self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      text=True, bufsize=1, cwd=workdir,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1", "TERM": "dumb"})
+                                     env=clean_env(TERM="dumb"))
         self.lines: list[str] = []
         self._q: queue.Queue = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
@@ -101,7 +101,7 @@ class Observer:
         self.mode, self.armed, self.rel_alt, self.reached, self.current = None, False, 0.0, set(), None
 
     def pump(self):
-        while (m := self.c.conn.recv_match(blocking=False)) is not None:
+        while (m := self.c.recv(None, 0)) is not None:
             t = m.get_type()
             if t == "HEARTBEAT" and m.get_srcComponent() == 1:
                 self.mode = ((m.custom_mode >> 16) & 0xFF, (m.custom_mode >> 24) & 0xFF)
@@ -136,7 +136,7 @@ def _wpl(path, alt_m: float = 10.0):
 
 @needs_mavproxy
 def test_mavproxy_flies_takeoff_modes_mission_rtl_land_by_name(tmp_path):
-    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="4", camera=False)
+    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="4", camera=False, env=clean_env())
     mp = obs = None
     try:
         obs = Observer(sitl.api_port)
@@ -204,7 +204,7 @@ def test_mavproxy_flies_takeoff_modes_mission_rtl_land_by_name(tmp_path):
         if mp is not None:
             mp.stop()
         if obs is not None:
-            obs.c.conn.close()
+            obs.c.close()
         sitl.stop()
 
 
@@ -214,10 +214,11 @@ def test_pymavlink_set_mode_by_name_always_sees_the_autopilot(tmp_path):
     datagram, so after any datagram the client sees PX4 and set_mode('LOITER') sends PX4's numbers."""
     from pymavlink import mavutil
 
-    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="1", camera=False)
+    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="1", camera=False, env=clean_env())
     try:
         c = Client(sitl.gcs_port)
-        conn = c.conn
+        conn = c.connection.mavfile  # pymavlink's own mavfile, under the client
+        conn.target_system, conn.target_component = c.sysid, 1
         seen_camera, end = 0, time.monotonic() + 4.0
         while time.monotonic() < end:
             m = conn.recv_match(blocking=True, timeout=0.5)
@@ -240,7 +241,7 @@ def test_mavlink_ftp_requests_get_an_answer_at_once(tmp_path):
     falls back to PARAM_REQUEST_LIST without waiting for a time-out)."""
     import struct
 
-    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="1", camera=False)
+    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="1", camera=False, env=clean_env())
     try:
         c = Client(sitl.gcs_port)
         path = b"@PARAM/param.pck"

@@ -20,6 +20,7 @@ from mavsdk.asyncio.plugins.camera import CameraAsync  # noqa: E402
 from mavsdk.asyncio.plugins.mission import MissionAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync  # noqa: E402
 from mavsdk.plugins.mission import MissionItem, MissionPlan  # noqa: E402
+from uavsearch.testing.clean_env import clean_env
 
 M_PER_DEG_LAT = 111_200.0  # close enough at 47 deg N for offsets of a few metres
 
@@ -53,7 +54,7 @@ def _run(coro):
 
 def _sitl(tmp_path, camera: bool):
     p = SitlProcess(tmp_path, "--param", "MIS_TAKEOFF_ALT=5", "--param", "RTL_RETURN_ALT=8",
-                    "--param", "RTL_DESCEND_ALT=5", camera=camera)
+                    "--param", "RTL_DESCEND_ALT=5", camera=camera, env=clean_env())
     yield p
     code, out = p.stop()
     assert code == 0, out

@@ -5,6 +5,7 @@ import pytest
 from uavsearch.errors import MissionError
 from uavsearch.fly.missions import DEFAULT_MISSION, load_mission, mission_from_dict
 from uavsearch.paths import MISSIONS_DIR
+from uavsearch.testing.clean_env import clean_env
 
 
 def test_default_mission_is_paper_setting_2():
@@ -92,7 +93,8 @@ def test_read_without_the_registry_imports_no_torch_and_checks_names_later(tmp_p
             "from uavsearch.fly.mission_controller import fly; "
             "m = load_mission(check_registry=False).with_overrides(check_registry=False, **{'scene.seed': 4}); "
             "print(m.scene.seed, 'torch' in sys.modules, 'scipy' in sys.modules, 'gymnasium' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         env=clean_env()).stdout.split()
     assert out == ["4", "False", "False", "False"]
     (tmp_path / "m.yaml").write_text("fusion: nope\n")
     m = load_mission(tmp_path / "m.yaml", check_registry=False)

@@ -17,6 +17,7 @@ from pymavlink import mavutil
 from uavsearch.errors import MissionError
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
 from uavsearch.fly.plan_files import flown_search_items, load_plan, mission_items, plan_from_dict, save_plan
+from uavsearch.testing.clean_env import clean_env
 
 M = mavutil.mavlink
 DATA = Path(__file__).parent / "data"
@@ -84,18 +85,18 @@ def test_unflyable_commands_and_broken_files_are_one_line(tmp_path):
     with pytest.raises(MissionError, match="not JSON"):
         load_plan(bad)
     r = subprocess.run([sys.executable, "-m", "uavsearch", "mission", "upload", str(bad)], capture_output=True,
-                       text=True, timeout=60)
+                       text=True, timeout=60, env=clean_env())
     assert r.returncode == 2 and r.stderr.startswith("uavsearch: error: plan ") and "Traceback" not in r.stderr
 
 
 def test_a_qgc_plan_flies_and_downloads_as_uploaded(tmp_path):
     """`uavsearch mission upload survey.plan --start` on a running vehicle: every item is reached, it
     returns and lands; the mission downloaded afterwards is the file's items."""
-    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="max", camera=False)
+    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="max", camera=False, env=clean_env())
     try:
         r = subprocess.run([sys.executable, "-m", "uavsearch", "mission", "upload", str(DATA / "survey.plan"),
                             "--connect", f"udpin:127.0.0.1:{sitl.gcs_port}", "--start", "--timeout", "150"],
-                           capture_output=True, text=True, timeout=200)
+                           capture_output=True, text=True, timeout=200, env=clean_env())
         assert r.returncode == 0, r.stdout + r.stderr
         assert "uploaded 7 mission item(s)" in r.stdout
         assert "GF_MAX_HOR_DIST = 300 m" in r.stdout and "1 polygon / exclusion shape(s) skipped" in r.stdout
@@ -121,5 +122,47 @@ def test_a_qgc_plan_flies_and_downloads_as_uploaded(tmp_path):
         want = mission_items(load_plan(DATA / "survey.plan"))
         assert [(m.command, m.frame, m.x, m.y) for m in got] == [(w.command, w.frame, w.x, w.y) for w in want]
         assert [m.z for m in got] == pytest.approx([w.z for w in want])
+    finally:
+        sitl.stop()
+
+
+def _wpl_text(home_alt_amsl: float = 488.0) -> str:
+    """A MAVProxy / QGC waypoint file: home (item 0, frame 0, AMSL), take-off, one waypoint, land."""
+    lat, lon = 47.397742, 8.545594
+    rows = [(0, 1, 0, 16, lat, lon, home_alt_amsl), (1, 0, 3, 22, lat, lon, 10.0),
+            (2, 0, 3, 16, lat + 1e-4, lon, 10.0), (3, 0, 3, 21, lat + 1e-4, lon, 0.0)]
+    return "QGC WPL 110\n" + "".join(f"{i}\t{cur}\t{frame}\t{cmd}\t0\t0\t0\t0\t{a:.7f}\t{o:.7f}\t{z}\t1\n"
+                                     for i, cur, frame, cmd, a, o, z in rows)
+
+
+def test_a_waypoint_file_s_item_0_is_home_not_a_mission_item(tmp_path):
+    path = tmp_path / "m.waypoints"
+    path.write_text(_wpl_text())
+    plan = load_plan(path)
+    items = mission_items(plan, str(path))
+    assert [it.command for it in items] == [22, 16, 21] and [it.seq for it in items] == [0, 1, 2]
+    assert plan.mission.plannedHomePosition == pytest.approx([47.397742, 8.545594, 488.0])
+    bad = tmp_path / "short.waypoints"
+    bad.write_text("QGC WPL 110\n0\t1\t0\t16\t0\t0\t0\t0\t47.3\t8.5\n")
+    with pytest.raises(MissionError, match="line 2: 10 fields"):
+        load_plan(bad)
+
+
+def test_a_waypoint_file_uploads_without_its_home_item(tmp_path):
+    """`mission upload FILE.waypoints`: the vehicle gets take-off first (the home row is not flown)."""
+    from uavsearch.fly.connection import MavlinkConnection
+
+    path = tmp_path / "m.waypoints"
+    path.write_text(_wpl_text())
+    sitl = SitlProcess(tmp_path / "v", gcs_port=free_udp_port(), speed="max", camera=False, env=clean_env())
+    try:
+        r = subprocess.run([sys.executable, "-m", "uavsearch", "mission", "upload", str(path),
+                            "--connect", f"udpin:127.0.0.1:{sitl.gcs_port}"], capture_output=True, text=True,
+                           timeout=120, env=clean_env())
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "uploaded 3 mission item(s)" in r.stdout
+        with MavlinkConnection(f"udpin:127.0.0.1:{sitl.gcs_port}", source_system=250) as conn:
+            vehicle = conn.first_autopilot(10)
+            assert [it.command for it in vehicle.mission.download()] == [22, 16, 21]
     finally:
         sitl.stop()

@@ -21,6 +21,7 @@ import pytest
 
 from uavsearch.flight.sitl_process import free_udp_port
 from uavsearch.paths import REPO_ROOT
+from uavsearch.testing.clean_env import clean_env
 
 README = REPO_ROOT / "README.md"
 SLOW = "<!-- quickstart: slow -->"
@@ -119,9 +120,7 @@ def test_quickstart_block_runs_as_written(block, tmp_path, request):
     # a block that fails leaves nothing running in the background
     script = "trap 'rc=$?; kill $(jobs -p) 2>/dev/null || true; exit $rc' EXIT\n" + script
     bin_dir = Path(sys.executable).parent
-    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}",
-           "PYTHONPATH": os.pathsep.join(p for p in (str(REPO_ROOT), os.environ.get("PYTHONPATH", "")) if p)}
-    env.pop("UAVSEARCH_RUNS", None)  # runs/ of the scratch folder, as in a reader's clone
+    env = clean_env(PYTHONPATH=str(REPO_ROOT))  # no UAVSEARCH_RUNS: runs/ of the scratch folder, as in a clone
     if not (bin_dir / "uavsearch").exists():  # a Python without the console script: the same entry point
         (tmp_path / "bin").mkdir()
         (tmp_path / "bin" / "uavsearch").write_text(f"#!/bin/sh\nexec {sys.executable} -m uavsearch \"$@\"\n")

@@ -120,3 +120,4 @@ def test_mp4_video_through_opencv(run_dir, tmp_path):
     while cap.read()[0]:
         n += 1
     assert n == 2 * T  # 10 fps x 0.2 s per view
+

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from uavsearch.testing.clean_env import clean_env
 
 ROOT = Path(__file__).resolve().parent.parent
 SCRIPT = ROOT / "tools" / "reproduce.sh"
@@ -97,7 +98,7 @@ def test_seed_spread_table(tmp_path):
     out = tmp_path / "spread.md"
     r = subprocess.run([sys.executable, str(ROOT / "tools" / "seed_spread.py"), "results/search",
                         "results/search_large", "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
-                       timeout=120)
+                       timeout=120, env=clean_env())
     assert r.returncode == 0, r.stderr
     text = out.read_text()
     import csv

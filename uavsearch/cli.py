@@ -98,12 +98,22 @@ def _cmd_fly(args) -> int:
     # lazy: pydantic, pymavlink, OpenCV; torch (2-5 s) is imported by fly() once the vehicle is starting, so
     # the mission is read without the agent registry (fly checks it then)
     from .fly.missions import load_mission
-    from .fly.mission_controller import fly, format_maps
+    from .fly.mission_controller import VEHICLE_LOST, disk_full, fly, format_maps
 
     mission = load_mission(args.mission, check_registry=False)
     mission = mission.with_overrides(check_registry=False, **{"scene.seed": args.scene, "flight.speed": args.speed})
-    r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
-            progress=lambda line: print(line, flush=True))
+    try:
+        r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
+                progress=lambda line: print(line, flush=True))
+    except OSError as e:
+        full = disk_full(Path(e.filename).parent if e.filename else Path(args.out or "."), e)
+        if full is None:
+            raise
+        raise UavsearchError(full) from None
+    if r.status.startswith((VEHICLE_LOST, "failed: no space")):  # one line: nothing more is worth showing
+        print(f"uavsearch fly: {r.status.removeprefix('failed: ')}; the flight log so far: {r.run_dir}",
+              file=sys.stderr)
+        return 1
     print()
     if r.fused is not None:
         print(format_maps(r.fused, r.labels, mission.search_config().grid.n))
@@ -111,7 +121,7 @@ def _cmd_fly(args) -> int:
     acc = f"{r.acc:.3f}" if r.acc is not None else "n/a"
     f1 = f"{r.f1:.3f}" if r.f1 is not None else "n/a"
     print(f"{r.status}: {r.steps} view(s); Aacc {acc}  F1 {f1}  sim time {sim}  wall time {r.wall_s:.1f} s "
-          f"(flight {r.flight_wall_s:.1f} s); {r.end}")
+          f"(flight {r.flight_wall_s:.1f} s); photos {r.photos_received} of {r.photos_asked} received; {r.end}")
     print(f"flight log: {r.run_dir}  (uavsearch replay {r.run_dir} --out REPLAY_DIR)")
     return 0 if r.status == "completed" else 1
 

@@ -71,7 +71,8 @@ class SitlProcess:
             cmd.append("--no-camera-scene")
         self._out = open(self.log_path, "w")
         self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env={**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"}, preexec_fn=_die_with_parent,
+                                     env={**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"},
+                                     preexec_fn=_die_with_parent,
                                      start_new_session=True)  # Ctrl-C reaches the client only: it lands first
         self.banner: list[str] = []  # the lines up to "ready" (ports, signing, run directory)
         self._start = time.monotonic()
@@ -84,6 +85,18 @@ class SitlProcess:
     def _failed(self, why: str) -> SitlStartError:
         self.stop()
         return SitlStartError(why)
+
+    def exit_reason(self) -> str | None:
+        """None while the vehicle runs; else how it ended: 'exited with code 3', 'was killed by SIGKILL'."""
+        code = self.proc.poll()
+        if code is None:
+            return None
+        if code < 0:
+            try:
+                return f"was killed by {signal.Signals(-code).name}"
+            except ValueError:
+                return f"was killed by signal {-code}"
+        return f"exited with code {code}"
 
     def wait_ready(self) -> None:
         """Until the vehicle printed its ready line; SitlStartError if it exited or the start timed out."""

@@ -37,7 +37,7 @@ from ..logs.step_record import StepRecord, TruePose
 from ..paths import RUNS_DIR
 from ..search.metrics import map_accuracy, map_f1
 from ..world.scene import load_scene
-from .vehicle import FlightError, MavlinkVehicle, StepFailed
+from .vehicle import FlightError, MavlinkVehicle, StepFailed, VehicleLost
 
 if TYPE_CHECKING:
     from ..search.agents import LoadedAgent
@@ -77,6 +77,8 @@ class MissionResult:
     flight_wall_s: float = 0.0  # connection to the end action done
     end: str = ""
     phases: dict = field(default_factory=dict)  # wall seconds since the start at which each stage ended
+    photos_asked: int = 0  # IMAGE_START_CAPTURE commands the camera accepted
+    photos_received: int = 0  # good captures it answered with
 
 
 class SearchRecorder:
@@ -182,18 +184,71 @@ def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log
         with torch.no_grad():
             run_search(views, loaded.agent, T, generator=gen, on_step=rec.step)
         phases["searched_s"] = time.monotonic() - wall0
+    except VehicleLost as e:
+        status = f"{VEHICLE_LOST} at step {len(rec.records) + 1} of {T}: {e}"
+        _log_failure(log, step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
     except StepFailed as e:
-        status = f"failed: {e}"
-        log.failure(step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
-        progress(f"step {len(rec.records) + 1} failed: {e}")
+        full = disk_full(run_dir)
+        status = f"failed: {full or e}"
+        _log_failure(log, step=len(rec.records), error=full or str(e), sim_time_s=vehicle.sim_time_s)
+        if full is None:  # a full disk is said once, at the end
+            progress(f"step {len(rec.records) + 1} failed: {e}")
+    except OSError as e:  # the run directory's disk: the flight log cannot grow, the vehicle still flies
+        full = disk_full(run_dir, e)
+        if full is None:
+            raise
+        status = f"failed: {full}"
     except FlightError as e:
         status = f"failed: {e}"
-        log.failure(step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
+        _log_failure(log, step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
     except KeyboardInterrupt:
         status = "interrupted"
-        log.failure(step=len(rec.records), error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
+        _log_failure(log, step=len(rec.records), error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
         progress("interrupted (Ctrl-C): ending the mission")
     return rec, status
+
+
+VEHICLE_LOST = "vehicle lost"
+DISK_FULL_FREE_BYTES = 1 << 20  # less free space than this in the run directory: its disk is full
+
+
+def disk_full(run_dir: Path, error: OSError | None = None) -> str | None:
+    """'no space left on device ...' naming the path and its free space, when that is why things failed."""
+    import errno
+
+    if error is not None and error.errno != errno.ENOSPC:
+        return None
+    try:
+        usage = shutil.disk_usage(run_dir)
+    except OSError:
+        usage = None
+    if error is None and (usage is None or usage.free >= DISK_FULL_FREE_BYTES):
+        return None
+    where = getattr(error, "filename", None) or run_dir
+    free = "" if usage is None else f" ({usage.free // 1024} KiB free of {usage.total // (1 << 20)} MiB)"
+    return f"no space left on device writing {where}{free}"
+
+
+def _log_failure(log: FlightLogWriter, **fields) -> None:
+    """The failure record, unless the disk is too full to take it (the status line says why)."""
+    import errno
+
+    try:
+        log.failure(**fields)
+    except OSError as e:
+        if e.errno != errno.ENOSPC:
+            raise
+
+
+def _watch(sitl: SitlProcess):
+    """The watchdog a vehicle process gets: VehicleLost, naming how it ended and its log, once it is gone."""
+
+    def check() -> None:
+        why = sitl.exit_reason()
+        if why is not None:
+            raise VehicleLost(f"the vehicle process {why} (its log: {sitl.log_path})")
+
+    return check
 
 
 # --------------------------------------------------------------------------------------------------
@@ -258,6 +313,7 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             progress(f"starting uavsearch sitl ({desc}, speed {mission.flight.speed}) -> API link udp "
                      f"127.0.0.1:{port}")
             sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port, progress=progress)
+            vehicle.watch(_watch(sitl))
         progress(f"models    loading {mission.fusion} fusion + {mission.policy} policy (torch)"
                  + (" while the vehicle starts ..." if sitl is not None else " ..."))
         import torch  # while the vehicle starts (see the note at the imports)
@@ -288,14 +344,18 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
                                      phases=phases, wall0=wall0, before_takeoff=check)
         except KeyboardInterrupt:
             status = "interrupted"
-            log.failure(step=None, error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
+            _log_failure(log, step=None, error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
         except FlightError as e:
             status = f"failed: {e}"
-            log.failure(step=None, error=str(e), sim_time_s=vehicle.sim_time_s)
+            _log_failure(log, step=None, error=str(e), sim_time_s=vehicle.sim_time_s)
         try:
-            end = vehicle.finish()
-            if end != "not flown":
+            lost = status.startswith(VEHICLE_LOST)
+            end = "not landed: the vehicle is gone" if lost else vehicle.finish()
+            if end != "not flown" and not lost:  # a lost vehicle is said once, by the caller
                 progress(end)
+        except VehicleLost as e:
+            end = f"end action failed: {e}"
+            status = status if status.startswith(VEHICLE_LOST) else f"{VEHICLE_LOST} while ending the mission: {e}"
         except FlightError as e:
             end = f"end action failed: {e or type(e).__name__}"
             progress(end)
@@ -324,17 +384,26 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         steps=len(rec.records) if rec else 0, positions=[r.waypoint_enu for r in rec.records] if rec else [],
         sim_time_s=None if vehicle.sim_time_s is None or vehicle.connected_sim_s is None
         else vehicle.sim_time_s - vehicle.connected_sim_s, wall_s=time.monotonic() - wall0,
-        flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end, phases=phases)
-    log.summary(dict(status=status, end=end, steps=result.steps, budget_T=config.budget_T, acc=acc, f1=f1,
-                     fused=fused, labels=labels.astype(int), positions=result.positions,
-                     sim_time_s=result.sim_time_s, first_view_sim_time_s=t_first, wall_s=result.wall_s,
-                     flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
-                     agent=loaded.description, scene_seed=spec.seed,
-                     occupied_cells=int(labels.sum()), speed=mission.flight.speed))
-    log.close()
-    from .plan_files import write_flown_plan
+        flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end, phases=phases,
+        photos_asked=vehicle.photos_asked, photos_received=vehicle.photos_received)
+    try:
+        log.summary(dict(status=status, end=end, steps=result.steps, budget_T=config.budget_T, acc=acc, f1=f1,
+                         fused=fused, labels=labels.astype(int), positions=result.positions,
+                         sim_time_s=result.sim_time_s, first_view_sim_time_s=t_first, wall_s=result.wall_s,
+                         flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
+                         agent=loaded.description, scene_seed=spec.seed,
+                         occupied_cells=int(labels.sum()), speed=mission.flight.speed,
+                         photos_asked=result.photos_asked, photos_received=result.photos_received))
+        log.close()
+        from .plan_files import write_flown_plan
 
-    write_flown_plan(run_dir)  # the flown search as a QGroundControl plan
+        write_flown_plan(run_dir)  # the flown search as a QGroundControl plan
+    except OSError as e:
+        full = disk_full(run_dir, e)
+        if full is None:
+            raise
+        log.close()
+        result.status = status if status.startswith("failed: no space") else f"failed: {full}"
     return result
 
 

@@ -183,10 +183,41 @@ def plan_from_dict(data: Any, source: str = "<dict>") -> Plan:
         raise MissionError(format_validation_error(e, source, kind="plan")) from None
 
 
+WPL_HEADER = "QGC WPL 110"
+
+
+def plan_from_wpl(text: str, source: str = "<wpl>") -> Plan:
+    """A MAVProxy / QGC waypoint file (`QGC WPL 110`, tab-separated) as a plan. Its item 0 is the home
+    position, not something to fly (the vehicle would descend to it before the take-off item): it becomes
+    the plan's home and the items after it are renumbered from 0."""
+    rows = [ln.split() for ln in text.splitlines()[1:] if ln.strip()]
+    items = []
+    for n, r in enumerate(rows, start=2):
+        if len(r) != 12:
+            raise MissionError(f"waypoints {source} line {n}: {len(r)} fields, a QGC WPL 110 item has 12")
+        try:
+            seq, _cur, frame, command = (int(v) for v in r[:4])
+            p1, p2, p3, p4, lat, lon, alt = (float(v) for v in r[4:11])
+            auto = int(r[11])
+        except ValueError:
+            raise MissionError(f"waypoints {source} line {n}: not a number where QGC WPL 110 has one") from None
+        if seq != n - 2:
+            raise MissionError(f"waypoints {source} line {n}: item {seq} where item {n - 2} belongs")
+        items.append(MissionItem(seq=seq, frame=frame, command=command, autocontinue=auto, param1=p1, param2=p2,
+                                 param3=p3, param4=p4, x=_wire_xy(frame, lat), y=_wire_xy(frame, lon), z=alt))
+    if len(items) < 2:
+        raise MissionError(f"waypoints {source}: no mission items after the home position (item 0)")
+    home = items[0]
+    flown = [replace(it, seq=i) for i, it in enumerate(items[1:])]
+    return plan_from_dict(plan_dict(flown, (home.x * 1e-7, home.y * 1e-7, home.z)), source)
+
+
 def load_plan(path) -> Plan:
-    """Read and validate a `.plan` file."""
+    """Read and validate a `.plan` file (or a `QGC WPL 110` waypoint file, whose item 0 is home)."""
     path = Path(path)
     text = read_user_file(path, "plan")
+    if text.lstrip().startswith(WPL_HEADER):
+        return plan_from_wpl(text.lstrip(), str(path))
     try:
         data = json.loads(text)
     except ValueError as e:

@@ -1,7 +1,8 @@
 """The second vehicle of "one search loop, two vehicles": a real MAVLink client that flies to each view.
 
-`MavlinkVehicle.capture(position_enu)` does what a ground station would do on a real drone, using only
-what any MAVLink client can see and send (pymavlink, no back door into the simulator):
+`MavlinkVehicle` is a thin facade over the client (connection.py -> system.py -> one plugin per
+capability) that does what a ground station would do on a real drone, using only what any MAVLink
+client can see and send (no back door into the simulator). `capture(position_enu)`:
 
 1. DO_REPOSITION (COMMAND_INT, GLOBAL_INT, AMSL) to the waypoint, heading north;
 2. wait, on the vehicle's telemetry (GLOBAL_POSITION_INT, i.e. its ESTIMATE), until it is within
@@ -11,79 +12,35 @@ what any MAVLink client can see and send (pymavlink, no back door into the simul
    file:// URL names, and build the View with the pose the camera REPORTED (lat/lon/alt + attitude
    quaternion), so the estimator's error becomes projection error as on a real drone.
 
-The scene frame's origin is the mission's home (the centre of the search area), not wherever the vehicle
-was armed. Timeouts are in simulation time (so they mean the same at --speed 1 and max) with a wall-clock
-backstop for a vehicle that stopped talking. Every packet both ways goes to the tlog when one is given.
+The facade flies one System of its connection: `system_id`, or the first autopilot that heartbeats;
+other vehicles on the same link never change what it sees. The scene frame's origin is the mission's
+home (the centre of the search area), not wherever the vehicle was armed. Timeouts are in simulation
+time (so they mean the same at --speed 1 and max) with a wall-clock backstop for a vehicle that stopped
+talking. Every packet both ways goes to the tlog when one is given.
 
-With `lockstep` (and a vehicle started with `uavsearch sitl --lockstep`) the client is the clock master:
-every wait that needs the vehicle to move grants it `lockstep_tick_s` of simulation time at a time and
-judges its condition only at the end of a grant, and every command is sent while the simulation stands
-still. Perception and policy then take no simulation time, and the same seeds fly the same flight.
-A vehicle without lockstep answers UNSUPPORTED and the client falls back to free-running.
+With `lockstep` (and a vehicle started with `uavsearch sitl --lockstep`) the client is the clock master
+(lockstep.py); a vehicle without lockstep answers UNSUPPORTED and the client falls back to free-running.
 """
 
 from __future__ import annotations
 
-import contextlib
-import io
 import math
-import os
 import time
-import urllib.parse
-import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from pymavlink import mavutil
 
-from ..errors import UavsearchError
-from ..flight.lockstep import MAV_CMD_SIM_ADVANCE
 from ..flight.mavlink import wire_units as wire
 from ..geometry import GeodeticOrigin, camera_pose_from_vehicle
 from ..search.config import SearchConfig
 from ..search.views import View, make_view
-
-M = mavutil.mavlink
-AUTOPILOT_COMPID = 1
-CAMERA_COMPID = 100
-# PX4 custom modes (main, sub) as HEARTBEAT.custom_mode = sub << 24 | main << 16.
-MODE_HOLD = (4, 3)
-MODE_TAKEOFF = (4, 2)
-MODE_LAND = (4, 6)
-MODE_RTL = (4, 5)
-# SYS_STATUS sensor bits the autopilot must report present and healthy before we arm.
-HEALTH_BITS = (M.MAV_SYS_STATUS_SENSOR_3D_GYRO | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL | M.MAV_SYS_STATUS_SENSOR_3D_MAG
-               | M.MAV_SYS_STATUS_SENSOR_GPS)
-# A wait that lasts longer than PROGRESS_FIRST_S (wall clock) says what it waits for and how far it is, then
-# again every PROGRESS_EVERY_S, so a real-time take-off or landing or a silent link never looks like a hang.
-PROGRESS_FIRST_S = 2.0
-PROGRESS_EVERY_S = 5.0
-
-
-# Telemetry this client reads, at the rates it needs (Hz); everything else the autopilot streams on our link
-# is turned off with SET_MESSAGE_INTERVAL, as MAVSDK does. At --speed max the vehicle streams at N x real
-# time and a Python client must not fall behind its own socket (a late COMMAND_ACK looks like a lost one).
-STREAM_RATES_HZ = {
-    M.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
-    M.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
-    M.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 2.0,
-    M.MAVLINK_MSG_ID_ATTITUDE: 2.0,
-    M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 0.0,
-    M.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 0.0,
-    M.MAVLINK_MSG_ID_GPS_RAW_INT: 1.0,
-    M.MAVLINK_MSG_ID_VFR_HUD: 0.0,
-    M.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 0.0,
-    M.MAVLINK_MSG_ID_SIM_STATE: 5.0,  # the simulator's truth, only for the log (flight review); others say UNSUPPORTED
-}
-
-
-class FlightError(UavsearchError):
-    """The vehicle could not do what the mission asked (no link, arming refused, a step timed out)."""
-
-
-class StepFailed(FlightError):
-    """One capture step failed cleanly (not arrived in time, camera did not answer); the vehicle is still flying."""
+from .camera import image_path
+from .connection import MavlinkConnection
+from .dialect import AUTOPILOT_COMPID, CAMERA_COMPID, M
+from .errors import CommandError, FlightError, StepFailed, VehicleLost
+from .system import PROGRESS_EVERY_S, PROGRESS_FIRST_S
+from .telemetry import HEALTH_BITS, MODE_HOLD, MODE_LAND, MODE_RTL, MODE_TAKEOFF, STREAM_RATES_HZ
 
 
 @dataclass(frozen=True)
@@ -148,19 +105,13 @@ class _Settle:
             self.done_at = t_s
 
 
-def _url_to_path(url: str) -> Path:
-    p = urllib.parse.urlparse(url)
-    if p.scheme not in ("file", ""):
-        raise StepFailed(f"camera image URL {url!r} is not a file:// URL this client can read")
-    return Path(urllib.request.url2pathname(p.path))
-
-
 class MavlinkVehicle:
-    """A pymavlink client implementing views.Vehicle: connect, arm, take off, fly to views, land."""
+    """views.Vehicle over MAVLink: connect, arm, take off, fly to views, land (one System of one connection)."""
 
     def __init__(self, url: str, config: SearchConfig | None = None, origin: GeodeticOrigin | None = None,
                  settings: FlightSettings | None = None, tlog=None, source_system: int = 245,
-                 source_component: int = 190, image_dir: Path | None = None, progress=None):
+                 source_component: int = 190, image_dir: Path | None = None, progress=None,
+                 system_id: int | None = None):
         self.config = config or SearchConfig()
         self.origin = origin or GeodeticOrigin()
         self.settings = settings or FlightSettings()
@@ -168,217 +119,70 @@ class MavlinkVehicle:
         self.tlog = tlog
         self.image_dir = Path(image_dir) if image_dir else None
         self.progress = progress  # callable(str) for status lines, or None
-        os.environ["MAVLINK20"] = "1"  # speak MAVLink 2 from the first packet (pymavlink switches to it anyway)
-        try:
-            # pymavlink prints its own retries ("... sleeping") to stdout; the error below says it once
-            with contextlib.redirect_stdout(io.StringIO()):
-                self.conn = mavutil.mavlink_connection(url, source_system=source_system,
-                                                       source_component=source_component, dialect="common")
-        except Exception as e:  # noqa: BLE001 - any bad URL / port is one line
-            raise FlightError(f"cannot open MAVLink connection {url!r}: {e}") from None
-        if tlog is not None:
-            tlog.attach(self.conn)
-        self.target_system = 1
-        self._hb: dict = {}
-        self._gpos = None  # last GLOBAL_POSITION_INT
-        self._sys_status = None
-        self._ext_state = None
-        self._acks: list = []
-        self._captures: list = []
-        self._texts: list[str] = []
-        self._replies: list = []  # PARAM_VALUE / CAMERA_INFORMATION answers
-        self._last_hb_sent = 0.0
+        self.system_id = system_id  # None: the first autopilot that heartbeats
+        self.connection = MavlinkConnection(url, source_system, source_component, tlog=tlog)
+        self.system = None  # the System this vehicle flies, once its heartbeat came
+        self.watchdog = None  # callable() raising VehicleLost when the vehicle process is known dead
         self.last_capture: CaptureInfo | None = None
         self.captures_done = 0
         self.in_air = False
         self.closed = False
         self.connected_sim_s: float | None = None  # vehicle clock when the link came up healthy
         self._settle: _Settle | None = None
-        self._last_ack = None
-        self.lockstep = False  # on once the vehicle accepted a grant
-        self._clock_ms = 0  # lockstep: where the vehicle's clock stands (its answer to the last grant)
-
-    # ------------------------------------------------------------------ message pump
-    def _on_message(self, m) -> None:
-        t = m.get_type()
-        if t == "BAD_DATA":
-            return
-        src = (m.get_srcSystem(), m.get_srcComponent())
-        if src[0] != self.target_system and t != "HEARTBEAT":
-            return
-        if t == "HEARTBEAT":
-            if src[1] == AUTOPILOT_COMPID and m.type != M.MAV_TYPE_GCS:
-                self.target_system = src[0]
-                self._hb = {"main": (m.custom_mode >> 16) & 0xFF, "sub": (m.custom_mode >> 24) & 0xFF,
-                            "armed": bool(m.base_mode & M.MAV_MODE_FLAG_SAFETY_ARMED), "t": time.monotonic()}
-        elif t == "GLOBAL_POSITION_INT":
-            self._gpos = m
-            if self._settle is not None:
-                self._settle.update(self.position_enu(), self.velocity_enu(), wire.seconds(m.time_boot_ms))
-        elif t == "SYS_STATUS":
-            self._sys_status = m
-        elif t == "EXTENDED_SYS_STATE":
-            self._ext_state = m
-        elif t == "COMMAND_ACK":
-            m._sim_s = self.sim_time_s  # the vehicle clock when it answered (last position report before it)
-            self._acks.append(m)
-        elif t == "CAMERA_IMAGE_CAPTURED":
-            self._captures.append(m)
-        elif t == "STATUSTEXT":
-            self._texts.append(m.text)
-            self._texts = self._texts[-20:]
-        elif t in ("PARAM_VALUE", "CAMERA_INFORMATION"):
-            self._replies.append(m)
-
-    def _heartbeat(self, force: bool = False) -> None:
-        now = time.monotonic()
-        if force or now - self._last_hb_sent >= 1.0:
-            self._last_hb_sent = now
-            self.conn.mav.heartbeat_send(M.MAV_TYPE_GCS, M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE)
-
-    def pump(self, timeout_s: float = 0.05) -> None:
-        """Read every packet that is waiting (block up to timeout_s for the first one)."""
-        self._heartbeat()
-        m = self.conn.recv_match(blocking=True, timeout=timeout_s)
-        while m is not None:
-            self._on_message(m)
-            m = self.conn.recv_match(blocking=False)
-
-    def _advance(self, sim_s: float | None = None) -> None:
-        """Let the vehicle fly on: grant it sim_s (lockstep) or read its telemetry for up to that long."""
-        if self.lockstep:
-            self._grant(self._clock_ms + int(round(1000 * (sim_s or self.settings.lockstep_tick_s))))
-        else:
-            self.pump(0.05 if sim_s is None else sim_s)
-
-    def _grant(self, until_ms: int) -> int:
-        """MAV_CMD_SIM_ADVANCE to until_ms; returns the MAV_RESULT (UNSUPPORTED: a free-running vehicle)."""
-        r = self.command_int(MAV_CMD_SIM_ADVANCE, M.MAV_FRAME_MISSION, 0, 0, 0, 0, int(until_ms), 0, 0.0)
-        if r == M.MAV_RESULT_ACCEPTED:
-            self._clock_ms = int(self._last_ack.result_param2)
-        return r
-
-    def _wait(self, cond, wall_timeout_s: float, what: str, sim_timeout_s: float | None = None, moving: bool = True,
-              tick_s: float | None = None, status=None):
-        """Until cond() is truthy; FlightError (StepFailed for sim-time outs) naming `what` otherwise.
-
-        `moving`: the condition needs simulation time (lockstep grants it, `tick_s` at a time, default
-        lockstep_tick_s); otherwise it is an answer the vehicle sends at once, and in lockstep no time may
-        pass while waiting for it. `status(elapsed)` (elapsed: simulation seconds when moving, else wall
-        seconds) is a progress line said while the wait lasts (PROGRESS_FIRST_S, then every
-        PROGRESS_EVERY_S of wall clock)."""
-        wall0 = time.monotonic()
-        wall_end = wall0 + wall_timeout_s
-        next_note = wall0 + PROGRESS_FIRST_S
-        if self.lockstep and moving:
-            self._grant(self._clock_ms)  # a barrier: what the vehicle sent so far has arrived
-        sim0 = self.sim_time_s
-        while True:
-            r = cond()
-            if r:
-                return r
-            now = time.monotonic()
-            if status is not None and now >= next_note:
-                next_note = now + PROGRESS_EVERY_S
-                sim_now = self.sim_time_s
-                elapsed = sim_now - sim0 if moving and sim0 is not None and sim_now is not None else now - wall0
-                self._say(status(elapsed))
-            if time.monotonic() > wall_end:
-                raise FlightError(f"{what}: no answer from the vehicle within {wall_timeout_s:.0f} s (wall clock)")
-            if sim_timeout_s is not None and sim0 is not None and self.sim_time_s is not None \
-                    and self.sim_time_s - sim0 > sim_timeout_s:
-                raise StepFailed(f"{what}: not done after {sim_timeout_s:g} s of flight")
-            if moving:
-                self._advance(tick_s if self.lockstep else None)
-            else:
-                self.pump()
 
     @property
-    def sim_time_s(self) -> float | None:
-        """The vehicle's clock (time since boot) from its last position report."""
-        return None if self._gpos is None else wire.seconds(self._gpos.time_boot_ms)
+    def conn(self) -> MavlinkConnection:
+        return self.connection
 
-    # ------------------------------------------------------------------ commands
-    def command_long(self, command: int, *params: float, compid: int = AUTOPILOT_COMPID,
-                     timeout_s: float = 3.0, retries: int = 3) -> int:
-        """COMMAND_LONG with retries (as MAVSDK does); the MAV_RESULT of its COMMAND_ACK."""
-        p = list(params) + [0.0] * (7 - len(params))
-        for attempt in range(retries):
-            self._acks.clear()
-            self.conn.mav.command_long_send(self.target_system, compid, command, attempt, *p)
-            result = self._await_ack(command, timeout_s)
-            if result is not None:
-                return result
-        raise FlightError(f"command {command} not acknowledged by the vehicle")
-
-    def command_int(self, command: int, frame: int, p1, p2, p3, p4, x: int, y: int, z: float,
-                    timeout_s: float = 3.0, retries: int = 3) -> int:
-        for _ in range(retries):
-            self._acks.clear()
-            self.conn.mav.command_int_send(self.target_system, AUTOPILOT_COMPID, frame, command, 0, 0,
-                                           p1, p2, p3, p4, x, y, z)
-            result = self._await_ack(command, timeout_s)
-            if result is not None:
-                return result
-        raise FlightError(f"command {command} not acknowledged by the vehicle")
-
-    def _await_ack(self, command: int, timeout_s: float) -> int | None:
-        """The MAV_RESULT of the first COMMAND_ACK for `command` within the timeout, else None (resend)."""
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            for a in self._acks:
-                if a.command == command:
-                    self._last_ack = a
-                    return int(a.result)
-            self.pump(0.02)
-        return None
-
-    def _reply(self, cond, timeout_s: float = 2.0, retries: int = 3, send=None):
-        for _ in range(retries):
-            self._replies.clear()
-            send()
-            end = time.monotonic() + timeout_s
-            while time.monotonic() < end:
-                for m in self._replies:
-                    if cond(m):
-                        return m
-                self.pump(0.02)
-        return None
-
-    def read_param(self, name: str) -> float | None:
-        """A parameter's value (int32 parameters decoded bytewise, as PX4 sends them), None if the vehicle has none."""
-        m = self._reply(lambda m: m.get_type() == "PARAM_VALUE" and m.param_id == name,
-                        send=lambda: self.conn.mav.param_request_read_send(self.target_system, AUTOPILOT_COMPID,
-                                                                           name.encode(), -1))
-        if m is None:
-            return None
-        if m.param_type == M.MAV_PARAM_TYPE_INT32:
-            import struct
-
-            return float(struct.unpack("<i", struct.pack("<f", m.param_value))[0])
-        return float(m.param_value)
-
-    def camera_information(self):
-        """The camera's CAMERA_INFORMATION (REQUEST_MESSAGE to compid 100), or None."""
-        return self._reply(lambda m: m.get_type() == "CAMERA_INFORMATION", send=lambda: self.conn.mav.command_long_send(
-            self.target_system, CAMERA_COMPID, M.MAV_CMD_REQUEST_MESSAGE, 0, M.MAVLINK_MSG_ID_CAMERA_INFORMATION,
-            0, 0, 0, 0, 0, 0))
+    @property
+    def link_text(self) -> str:
+        """The URL with the port this client really listens on (`udpin:HOST:0` binds a free one)."""
+        return self.connection.link_text
 
     def _say(self, text: str) -> None:
         if self.progress:
             self.progress(text)
 
+    def _wait(self, cond, wall_timeout_s: float, what: str, **kw):
+        return self.system.wait_until(cond, wall_timeout_s, what, say=self._say, **kw)
+
+    def watch(self, check) -> None:
+        """check() raises VehicleLost once the vehicle is known dead; every wait calls it."""
+        self.watchdog = check
+        if self.system is not None:
+            self.system.watchdog = check
+
+    # ------------------------------------------------------------------ state
     @property
-    def link_text(self) -> str:
-        """The URL with the port this client really listens on (`udpin:HOST:0` binds a free one)."""
-        scheme, _, rest = self.url.partition(":")
-        if scheme != "udpin":
-            return self.url
-        try:
-            port = self.conn.port.getsockname()[1]
-        except (AttributeError, OSError):
-            return self.url
-        return f"udpin:{rest.rpartition(':')[0]}:{port}"
+    def sim_time_s(self) -> float | None:
+        """The vehicle's clock (time since boot) from its last position report."""
+        return None if self.system is None else self.system.telemetry.sim_time_s
+
+    def position_enu(self) -> np.ndarray | None:
+        """The vehicle's reported position in the scene frame (its estimate)."""
+        return None if self.system is None else self.system.telemetry.position_enu(self.origin)
+
+    def velocity_enu(self) -> np.ndarray | None:
+        return None if self.system is None else self.system.telemetry.velocity_enu_m_s()
+
+    def mode(self) -> tuple[int, int] | None:
+        return None if self.system is None else self.system.telemetry.mode()
+
+    @property
+    def armed(self) -> bool:
+        return self.system is not None and self.system.telemetry.armed
+
+    @property
+    def photos_asked(self) -> int:
+        return 0 if self.system is None else self.system.camera.photos_asked
+
+    @property
+    def photos_received(self) -> int:
+        return 0 if self.system is None else self.system.camera.photos_received
+
+    def _distance_to(self, target) -> float:
+        p = self.position_enu()
+        return math.nan if p is None else float(np.linalg.norm(p - target))
 
     def _where(self, elapsed_s: float) -> str:
         """'at E .. N .. U .. m  flew .. s', the per-step lines' style, for progress lines."""
@@ -386,89 +190,112 @@ class MavlinkVehicle:
         at = "no position yet" if p is None else f"at E {p[0]:6.1f} N {p[1]:6.1f} U {p[2]:5.1f} m"
         return f"{at}  flew {elapsed_s:5.1f} s"
 
-    def _missing_health(self) -> str:
-        """What the health check still waits for, e.g. 'GPS, position'."""
-        s, missing = self._sys_status, []
-        if s is None:
-            missing.append("SYS_STATUS")
-        else:
-            ok = s.onboard_control_sensors_present & s.onboard_control_sensors_health
-            missing += [name for bit, name in ((M.MAV_SYS_STATUS_SENSOR_3D_GYRO, "gyro"),
-                                               (M.MAV_SYS_STATUS_SENSOR_3D_ACCEL, "accel"),
-                                               (M.MAV_SYS_STATUS_SENSOR_3D_MAG, "mag"),
-                                               (M.MAV_SYS_STATUS_SENSOR_GPS, "GPS")) if not ok & bit]
-        if self._gpos is None:
-            missing.append("position")
-        if self._ext_state is None:
-            missing.append("landed state")
-        return ", ".join(missing) or "nothing"
+    def _at_alt(self, alt_amsl: float, tol_m: float = 1.0) -> bool:
+        return abs(self.system.telemetry.altitude_amsl_m() - alt_amsl) < tol_m
 
-    # ------------------------------------------------------------------ state
-    def position_enu(self) -> np.ndarray | None:
-        """The vehicle's reported position in the scene frame (its estimate)."""
-        g = self._gpos
-        if g is None:
-            return None
-        return wire.position_enu(g, self.origin)
-
-    def _distance_to(self, target) -> float:
-        p = self.position_enu()
-        return math.nan if p is None else float(np.linalg.norm(p - target))
-
-    def velocity_enu(self) -> np.ndarray | None:
-        g = self._gpos
-        return None if g is None else wire.velocity_enu_m_s(g)
-
-    def mode(self) -> tuple[int, int] | None:
-        return (self._hb["main"], self._hb["sub"]) if self._hb else None
+    def _on_position(self, m) -> None:
+        if self._settle is not None:
+            self._settle.update(self.position_enu(), self.velocity_enu(), wire.seconds(m.time_boot_ms))
 
     @property
-    def armed(self) -> bool:
-        return bool(self._hb.get("armed"))
+    def target_system(self) -> int | None:
+        """The system id this vehicle flies (None before its heartbeat)."""
+        return None if self.system is None else self.system.sysid
 
-    def _healthy(self) -> bool:
-        s = self._sys_status
-        return (s is not None and self._gpos is not None and self._ext_state is not None
-                and (s.onboard_control_sensors_present & HEALTH_BITS) == HEALTH_BITS
-                and (s.onboard_control_sensors_health & HEALTH_BITS) == HEALTH_BITS)
+    @property
+    def lockstep(self) -> bool:
+        """This client drives the vehicle's clock (the vehicle accepted a grant)."""
+        return self.system is not None and self.system.lockstep.enabled
+
+    def pump(self, timeout_s: float = 0.05) -> None:
+        """Read the link for up to timeout_s."""
+        (self.system or self.connection).pump(timeout_s)
+
+    def command_long(self, command: int, *params: float, **kw) -> int:
+        """COMMAND_LONG to the vehicle (system.commands.long); its MAV_RESULT."""
+        return self._need_system().commands.long(command, *params, **kw)
+
+    def command_int(self, command: int, *args, **kw) -> int:
+        """COMMAND_INT to the vehicle (system.commands.int); its MAV_RESULT."""
+        return self._need_system().commands.int(command, *args, **kw)
+
+    # ------------------------------------------------------------------ queries
+    def read_param(self, name: str) -> float | None:
+        """A parameter's value (int32 parameters decoded bytewise, as PX4 sends them), None if the vehicle has none."""
+        return self._need_system().params.get(name)
+
+    def camera_information(self):
+        """The camera's CAMERA_INFORMATION (REQUEST_MESSAGE to compid 100), or None."""
+        return self._need_system().camera.information()
+
+    def _need_system(self):
+        if self.system is None:
+            raise FlightError(f"not connected to a vehicle on {self.link_text} (connect() first)")
+        return self.system
 
     # ------------------------------------------------------------------ the mission's life cycle
+    def _wait_heartbeat(self):
+        """The System to fly, once its autopilot heartbeats; FlightError after connect_timeout_s."""
+        st, c = self.settings, self.connection
+        wall0 = time.monotonic()
+        next_note = wall0 + PROGRESS_FIRST_S
+        who = "" if self.system_id is None else f" from system {self.system_id}"
+        while True:
+            if self.watchdog is not None:
+                self.watchdog()
+            s = c.wait_system(self.system_id, timeout_s=0.0)
+            if s is not None:
+                return s
+            now = time.monotonic()
+            if now >= next_note:
+                next_note = now + PROGRESS_EVERY_S
+                self._say(f"connecting  no heartbeat{who} yet on {self.link_text}  "
+                          f"{now - wall0:.0f} s of {st.connect_timeout_s:.0f} s")
+            if now > wall0 + st.connect_timeout_s:
+                raise FlightError(f"no heartbeat{who} on {self.link_text}: no answer from the vehicle within "
+                                  f"{st.connect_timeout_s:.0f} s (wall clock)")
+            c.pump()
+
     def connect(self) -> None:
         """Wait for the autopilot's heartbeat and health (gyro, accel, mag, GPS) and a position."""
         st = self.settings
         self._say(f"connecting to {self.link_text} ...")
-        self._wait(lambda: self._hb, st.connect_timeout_s, f"no heartbeat on {self.link_text}", moving=False,
-                   status=lambda el: f"connecting  no heartbeat yet on {self.link_text}  "
-                                     f"{el:.0f} s of {st.connect_timeout_s:.0f} s")
-        self._heartbeat(force=True)
-        if st.lockstep:
-            self.lockstep = self._grant(0) == M.MAV_RESULT_ACCEPTED
-            if not self.lockstep:
-                self._say("the vehicle does not run in lockstep: this flight will not be reproducible from its seed")
-        for mid, hz in STREAM_RATES_HZ.items():
-            self.command_long(M.MAV_CMD_SET_MESSAGE_INTERVAL, mid, 1e6 / hz if hz > 0 else -1)
+        self.system = s = self._wait_heartbeat()
+        s.watchdog = self.watchdog
+        s.telemetry.on_position(self._on_position)
+        self.connection.send_heartbeat(force=True)
+        if st.lockstep and not s.lockstep.start(st.lockstep_tick_s):
+            self._say("the vehicle does not run in lockstep: this flight will not be reproducible from its seed")
+        s.telemetry.set_rates()
         wall0 = time.monotonic()
-        self._wait(self._healthy, st.connect_timeout_s, "vehicle not healthy (SYS_STATUS sensors, position)",
-                   status=lambda _: f"connecting  waiting for the vehicle's health ({self._missing_health()})  "
+        self._wait(s.telemetry.healthy, st.connect_timeout_s, "vehicle not healthy (SYS_STATUS sensors, position)",
+                   status=lambda _: f"connecting  waiting for the vehicle's health ({s.telemetry.missing_health()})  "
                                     f"{time.monotonic() - wall0:.0f} s of {st.connect_timeout_s:.0f} s")
         self.connected_sim_s = self.sim_time_s
 
-    def take_off(self) -> None:
-        """Arm (retrying while the estimator converges), take off to the mission altitude, go to the centre."""
-        st = self.settings
-        alt_amsl = self.origin.alt_m + self.config.altitude_m
-        end = time.monotonic() + st.connect_timeout_s
+    def arm(self, timeout_s: float | None = None) -> None:
+        """Arm, retrying while the estimator converges, until the heartbeat says armed."""
+        st, s = self.settings, self.system
+        timeout_s = st.connect_timeout_s if timeout_s is None else timeout_s
+        end = time.monotonic() + timeout_s
         while True:
-            r = self.command_long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            r = s.commands.long(M.MAV_CMD_COMPONENT_ARM_DISARM, 1)
             if r == M.MAV_RESULT_ACCEPTED:
                 break
             if time.monotonic() > end:
-                raise FlightError(f"arming refused ({'; '.join(self._texts[-2:]) or f'MAV_RESULT {r}'})")
-            self._advance(0.2)
-        self._wait(lambda: self.armed, st.connect_timeout_s, "arming")
-        r = self.command_long(M.MAV_CMD_NAV_TAKEOFF, math.nan, 0, 0, math.nan, math.nan, math.nan, alt_amsl)
+                raise CommandError(f"arming refused ({s.last_texts(2) or f'MAV_RESULT {r}'})",
+                                   M.MAV_CMD_COMPONENT_ARM_DISARM, r)
+            s.advance(0.2)
+        self._wait(lambda: self.armed, timeout_s, "arming")
+
+    def take_off(self) -> None:
+        """Arm (retrying while the estimator converges), take off to the mission altitude, go to the centre."""
+        st, s = self.settings, self.system
+        alt_amsl = self.origin.alt_m + self.config.altitude_m
+        self.arm()
+        r = s.commands.long(M.MAV_CMD_NAV_TAKEOFF, math.nan, 0, 0, math.nan, math.nan, math.nan, alt_amsl)
         if r != M.MAV_RESULT_ACCEPTED:
-            raise FlightError(f"takeoff refused ({'; '.join(self._texts[-2:]) or f'MAV_RESULT {r}'})")
+            raise CommandError(f"takeoff refused ({s.last_texts(2) or f'MAV_RESULT {r}'})", M.MAV_CMD_NAV_TAKEOFF, r)
         self.in_air = True
         self._say(f"taking off to {self.config.altitude_m:.0f} m")
         self._wait(lambda: self.mode() == MODE_TAKEOFF or self._at_alt(alt_amsl), st.wall_timeout_s, "takeoff start")
@@ -476,24 +303,21 @@ class MavlinkVehicle:
                    sim_timeout_s=st.takeoff_timeout_s,
                    status=lambda el: f"take-off  {self._where(el)}  (to {self.config.altitude_m:.0f} m)")
 
-    def _at_alt(self, alt_amsl: float, tol_m: float = 1.0) -> bool:
-        return self._gpos is not None and abs(wire.lla(self._gpos)[2] - alt_amsl) < tol_m
-
     def goto(self, position_enu) -> float:
         """DO_REPOSITION to the waypoint; returns the simulation time it took to arrive and settle."""
-        st = self.settings
+        st, s = self.settings, self.system
         target = np.asarray(position_enu, dtype=float)
         lat, lon, alt = self.origin.enu_to_geodetic(target)
         # Track every position report from before the command on, so no report is judged late or skipped.
         self._settle = _Settle(target, st.arrive_radius_m, st.settle_speed_m_s, st.settle_time_s)
         try:
-            r = self.command_int(M.MAV_CMD_DO_REPOSITION, M.MAV_FRAME_GLOBAL_INT, -1,
-                                 M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.radians(st.yaw_deg),
-                                 wire.deg_to_e7(lat), wire.deg_to_e7(lon), float(alt))
+            r = s.commands.int(M.MAV_CMD_DO_REPOSITION, M.MAV_FRAME_GLOBAL_INT, -1,
+                               M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.radians(st.yaw_deg),
+                               wire.deg_to_e7(lat), wire.deg_to_e7(lon), float(alt))
             if r != M.MAV_RESULT_ACCEPTED:
                 raise StepFailed(f"goto {np.round(target, 1).tolist()} refused "
-                                 f"({'; '.join(self._texts[-1:]) or f'MAV_RESULT {r}'})")
-            t0 = getattr(self._last_ack, "_sim_s", None) or self.sim_time_s or 0.0
+                                 f"({s.last_texts(1) or f'MAV_RESULT {r}'})")
+            t0 = getattr(s.commands.last_ack, "sim_s", None) or self.sim_time_s or 0.0
             self._settle.reset_before(t0)
             self._wait(lambda: self._settle.done_at, st.wall_timeout_s, f"goto {np.round(target, 1).tolist()}",
                        sim_timeout_s=st.step_timeout_s,
@@ -505,24 +329,14 @@ class MavlinkVehicle:
 
     def take_picture(self):
         """IMAGE_START_CAPTURE -> CAMERA_IMAGE_CAPTURED; returns the message."""
-        st = self.settings
-        self._captures.clear()
-        seq = self.captures_done + 1
-        r = self.command_long(M.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1, seq, compid=CAMERA_COMPID)
-        if r != M.MAV_RESULT_ACCEPTED:
-            raise StepFailed(f"camera refused IMAGE_START_CAPTURE (MAV_RESULT {r})")
-        msg = self._wait(lambda: self._captures[-1] if self._captures else None, st.capture_timeout_s,
-                         "CAMERA_IMAGE_CAPTURED", moving=False)
-        if msg.capture_result != 1:
-            raise StepFailed("the camera reported a failed capture")
+        msg = self.system.camera.take_photo(self.captures_done + 1, self.settings.capture_timeout_s)
         self.captures_done += 1
         return msg
 
     @staticmethod
     def image_path(msg) -> Path:
         """The file CAMERA_IMAGE_CAPTURED's file:// URL names."""
-        url = msg.file_url if isinstance(msg.file_url, str) else bytes(msg.file_url).decode(errors="replace")
-        return _url_to_path(url.rstrip("\x00"))
+        return image_path(msg)
 
     def view_from_capture(self, msg) -> tuple[View, Path, np.ndarray, tuple]:
         """The image named by CAMERA_IMAGE_CAPTURED and the View at the pose it reports."""
@@ -535,7 +349,8 @@ class MavlinkVehicle:
         if self.image_dir is not None and path.parent.resolve() != self.image_dir.resolve():
             self.image_dir.mkdir(parents=True, exist_ok=True)
             copy = self.image_dir / path.name
-            cv2.imwrite(str(copy), bgr)
+            if not cv2.imwrite(str(copy), bgr):
+                raise StepFailed(f"cannot write the image copy {copy}")
             path = copy
         rgb = np.ascontiguousarray(bgr[..., ::-1])
         pos = wire.position_enu(msg, self.origin)
@@ -568,9 +383,9 @@ class MavlinkVehicle:
         if not self.in_air or st.end_action == "none":
             return "left in the air" if self.in_air else "not flown"
         cmd = M.MAV_CMD_NAV_LAND if st.end_action == "land" else M.MAV_CMD_NAV_RETURN_TO_LAUNCH
-        r = self.command_long(cmd, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
+        r = self.system.commands.long(cmd, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
         if r != M.MAV_RESULT_ACCEPTED:
-            raise FlightError(f"{st.end_action} refused (MAV_RESULT {r})")
+            raise CommandError(f"{st.end_action} refused (MAV_RESULT {r})", cmd, r)
         self._say("landing" if st.end_action == "land" else "returning to launch")
         what = "landing" if st.end_action == "land" else "returning"
         self._wait(lambda: not self.armed, st.wall_timeout_s, f"{st.end_action} until disarmed",
@@ -584,7 +399,7 @@ class MavlinkVehicle:
             return
         self.closed = True
         try:
-            self.conn.close()
+            self.connection.close()
         finally:
             if self.tlog is not None:
                 self.tlog.flush()
@@ -596,4 +411,6 @@ class MavlinkVehicle:
         self.close()
 
 
-__all__ = ["CaptureInfo", "FlightError", "FlightSettings", "MavlinkVehicle", "StepFailed"]
+__all__ = ["AUTOPILOT_COMPID", "CAMERA_COMPID", "HEALTH_BITS", "MODE_HOLD", "MODE_LAND", "MODE_RTL", "MODE_TAKEOFF",
+           "STREAM_RATES_HZ", "CaptureInfo", "CommandError", "FlightError", "FlightSettings", "MavlinkVehicle",
+           "StepFailed", "VehicleLost"]

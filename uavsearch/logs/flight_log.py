@@ -66,7 +66,10 @@ class FlightLogWriter:
 
     def close(self) -> None:
         if self._f is not None:
-            self._f.close()
+            try:
+                self._f.close()
+            except OSError:  # a record the disk had no room for already failed its write (and said so)
+                pass
             self._f = None
         if self.tlog is not None:
             self.tlog.close()

@@ -37,18 +37,23 @@ class TlogWriter:
         self._lock = threading.Lock()
         self._last_flush = time.monotonic()
         self.records = 0
+        self.error: OSError | None = None  # why the log stopped growing (a full disk): packets are never lost
+        # silently in a traceback inside pymavlink's receive callback; the flight goes on and says so
 
     def write_packet(self, buf: bytes, t_s: float | None = None) -> None:
         if self._f is None or not buf:
             return
         usec = int((self.now() if t_s is None else t_s) * 1e6)
         with self._lock:
-            self._f.write(struct.pack(">Q", usec) + bytes(buf))
-            self.records += 1
-            now = time.monotonic()
-            if now - self._last_flush > FLUSH_EVERY_S:
-                self._f.flush()
-                self._last_flush = now
+            try:
+                self._f.write(struct.pack(">Q", usec) + bytes(buf))
+                self.records += 1
+                now = time.monotonic()
+                if now - self._last_flush > FLUSH_EVERY_S:
+                    self._f.flush()
+                    self._last_flush = now
+            except OSError as e:
+                self._stop(e)
 
     def now(self) -> float:
         """The stamp of a record written now, in unix seconds."""
@@ -80,14 +85,29 @@ class TlogWriter:
         conn.mav.set_callback(received)
         conn.mav.set_send_callback(lambda m: self.write_message(m))
 
+    def _stop(self, error: OSError) -> None:
+        """Stop writing after a failed write (lock held): keep the error, drop the unwritable buffer."""
+        self.error = error
+        f, self._f = self._f, None
+        try:
+            f.close()
+        except OSError:
+            pass
+
     def flush(self) -> None:
         with self._lock:
             if self._f is not None:
-                self._f.flush()
+                try:
+                    self._f.flush()
+                except OSError as e:
+                    self._stop(e)
                 self._last_flush = time.monotonic()
 
     def close(self) -> None:
         with self._lock:
             if self._f is not None:
-                self._f.close()
+                try:
+                    self._f.close()
+                except OSError as e:
+                    self.error = e
                 self._f = None

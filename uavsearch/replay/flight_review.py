@@ -22,6 +22,8 @@ from __future__ import annotations
 import base64
 import html
 import math
+import sys
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -367,7 +369,11 @@ def write_flight_review(log, out=None, mission_file=None) -> Path:
     run = None
     if log.is_dir():
         tlog = log / "telemetry.tlog"
-        run = read_flight_log(log)
+        with warnings.catch_warnings(record=True) as caught:  # a damaged log: one line, as plain replay says it
+            warnings.simplefilter("always")
+            run = read_flight_log(log)
+        for w in dict.fromkeys(str(w.message) for w in caught):
+            print(f"uavsearch: warning: {w}", file=sys.stderr)
         out = Path(out) if out else log / "flight_review.html"
     else:
         tlog = log

@@ -251,7 +251,8 @@ def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
             key = CacheKey(setting, args.split, part)
             scenes = key.scenes()
             if not 1 <= n <= len(scenes):
-                raise UavsearchError(f"{part} scenes per setting must be 1..{len(scenes)} for the {args.split} split")
+                raise UavsearchError(f"--{part}-scenes {n}: the {args.split} split has {len(scenes)} {part} scenes per "
+                                     f"setting; give --{part}-scenes 1..{len(scenes)} (or another --split)")
             world = world_tag(key.search_config)
             root = render_lattice_views(key, scenes[:n], root=store.path(f"lattice_views/{world}/{key.name}"),
                                         progress=args.progress, executor=executor)

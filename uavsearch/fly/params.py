@@ -1,0 +1,37 @@
+"""Parameters of one System: PARAM_REQUEST_READ / PARAM_SET, each answered by PARAM_VALUE."""
+
+from __future__ import annotations
+
+import struct
+
+from .dialect import AUTOPILOT_COMPID, M
+
+
+class Params:
+    def __init__(self, system, compid: int = AUTOPILOT_COMPID):
+        self.system, self.compid = system, compid
+
+    @staticmethod
+    def _value(m) -> float:
+        """int32 parameters arrive bytewise in the float (PX4's encoding)."""
+        if m.param_type == M.MAV_PARAM_TYPE_INT32:
+            return float(struct.unpack("<i", struct.pack("<f", m.param_value))[0])
+        return float(m.param_value)
+
+    def get(self, name: str) -> float | None:
+        """The parameter's value, None if the vehicle has none of that name."""
+        s = self.system
+        m = s.request("PARAM_VALUE", lambda: s.mav.param_request_read_send(s.sysid, self.compid, name.encode(), -1),
+                      cond=lambda m: m.param_id == name)
+        return None if m is None else self._value(m)
+
+    def set_float(self, name: str, value: float, timeout_s: float = 3.0) -> bool:
+        """PARAM_SET (REAL32); True when the vehicle's answer holds the value."""
+        s = self.system
+        m = s.request("PARAM_VALUE", lambda: s.mav.param_set_send(s.sysid, self.compid, name.encode(), float(value),
+                                                                  M.MAV_PARAM_TYPE_REAL32),
+                      cond=lambda m: m.param_id == name, timeout_s=timeout_s)
+        return m is not None and abs(self._value(m) - value) < 1e-3 * max(1.0, abs(value))
+
+
+__all__ = ["Params"]
