@@ -155,7 +155,7 @@ def test_signed_frame_replayed_on_the_other_link_is_dropped(vehicle):
 
 def test_float_bounds_are_compared_at_float32(vehicle):
     gcs = Client(vehicle.gcs_port)  # the GCS link requires signing: sign as the key holder
-    gcs.conn.setup_signing(KEY, sign_outgoing=True)
+    gcs.setup_signing(KEY)
     try:
         gcs.mav.param_set_send(1, 1, b"MC_ROLLRATE_P", 0.01, M.MAV_PARAM_TYPE_REAL32)  # 0.00999999977 on the wire
         v = gcs.recv("PARAM_VALUE", cond=lambda m: m.param_id == "MC_ROLLRATE_P")

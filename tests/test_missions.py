@@ -102,3 +102,17 @@ def test_read_without_the_registry_imports_no_torch_and_checks_names_later(tmp_p
         m.check_registry()
     with pytest.raises(MissionError, match="unknown fusion method 'nope'"):
         load_mission(tmp_path / "m.yaml")
+
+
+def test_altitude_layers_reach_the_search_config():
+    from uavsearch.fly.missions import mission_from_dict
+
+    m = mission_from_dict({"search": {"altitudes_m": [70, 40], "allow_untrained": True,
+                                      "actions": ["MoveAhead", "MoveRight", "MoveLeft", "MoveBack", "Descend", "Climb"]}},
+                          "m.yaml", check_registry=False)
+    c = m.search_config()
+    assert c.layers_m == (70.0, 40.0) and c.lattice.num_positions == 50
+    bad = mission_from_dict({"search": {"altitudes_m": [40, 70], "allow_untrained": True}}, "m.yaml",
+                            check_registry=False)
+    with pytest.raises(MissionError, match="first lattice altitude"):
+        bad.search_config()

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
-from ..errors import MissionError, format_validation_error, read_user_file
+from ..errors import MissionError, UavsearchError, format_validation_error, read_user_file
 from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
 from ..search.config import ACTIONS, SearchConfig
@@ -96,9 +96,18 @@ class SearchSection(_Strict):
     step_m: float = Field(10.0, gt=0)
     budget_T: int = Field(5, ge=1, le=25)
     actions: tuple[str, ...] = ("MoveAhead", "MoveRight", "MoveLeft", "MoveBack")
+    # the lattice's altitude layers, the first = altitude_m ([] = one layer); Climb / Descend move between them
+    altitudes_m: tuple[float, ...] = ()
     # Fly although the altitude or step differs from what the shipped models were trained on (their
     # perception has never seen such views: the result says little about the method).
     allow_untrained: bool = False
+
+    @field_validator("altitudes_m")
+    @classmethod
+    def _altitudes(cls, v):
+        if any(not 0 < a <= 120 for a in v):
+            raise ValueError("every altitude must lie in (0, 120] m")
+        return tuple(v)
 
     @field_validator("actions")
     @classmethod
@@ -271,8 +280,11 @@ class Mission(_Strict):
 
     def search_config(self) -> SearchConfig:
         s = self.search
-        return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions),
-                            intrinsics=self.camera.intrinsics())
+        try:
+            return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions),
+                                altitudes_m=tuple(float(a) for a in s.altitudes_m), intrinsics=self.camera.intrinsics())
+        except UavsearchError as e:
+            raise MissionError(f"mission {self.source}: search: {e}") from None
 
     def flight_settings(self) -> FlightSettings:
         f = self.flight
