@@ -225,7 +225,7 @@ def disk_full(run_dir: Path, error: OSError | None = None) -> str | None:
     if error is None and (usage is None or usage.free >= DISK_FULL_FREE_BYTES):
         return None
     where = getattr(error, "filename", None) or run_dir
-    free = "" if usage is None else f" ({usage.free // 1024} KiB free of {usage.total // (1 << 20)} MiB)"
+    free = "" if usage is None else f" ({usage.free // 1024} KiB free of {usage.total // 1024} KiB)"
     return f"no space left on device writing {where}{free}"
 
 

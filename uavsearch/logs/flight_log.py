@@ -60,8 +60,12 @@ class FlightLogWriter:
     def summary(self, summary: dict) -> Path:
         path = self.run_dir / "summary.json"
         tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(jsonable(summary), indent=2) + "\n")
-        os.replace(tmp, path)
+        try:
+            tmp.write_text(json.dumps(jsonable(summary), indent=2) + "\n")
+            os.replace(tmp, path)
+        except OSError:
+            tmp.unlink(missing_ok=True)  # a full disk: leave no half-written file beside the log
+            raise
         return path
 
     def close(self) -> None:
