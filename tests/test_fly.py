@@ -348,7 +348,7 @@ def test_a_killed_vehicle_is_one_line_within_3_s(tmp_path):
 
     mission = _mission(tmp_path)
     mission["search"]["budget_T"] = 5
-    mission["flight"]["speed"] = 1  # real time: the kill lands mid-mission
+    mission["flight"]["speed"] = 3  # 3x real time: about 2 s of wall time between views, the kill lands mid-mission
     (tmp_path / "m.yaml").write_text(yaml.safe_dump(mission))
     run = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "uavsearch", "fly", "--mission", str(tmp_path / "m.yaml"), "--out",
