@@ -253,10 +253,10 @@ def load_view_cache(path, features: bool = True) -> ViewCache:
 
 def get_view_cache(net, setting: int, split: str = "paper", part: str = "train", cache_dir=None,
                    workers: int = 2, progress: bool = True, executor: Executor | None = None,
-                   config: SearchConfig | None = None, features: bool = True) -> ViewCache:
+                   config: SearchConfig | None = None, features: bool = True, limit: int | None = None) -> ViewCache:
     """The cache of one part under `config` (default: the setting's), building it first if needed (the one
-    call training and evaluation make)."""
-    return load_view_cache(build_view_cache(net, CacheKey(setting, split, part, config), cache_dir=cache_dir,
+    call training and evaluation make); `limit`: the part's first scenes only."""
+    return load_view_cache(build_view_cache(net, CacheKey(setting, split, part, config, limit), cache_dir=cache_dir,
                                             workers=workers, progress=progress, executor=executor), features)
 
 
