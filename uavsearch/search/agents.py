@@ -41,6 +41,7 @@ class PolicyKind(NamedTuple):
     build: Callable[[SearchConfig], Policy] | None
     description: str
     net: str | None = None
+    move_set: str | None = None  # the config.move_set it needs (None: either)
 
 
 POLICIES: dict[str, PolicyKind] = {
@@ -53,15 +54,15 @@ POLICIES: dict[str, PolicyKind] = {
     "greedy": PolicyKind(GreedyUncertainty, "toward the most uncertain cells (beyond the paper)"),
     # the wide-area search's (move_set "any"; wide_policies.py)
     "lawnmower_high": PolicyKind(lambda c: RoutePolicy(lawnmower(c, c.layers_m[0])),
-                                 "boustrophedon over the start altitude's layer"),
+                                 "boustrophedon over the start altitude's layer", move_set="any"),
     "lawnmower_low": PolicyKind(lambda c: RoutePolicy(lawnmower(c, min(c.layers_m))),
-                                "boustrophedon over the lowest layer"),
+                                "boustrophedon over the lowest layer", move_set="any"),
     "survey_inner": PolicyKind(lambda c: RoutePolicy(survey_then_lawnmower(c, SURVEY_INNER_M)),
-                               "the 4 inner start-altitude viewpoints, then the lowest layer's boustrophedon"),
+                               "the 4 inner start-altitude viewpoints, then the lowest layer's boustrophedon", move_set="any"),
     "survey_outer": PolicyKind(lambda c: RoutePolicy(survey_then_lawnmower(c, SURVEY_OUTER_M)),
-                               "4 start-altitude viewpoints covering the area, then the lowest layer's boustrophedon"),
-    "descend_rule": PolicyKind(DescendRule, "survey high, then descend over the highest fused p (the rule)"),
-    "entropy_per_s": PolicyKind(EntropyPerSecond, "most fused-map entropy in the footprint per second of flight"),
+                               "4 start-altitude viewpoints covering the area, then the lowest layer's boustrophedon", move_set="any"),
+    "descend_rule": PolicyKind(DescendRule, "survey high, then descend over the highest fused p (the rule)", move_set="any"),
+    "entropy_per_s": PolicyKind(EntropyPerSecond, "most fused-map entropy in the footprint per second of flight", move_set="any"),
 }
 
 
@@ -159,6 +160,9 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
                         f"{config.num_actions}")
         pol = ArgmaxPolicy(net) if greedy else net
     else:
+        if kind.move_set is not None and kind.move_set != config.move_set:
+            raise error(f"{where}the {policy!r} policy needs move_set {kind.move_set!r}, the search has "
+                        f"{config.move_set!r}")
         pol = kind.build(config)
     needed = trained_fusion(fusion)
     if trained is not None and not trained.trainable:
