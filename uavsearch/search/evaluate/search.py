@@ -144,6 +144,8 @@ class EvalArgs(ScaleOutArgs):
     progress: bool = opt(True, "progress bars")
     wide_fusion: str = opt("bayes", "Table III: the fusion of every row but the oracle ones")
     wide_train_scenes: int = opt(500, "Table III: training scenes the fixed view sets are searched on (the first N)")
+    wide_val_scenes: int | None = opt(None, "Table III: validation scenes choosing the best fixed route (first N; all)")
+    wide_test_scenes: int | None = opt(None, "Table III: test scenes (the first N; default all 100)")
 
 
 def evaluate_setting(setting: int, cache, args: EvalArgs, keys=None) -> dict[str, dict]:

@@ -212,11 +212,11 @@ def write_table3(out: Path, rows: list[dict], paired: list[dict], lines: list[st
 
 
 def family_caches(args, family: str) -> dict[str, ViewCache]:
-    """test, val and train caches of a family (train: the first args.wide_train_scenes scenes)."""
+    """test, val and train caches of a family (the first args.wide_<part>_scenes scenes of each)."""
     net, _ = load_perception(args.perception)
     split = args.split or setting_params(family).split
     ex = Executor.from_args(args)
-    limits = {"test": None, "val": None, "train": args.wide_train_scenes}
+    limits = {"test": args.wide_test_scenes, "val": args.wide_val_scenes, "train": args.wide_train_scenes}
     return {part: get_view_cache(net, family, split, part, cache_dir=args.cache_dir, progress=args.progress,
                                  executor=ex, features=False, limit=limits[part])
             for part in ("test", "val", "train")}
