@@ -14,7 +14,7 @@ from uavsearch.replay.replay import _fuse_all
 from uavsearch.fly.missions import mission_from_dict
 from uavsearch.search import fusion
 from uavsearch.search.agents import POLICIES, build_agent, checkpoint_path, new_agent, trained_fusion
-from uavsearch.search.config import SearchConfig
+from uavsearch.search.config import SearchConfig, setting_config
 from uavsearch.search.fusion import FUSIONS, Fusion
 from uavsearch.search.policy import save_search_model
 from uavsearch.search.reactive import ReactivePolicyNet
@@ -33,16 +33,17 @@ def _ship(models, setting=2, cell_dim=6, global_dim=16):
 @pytest.mark.parametrize("fusion", list(FUSIONS))
 def test_every_registered_pair_builds_and_runs(tmp_path, fusion, policy):
     _ship(tmp_path)
-    config = SearchConfig()
+    config = setting_config("wide") if POLICIES[policy].move_set == "any" else SearchConfig()
     loaded = build_agent(fusion, policy, config, checkpoint=checkpoint_path(2, fusion, tmp_path, policy=policy),
                          confidence_checkpoint=checkpoint_path(2, "learned", tmp_path), scores_net=True)
     assert loaded.agent.fusion_name == fusion and loaded.agent.fusion.trainable == trained_fusion(fusion)
     assert loaded.scores_net is not None  # the learned checkpoint's net, for logging scores
     assert loaded.description == f"{fusion} fusion + {policy} policy"
     with torch.no_grad():
-        ep = run_search(CachedViews(synthetic_cache(2), [0, 1]), loaded.agent,
+        ep = run_search(CachedViews(synthetic_cache(2, config=config), [0, 1]), loaded.agent,
                         generator=torch.Generator().manual_seed(0))
-    assert ep.maps.shape == (2, config.budget_T, 100) and torch.isfinite(ep.maps).all()
+    assert ep.maps.shape[::2] == (2, config.grid.num_cells) and torch.isfinite(ep.maps).all()
+    assert ep.maps.shape[1] == config.budget_T or ep.taken is not None
 
 
 def test_unknown_names_and_mismatched_checkpoints_are_one_line_errors(tmp_path):

@@ -44,6 +44,10 @@
 #                     (results/perception/). measured: 12 s (after view_caches).
 #     search_large    Table II + Fig. 6 on the large split's 100 test scenes per setting (seeds 0-4).
 #                     estimate: ~8 min rendering 7500 views the first time (shipped perception), 35 s after.
+#     wide            Table III (results/search_wide/): the wide and wide-uniform families, 73 viewpoints per
+#                     scene, test + val + the first 100 training scenes each. measured: renders 3-5 s wall per
+#                     scene (2 workers; ~35 min for 500 scenes), perception caches ~4.5 s per scene, then the
+#                     table (route searches included) in minutes.
 #     flight          flight vs teleport, settings 1-3, the 10 paper test scenes each, missions/default.yaml
 #                     (vehicle seed 0, policy acting greedily), lockstep at speed max. measured: 652 s
 #                     (load 6-7; ~5 min idle at ~10 s per flown mission). Every Aacc, F1 and route is the
@@ -128,6 +132,8 @@ add search quick "Table II + Fig. 6, paper split, models/ -> results/search/" \
   "$UAV eval search --setting all --split paper --perception models/perception.pt --models-dir models $EVAL --out results/search"
 add search_large full "Table II + Fig. 6, large split (100 test scenes), models/ -> results/search_large/" \
   "$UAV eval search --setting all --split large --perception models/perception.pt --models-dir models $EVAL --out results/search_large && $PY tools/route_diversity.py --out results/search_large/routes.md"
+add wide full "Table III: the wide families (renders 73 viewpoints per scene, resumable), models/perception.pt -> results/search_wide/" \
+  "$PY tools/render_wide.py --parts test,val --workers $JOBS && $PY tools/render_wide.py --parts train --scenes 100 --workers $JOBS && $UAV eval search --setting wide,wide-uniform --perception models/perception.pt --wide-train-scenes 100 --episodes 10 --seeds 2 --no-progress --out results/search_wide"
 FLIGHT_CMD=""
 for s in $SETTINGS; do
   FLIGHT_CMD+="rm -rf $RUN/flight_s$s && $UAV eval search --vehicle mavlink --setting $s --split paper --speed max --no-progress --out $RUN/flight_s$s && mkdir -p results/flight && cp $RUN/flight_s$s/flight_vs_teleport.md results/flight/flight_vs_teleport_s$s.md && "

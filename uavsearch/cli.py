@@ -171,7 +171,7 @@ def _add_vehicle_option(p) -> None:
         from .fly.flight_vs_teleport import eval_flight_vs_teleport
 
         setting = 2 if str(args.setting) == "all" else int(args.setting)
-        res = eval_flight_vs_teleport(load_mission(args.mission), setting, args.split, args.speed, args.out,
+        res = eval_flight_vs_teleport(load_mission(args.mission), setting, args.split or "paper", args.speed, args.out,
                                       args.scenes, progress=args.progress, executor=Executor.from_args(args))
         print(res["table"].read_text())
         print(f"wrote {res['table']}")

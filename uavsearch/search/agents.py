@@ -29,6 +29,8 @@ from .perception import load_perception
 from .policy import (ArgmaxPolicy, CoverageRoute, GreedyUncertainty, PolicyConfig, PolicyNet, RandomPolicy,
                      load_search_model)
 from .search_loop import Agent, Policy
+from .wide_policies import (SURVEY_INNER_M, SURVEY_OUTER_M, DescendRule, EntropyPerSecond, MaskedRandom, RoutePolicy,
+                            lawnmower, survey_then_lawnmower)
 from .perception import perception_tag
 
 
@@ -39,15 +41,28 @@ class PolicyKind(NamedTuple):
     build: Callable[[SearchConfig], Policy] | None
     description: str
     net: str | None = None
+    move_set: str | None = None  # the config.move_set it needs (None: either)
 
 
 POLICIES: dict[str, PolicyKind] = {
     "learned": PolicyKind(None, "the REINFORCE view-selection net of a search checkpoint", "paper"),
     "reactive": PolicyKind(None, "a conv net on the map of what each view said (DAgger + REINFORCE; beyond the "
                                  "paper)", "reactive"),
-    "random": PolicyKind(lambda config: RandomPolicy(len(config.actions)), "uniform random moves"),
+    "random": PolicyKind(lambda config: RandomPolicy(len(config.actions)) if config.move_set == "steps"
+                         else MaskedRandom(config), "uniform random moves (any viewpoint: uniform over the allowed)"),
     "coverage": PolicyKind(CoverageRoute, "a fixed geometric route (beyond the paper)"),
     "greedy": PolicyKind(GreedyUncertainty, "toward the most uncertain cells (beyond the paper)"),
+    # the wide-area search's (move_set "any"; wide_policies.py)
+    "lawnmower_high": PolicyKind(lambda c: RoutePolicy(lawnmower(c, c.layers_m[0])),
+                                 "boustrophedon over the start altitude's layer", move_set="any"),
+    "lawnmower_low": PolicyKind(lambda c: RoutePolicy(lawnmower(c, min(c.layers_m))),
+                                "boustrophedon over the lowest layer", move_set="any"),
+    "survey_inner": PolicyKind(lambda c: RoutePolicy(survey_then_lawnmower(c, SURVEY_INNER_M)),
+                               "the 4 inner start-altitude viewpoints, then the lowest layer's boustrophedon", move_set="any"),
+    "survey_outer": PolicyKind(lambda c: RoutePolicy(survey_then_lawnmower(c, SURVEY_OUTER_M)),
+                               "4 start-altitude viewpoints covering the area, then the lowest layer's boustrophedon", move_set="any"),
+    "descend_rule": PolicyKind(DescendRule, "survey high, then descend over the highest fused p (the rule)", move_set="any"),
+    "entropy_per_s": PolicyKind(EntropyPerSecond, "most fused-map entropy in the footprint per second of flight", move_set="any"),
 }
 
 
@@ -78,7 +93,8 @@ def loads_checkpoint(policy: str) -> bool:
 
 def _same_lattice(a: SearchConfig, b: SearchConfig) -> bool:
     pa, pb = a.lattice.positions_enu, b.lattice.positions_enu
-    return pa.shape == pb.shape and bool((abs(pa - pb) < 1e-6).all()) and a.actions == b.actions
+    return (pa.shape == pb.shape and bool((abs(pa - pb) < 1e-6).all()) and a.actions == b.actions
+            and a.move_set == b.move_set)
 
 
 def _lattice_text(c: SearchConfig) -> str:
@@ -139,11 +155,14 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
         if recorded is not None and not _same_lattice(config_from_dict(recorded), config):
             raise error(f"{where}checkpoint {checkpoint} was trained on another viewpoint lattice "
                         f"({_lattice_text(config_from_dict(recorded))}) than this search's ({_lattice_text(config)})")
-        if net.cfg.num_actions != len(config.actions):
-            raise error(f"{where}checkpoint has {net.cfg.num_actions} actions, search.actions has "
-                        f"{len(config.actions)}")
+        if net.cfg.num_actions != config.num_actions:
+            raise error(f"{where}checkpoint has {net.cfg.num_actions} actions, the search has "
+                        f"{config.num_actions}")
         pol = ArgmaxPolicy(net) if greedy else net
     else:
+        if kind.move_set is not None and kind.move_set != config.move_set:
+            raise error(f"{where}the {policy!r} policy needs move_set {kind.move_set!r}, the search has "
+                        f"{config.move_set!r}")
         pol = kind.build(config)
     needed = trained_fusion(fusion)
     if trained is not None and not trained.trainable:
@@ -170,7 +189,7 @@ def new_agent(fusion: str, config: SearchConfig, global_dim: int, cell_dim: int,
     """A fresh agent for stage 2 to train: a policy net and a fresh fusion (its weights untrained)."""
     check_names(fusion)
     policy = PolicyNet(PolicyConfig(global_dim=global_dim, num_cells=config.grid.num_cells,
-                                    num_positions=config.lattice.num_positions, num_actions=len(config.actions),
+                                    num_positions=config.lattice.num_positions, num_actions=config.num_actions,
                                     budget_T=config.budget_T, extras=extras))
     return Agent(FUSIONS[fusion].new(cell_dim), policy)
 

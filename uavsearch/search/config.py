@@ -16,6 +16,7 @@ import numpy as np
 from ..errors import UavsearchError
 from ..geometry import CameraIntrinsics, Grid
 from ..world.render import RenderOptions
+from ..world.settings import setting_params
 
 # Step vectors (east, north, up) in lattice units; "up" steps to the next higher altitude layer of the
 # lattice, "down" to the next lower one. The paper's action set: heading fixed north, a constant step along
@@ -29,6 +30,9 @@ ACTIONS: dict[str, tuple[int, int, int]] = {
     "Descend": (0, 0, -1),  # to the next lower altitude layer
 }
 PAPER_ACTIONS = ("MoveAhead", "MoveRight", "MoveLeft", "MoveBack")
+# How an action picks the next viewpoint: "steps" applies one of `actions`' step vectors (the paper's rule);
+# "any" names the viewpoint itself (action a flies to viewpoint a: any viewpoint may be chosen next).
+MOVE_SETS = ("steps", "any")
 
 
 def _autopilot_default(name: str) -> float:
@@ -74,8 +78,14 @@ class SearchConfig:
     altitudes_m: tuple[float, ...] = ()  # the lattice's altitude layers, the first = altitude_m; () = one layer
     lattice_points: int | None = None  # positions per side of a layer; None: as many as stay over the area
     speeds: FlightSpeeds = field(default_factory=FlightSpeeds)
+    move_set: str = "steps"  # "steps": the `actions` step vectors; "any": the action is the next viewpoint's index
+    budget_s: float | None = None  # simulated seconds of flight per episode (lattice.flight_time_s); None: views only
 
     def __post_init__(self):
+        if self.move_set not in MOVE_SETS:
+            raise UavsearchError(f"unknown move_set {self.move_set!r}; valid: {', '.join(MOVE_SETS)}")
+        if self.budget_s is not None and not self.budget_s >= 0:
+            raise UavsearchError(f"budget_s must be a non-negative number of seconds or None, got {self.budget_s}")
         unknown = [a for a in self.actions if a not in ACTIONS]
         if unknown:
             raise UavsearchError(f"unknown action(s) {unknown}; valid: {sorted(ACTIONS)}")
@@ -110,6 +120,11 @@ class SearchConfig:
         from .lattice import lattice_of
 
         return lattice_of(self)
+
+    @property
+    def num_actions(self) -> int:
+        """How many actions a policy chooses from: the step vectors, or every viewpoint ("any")."""
+        return self.lattice.num_positions if self.move_set == "any" else len(self.actions)
 
     def action_vectors(self) -> np.ndarray:
         """(num_actions, 3) lattice steps (east, north, up) of the configured action set."""
@@ -147,10 +162,21 @@ def config_from_dict(d: dict) -> SearchConfig:
     return SearchConfig(**kw)
 
 
-def setting_config(setting: int) -> SearchConfig:
-    """The search task a scene setting is searched with: the paper's for its settings 1-3."""
-    return SearchConfig()
+def wide_config() -> SearchConfig:
+    """The wide family's search task: 150 m of 30 x 30 cells; 6 x 6 viewpoints 25 m apart at 70 m and 40 m
+    (plus the start above the centre at 70 m, lattice.py), any viewpoint next, T = 8 views, 240 s of flight."""
+    return SearchConfig(altitude_m=70.0, step_m=25.0, budget_T=8, grid=Grid(30, 5.0), altitudes_m=(70.0, 40.0),
+                        lattice_points=6, move_set="any", budget_s=240.0)
 
 
-__all__ = ["ACTIONS", "PAPER_ACTIONS", "FlightSpeeds", "SearchConfig", "config_from_dict", "config_to_dict",
+def setting_config(setting) -> SearchConfig:
+    """The search task a scene setting is searched with: the paper's for its settings 1-3, the wide one for
+    the wide families (the grid is the family's: world/settings.py)."""
+    fam = setting_params(setting)
+    if fam.name.isdigit():
+        return SearchConfig()
+    return dataclasses.replace(wide_config(), grid=fam.grid)
+
+
+__all__ = ["ACTIONS", "MOVE_SETS", "PAPER_ACTIONS", "wide_config", "FlightSpeeds", "SearchConfig", "config_from_dict", "config_to_dict",
            "setting_config"]

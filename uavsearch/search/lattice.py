@@ -7,11 +7,15 @@ and pixel area, and the vehicle's flight time between viewpoints.
 Indexing: one square layer of L x L positions per altitude, row-major from the north-west corner like
 the cell grid (index = layer * L * L + row * L + col), layers in the config's order of altitudes. The
 paper's lattice is one layer of 5 x 5 at 70 m, 10 m apart, centred on the search area: index 12 is the
-centre and the start.
+centre and the start. Where no layer point lies above the centre at the first altitude (an even L, e.g.
+the wide family's 6 x 6 at 25 m), the start is a viewpoint of its own, appended as the last index
+(P = layers * L * L + 1): every view from there is taken, cached and fused like any other.
 
-Moves: an action is a step vector (east, north, up) in lattice units (`config.ACTIONS`); "up" steps to
+Moves (config.move_set "steps"): an action is a step vector (east, north, up) in lattice units (`config.ACTIONS`); "up" steps to
 the next higher altitude layer, "down" to the next lower one. A move that would leave the lattice keeps the camera where
-it is (the view is re-taken and counts as a revisit), the paper's rule.
+it is (the view is re-taken and counts as a revisit), the paper's rule. With move_set "any" the action
+is the index of the next viewpoint: moves[p, a] = a, any viewpoint may be chosen next (staying re-takes
+the view), and what a move costs is its flight time (`flight_time_s`).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import functools
 import numpy as np
 import torch
 
+from ..errors import UavsearchError
 from ..geometry import cell_pixel_areas, nadir_camera_pose
 
 
@@ -44,6 +49,10 @@ class Lattice:
         ys, xs = offsets[::-1], offsets  # row 0 is the northernmost
         yy, xx = np.meshgrid(ys, xs, indexing="ij")
         layers = [np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, alt)], axis=-1) for alt in self.altitudes_m]
+        start = np.array([[0.0, 0.0, self.altitudes_m[0]]])
+        self.extra_start = bool(np.linalg.norm(layers[0] - start, axis=1).min() > 1e-6)
+        if self.extra_start:
+            layers.append(start)
         self.positions_enu: np.ndarray = np.concatenate(layers).astype(float)  # (P, 3)
         self.num_positions = len(self.positions_enu)
         self.positions_enu.setflags(write=False)
@@ -69,7 +78,10 @@ class Lattice:
 
     @property
     def start_index(self) -> int:
-        """Above the middle of the search area at the first altitude (the centre of an odd layer)."""
+        """Above the middle of the search area at the first altitude (the centre of an odd layer, else the
+        appended last index)."""
+        if self.extra_start:
+            return self.num_positions - 1
         return self.nearest([0.0, 0.0, self.altitudes_m[0]])
 
     # -- the move rule -------------------------------------------------------------------------------
@@ -81,7 +93,13 @@ class Lattice:
 
     @functools.cached_property
     def moves(self) -> torch.Tensor:
-        """(P, A) long: the index reached from viewpoint p by action a (p itself if it leaves the lattice)."""
+        """(P, A) long: the index reached from viewpoint p by action a (p itself if it leaves the lattice);
+        with move_set "any" (P, P): moves[p, a] = a."""
+        if self.config.move_set == "any":
+            return torch.arange(self.num_positions).expand(self.num_positions, -1).contiguous()
+        if self.extra_start:
+            raise UavsearchError("step moves need a lattice point above the centre (an odd lattice_points); "
+                                 "use move_set='any'")
         L, K = self.size, len(self.altitudes_m)
         by_height = list(np.argsort(self.altitudes_m))  # layer indices from the lowest altitude up
         table = np.zeros((self.num_positions, len(self.action_vectors)), dtype=np.int64)

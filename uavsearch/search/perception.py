@@ -21,6 +21,8 @@ Stage 2 freezes the backbone and classifier and caches `PerceptionNet.views_outp
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import hashlib
 import json
 from dataclasses import asdict, dataclass
@@ -317,6 +319,15 @@ class PerceptionNet(nn.Module):
         self.cfg = cfg or PerceptionConfig()
         self.backbone = Backbone(self.cfg)
         self.classifier = _mlp([self.cfg.cell_dim, *self.cfg.hidden, 2], self.cfg.dropout)
+
+    def for_grid(self, num_cells: int) -> "PerceptionNet":
+        """The same net (shared weights) pooling `num_cells` cells: nothing learned depends on the grid's size
+        (the classifier reads one cell at a time), so a net trained on 10 x 10 reads a 30 x 30 grid."""
+        if num_cells == self.cfg.num_cells:
+            return self
+        other = copy.copy(self)
+        other.cfg = dataclasses.replace(self.cfg, num_cells=int(num_cells))
+        return other
 
     # -- pieces ------------------------------------------------------------------------------------
     def cell_features(self, fmap: torch.Tensor, pooling: CellPooling) -> torch.Tensor:

@@ -14,6 +14,13 @@ evaluation and the flying mission controller all run this same function:
 The move rule is the config's `lattice.moves` (search/lattice.py; the gymnasium env steps through it
 too): a move that would leave the lattice keeps the camera where it is, the view is re-taken and counts
 as a revisit.
+
+A time budget (config.budget_s, simulated seconds of flight, `lattice.flight_time_s` per move; the start
+view is free) ends an episode early: after view t it ends when no unvisited viewpoint is affordable in the
+time left, or when its policy picks a move it cannot afford. An ended episode takes no more views (its
+fused map stays as it was; `Episode.taken` says which views exist) and the batch stops once every episode
+has ended. Policies see the time left and the affordable, unvisited viewpoints (PolicyInput.time_left_s,
+.allowed). Without budget_s nothing of this runs: the paper's episodes are what they always were.
 """
 
 from __future__ import annotations
@@ -118,7 +125,7 @@ class CachedViews:
         if len(new):
             P = self.cache.num_positions
             with torch.no_grad():
-                self._scores[new] = self.confidence(self.cache.cell_features[self._rows_u[new // P], new % P])
+                self._scores[new] = self.confidence(self.cache.cell_features[self._rows_u[new // P], new % P].float())
             self._have[new] = True
         return self._scores[key]
 
@@ -128,8 +135,8 @@ class CachedViews:
         if self.confidence is not None:
             return Observation(c.log_probs[r, p], None, c.global_feature[r, p], c.cell_area_px[r, p], c.valid[r, p],
                                self._scores_at(p))
-        return Observation(c.log_probs[r, p], c.cell_features[r, p], c.global_feature[r, p], c.cell_area_px[r, p],
-                           c.valid[r, p])
+        return Observation(c.log_probs[r, p], c.cell_features[r, p].float(), c.global_feature[r, p],
+                           c.cell_area_px[r, p], c.valid[r, p])
 
 
     def fusion_views(self, lattice_idx: torch.Tensor) -> FusionViews:
@@ -138,7 +145,7 @@ class CachedViews:
         c, P = self.cache, self.cache.num_positions
         r = self.rows[:, None].expand_as(lattice_idx)
         uniq, inv = torch.unique(r * P + lattice_idx, return_inverse=True)
-        feats = c.cell_features.reshape(-1, *c.cell_features.shape[2:])[uniq]  # (U, N, D)
+        feats = c.cell_features.reshape(-1, *c.cell_features.shape[2:])[uniq].float()  # (U, N, D)
         return FusionViews(c.log_probs[r, lattice_idx][..., 1].exp(), c.valid[r, lattice_idx],
                            c.cell_area_px[r, lattice_idx], feats, None, lattice_idx, self.labels, inv)
 
@@ -188,6 +195,9 @@ class PolicyInput(NamedTuple):
     view_probs: torch.Tensor | None = None  # (B, t+1, N) each view's p(y=1)
     view_valid: torch.Tensor | None = None  # (B, t+1, N) bool, the view measured the cell
     view_scores: torch.Tensor | None = None  # (B, t+1, N) confidence scores (detached), None without learned fusion
+    # with a time budget (config.budget_s; else None)
+    time_left_s: torch.Tensor | None = None  # (B,) simulated seconds of flight left
+    allowed: torch.Tensor | None = None  # (B, P) bool: unvisited viewpoints affordable in the time left
 
 
 class Policy(Protocol):
@@ -238,8 +248,7 @@ class StepInfo(NamedTuple):
     observation: Observation  # everything else perception said about the view (cell areas, features)
 
 
-def _step_info(t: int, T: int, idx, o: Observation, score, fused, action, revisit, labels) -> StepInfo:
-    last = t == T - 1
+def _step_info(t: int, last: bool, idx, o: Observation, score, fused, action, revisit, labels) -> StepInfo:
     reward = None if labels is None else step_rewards(fused[:, None] if last else None, labels, revisit[:, None])[:, 0]
     return StepInfo(t, idx, o.log_probs[..., 1].exp(), None if score is None else score.detach(), o.valid,
                     fused.detach(), action, revisit, reward, o)
@@ -255,6 +264,15 @@ class Episode(NamedTuple):
     revisit: torch.Tensor  # (B, T) bool, view t re-visits a position (False for t = 0)
     maps: torch.Tensor  # (B, T, N) fused p(y=1) after views 0..t; [:, -1] carries grad for learned fusion
     labels: torch.Tensor | None  # (B, N) bool ground truth when the source knows it
+    taken: torch.Tensor | None = None  # (B, T) bool, view t was taken (None: every view was; a time budget ends
+    # episodes early, and an ended episode's later columns repeat its last position and map)
+    flight_s: torch.Tensor | None = None  # (B,) simulated seconds flown (with a time budget)
+
+
+def affordable(config: SearchConfig, idx: torch.Tensor, visited: torch.Tensor, time_left_s: torch.Tensor):
+    """(B, P) bool: the unvisited viewpoints each episode can still fly to in the time it has left."""
+    cost = torch.as_tensor(config.lattice.flight_time_s, dtype=torch.float64)[idx]  # (B, P)
+    return ~visited & (cost <= time_left_s[:, None] + 1e-9)
 
 
 def fusion_view(o: Observation, lattice_idx: torch.Tensor, labels: torch.Tensor | None) -> FusionViews:
@@ -290,31 +308,54 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
     obs: list[Observation] = []
     state = agent.fusion.init_state(B, config.grid.num_cells)
     positions, actions, logps, ents, revisits, maps = [], [], [], [], [], []
+    timed = config.budget_s is not None
+    if timed:
+        cost_s = torch.as_tensor(config.lattice.flight_time_s, dtype=torch.float64)
+        time_left = torch.full((B,), float(config.budget_s), dtype=torch.float64)
+        ended = torch.zeros(B, dtype=torch.bool)
+        takens = []
     for t in range(T):
-        revisits.append(visited[arange, idx].clone())
+        revisits.append(visited[arange, idx].clone() & ~ended if timed else visited[arange, idx].clone())
         visited[arange, idx] = True
         positions.append(idx)
         o = source.observe(idx)
+        if timed and ended.any():  # an ended episode's view is not taken: it measures nothing
+            o = o._replace(valid=o.valid & ~ended[:, None])
         obs.append(o)
         state, fused = agent.fusion.update(state, fusion_view(o, idx, source.labels))
+        if timed:
+            takens.append(~ended)
+            if ended.any():
+                fused = torch.where(ended[:, None], maps[-1], fused)
         maps.append(fused)
         view_scores = agent.fusion.view_scores(state)
         view_scores = None if view_scores is None else view_scores.detach()
-        if t == T - 1:
+        allowed = None
+        if timed:
+            allowed = affordable(config, idx, visited, time_left)
+            ended = ended | ~allowed.any(1)
+        if t == T - 1 or (timed and bool(ended.all())):
             if on_step is not None:
-                on_step(_step_info(t, T, idx, o, _last(view_scores), fused, None, revisits[-1], source.labels))
+                on_step(_step_info(t, True, idx, o, _last(view_scores), fused, None, revisits[-1], source.labels))
             break
         inp = PolicyInput(o.global_feature, o.valid.float(), fused.detach().float(), idx, visited.clone(), t, T,
                           torch.stack(positions, 1), torch.stack([v.log_probs[..., 1].exp() for v in obs], 1),
-                          torch.stack([v.valid for v in obs], 1), view_scores)
+                          torch.stack([v.valid for v in obs], 1), view_scores,
+                          time_left.float() if timed else None, allowed)
         a, lp, ent = agent.policy.act(inp, generator)
         if on_step is not None:
-            on_step(_step_info(t, T, idx, o, _last(view_scores), fused, a, revisits[-1], source.labels))
+            on_step(_step_info(t, False, idx, o, _last(view_scores), fused, a, revisits[-1], source.labels))
         actions.append(a)
         if lp is not None:
             logps.append(lp)
             ents.append(ent)
-        idx = moves[idx, a]
+        nxt = moves[idx, a]
+        if timed:  # a move it cannot afford ends the episode where it is
+            cost = cost_s[idx, nxt]
+            ended = ended | (cost > time_left + 1e-9)
+            nxt = torch.where(ended, idx, nxt)
+            time_left = time_left - torch.where(ended, torch.zeros_like(cost), cost)
+        idx = nxt
     empty = torch.zeros(B, 0)
     return Episode(
         lattice_idx=torch.stack(positions, 1),
@@ -324,9 +365,11 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
         revisit=torch.stack(revisits, 1),
         maps=torch.stack(maps, 1),
         labels=source.labels,
+        taken=torch.stack(takens, 1) if timed else None,
+        flight_s=(float(config.budget_s) - time_left).float() if timed else None,
     )
 
 
 __all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
            "R_FP", "R_RE", "R_TP", "classification_reward", "fusion_view", "run_search", "sample_actions"]
-__all__ += ["StepInfo", "step_rewards"]
+__all__ += ["StepInfo", "affordable", "step_rewards"]

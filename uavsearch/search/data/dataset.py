@@ -7,7 +7,8 @@ once and kept. A dataset is a folder, local or at an fsspec URL (parallel.Store)
                                render options it was rendered with, and "shards": per finished shard its
                                key, sha256, size and render tag; a directory can grow by more scenes
                                of the same kind (e.g. 40 then 80 test scenes per density) and reuse shards
-    <dir>/shards/s<seed>_k<K>.npz   one compressed shard per scene (parallel.npz_bytes: no timestamps):
+    <dir>/shards/s<seed>_k<K>.npz   one compressed shard per scene (a scene family's: s<seed>_k<K>_<family>.npz,
+                               so no family shard is ever taken for a paper one) (parallel.npz_bytes: no timestamps):
         images         (V, H, W, 3) uint8   RGB, north up
         lattice_index  (V,) int16           index into config.lattice.positions_enu (row-major from the NW corner)
         position_enu   (V, 3) float32       camera position, scene ENU metres (nadir, heading north)
@@ -36,6 +37,7 @@ import functools
 import hashlib
 import io
 import json
+import re
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -48,7 +50,7 @@ from uavsearch.geometry import cell_label_image, nadir_camera_pose
 from uavsearch.parallel import Executor, Store, finished, manifest_entry, map_scenes, npz_bytes, process_tree_cpu_s
 from uavsearch.paths import REPO_ROOT
 from uavsearch.world.scene import generate_scene, scene_to_json
-from uavsearch.world.settings import SETTINGS, scene_seeds
+from uavsearch.world.settings import SETTINGS, generate_setting_scene, scene_seeds, setting_params
 
 from ..config import SearchConfig, config_from_dict
 from ..views import TeleportVehicle
@@ -68,6 +70,8 @@ class ViewSetSpec:
     seed: int = 0
     altitude_m: float = 70.0
     search: dict | None = None  # config_to_dict of the SearchConfig whose lattice is rendered (None: the paper's at altitude_m)
+    family: str | None = None  # a scene family's name (world/settings.py, e.g. "wide"): its generator makes the
+    # scenes; None: generate_scene(seed, K), the paper's
 
     def __post_init__(self):
         if not self.scenes:
@@ -78,8 +82,9 @@ class ViewSetSpec:
     def to_json(self) -> dict:
         d = asdict(self)
         d["scenes"] = [list(s) for s in self.scenes]
-        if d["search"] is None:
-            del d["search"]  # view sets of the paper's lattice keep the manifest they always had
+        for k in ("search", "family"):
+            if d[k] is None:
+                del d[k]  # view sets of the paper's lattice and scenes keep the manifest they always had
         return d
 
     @staticmethod
@@ -124,32 +129,44 @@ def positions_for_scene(spec: ViewSetSpec, scene_seed: int, k: int, num_position
     return np.sort(pick).astype(np.int16)
 
 
-def shard_key(scene_seed: int, k: int) -> str:
-    return f"shards/s{int(scene_seed)}_k{int(k)}.npz"
+def shard_key(scene_seed: int, k: int, family: str | None = None) -> str:
+    return f"shards/s{int(scene_seed)}_k{int(k)}{'' if family is None else '_' + family}.npz"
 
 
-def shard_path(root: Path, scene_seed: int, k: int) -> Path:
+def shard_path(root: Path, scene_seed: int, k: int, family: str | None = None) -> Path:
     """The shard's file in a local view-set folder."""
-    return Path(root) / shard_key(scene_seed, k)
+    return Path(root) / shard_key(scene_seed, k, family)
+
+
+def make_scene(scene_seed: int, k: int, family: str | None = None):
+    """The scene of a shard: the family's generator (its own K), or the paper's generate_scene(seed, K)."""
+    if family is None:
+        return generate_scene(int(scene_seed), int(k))
+    scene = generate_setting_scene(family, int(scene_seed))
+    if len(np.flatnonzero(scene.occupancy_array())) != int(k):
+        raise UavsearchError(f"scene family {family!r} has K = {setting_params(family).k}, not {k}")
+    return scene
 
 
 @functools.lru_cache(maxsize=8)
-def probe_render(config: SearchConfig | None = None) -> tuple[str, str, bytes]:
+def probe_render(config: SearchConfig | None = None, family: str | None = None) -> tuple[str, str, bytes]:
     """(the config's render key, probe scene JSON, its rendered start view's bytes) as this code makes them
     now: what decides the pixels, once per process and config (about a second). No config: the renderer's
-    own fingerprint, with the paper's camera."""
+    own fingerprint, with the paper's camera. A family's probe is its own scene of the probe seed."""
     config = config or SearchConfig()
-    probe = generate_scene(PROBE_SCENE[0], PROBE_SCENE[1])
+    probe = make_scene(PROBE_SCENE[0], PROBE_SCENE[1] if family is None else setting_params(family).k, family)
     with TeleportVehicle(probe, config, cache=False) as vehicle:
         view = vehicle.capture([0.0, 0.0, config.altitude_m])
     return config.render_key(), scene_to_json(probe), np.ascontiguousarray(view.image).tobytes()
 
 
-def render_tag() -> str:
+def render_tag(family: str | None = None) -> str:
     """The generator/renderer tag of every shard written now: a shard whose manifest entry carries another
-    tag was made by other scene or render code and is rendered again, never mixed in."""
+    tag was made by other scene or render code and is rendered again, never mixed in. A family's shards
+    also fingerprint its probe scene (the paper's tag is what it always was)."""
     h = hashlib.sha256(FORMAT.encode())
-    for part in probe_render():
+    parts = probe_render() if family is None else (*probe_render(), *probe_render(None, family)[1:])
+    for part in parts:
         h.update(part.encode() if isinstance(part, str) else part)
     return h.hexdigest()[:12]
 
@@ -163,7 +180,7 @@ def render_scene_shard(job: tuple[dict, Store, int, int, str]) -> dict:
     config = search_config(spec)
     lattice = config.lattice.positions_enu
     idx = positions_for_scene(spec, scene_seed, k, len(lattice))
-    scene = generate_scene(int(scene_seed), int(k))
+    scene = make_scene(scene_seed, k, spec.family)
     n_cells = config.grid.num_cells
     images, areas, inview, person_px, person_frac = [], [], [], [], []
     with TeleportVehicle(scene, config, cache=False) as vehicle:
@@ -189,7 +206,7 @@ def render_scene_shard(job: tuple[dict, Store, int, int, str]) -> dict:
         scene_seed=np.int64(scene_seed),
         occupied_cells=np.int64(k),
     ))
-    key = shard_key(scene_seed, k)
+    key = shard_key(scene_seed, k, spec.family)
     store.write_bytes(key, data)
     return {**manifest_entry(key, data, tag), "views": len(idx), "seconds": time.perf_counter() - t0,
             "cpu_s": process_tree_cpu_s() - cpu0}
@@ -209,9 +226,15 @@ def _manifest(spec: ViewSetSpec) -> dict:
 
 def _comparable(manifest: dict) -> dict:
     """What must match for shards to be shared: everything but the set's name, scene list and shards, and
-    the format (a shard of an older format carries an older render tag, so it is rendered again in place)."""
+    the format (a shard of an older format carries an older render tag, so it is rendered again in place);
+    of the search config only what decides the pixels (its budgets, moves and speeds do not)."""
     spec = {k: v for k, v in manifest.get("spec", {}).items() if k not in ("name", "scenes")}
+    if isinstance(spec.get("search"), dict):
+        spec["search"] = {k: v for k, v in spec["search"].items() if k not in _NOT_RENDERED}
     return {**{k: v for k, v in manifest.items() if k not in ("shards", "format")}, "spec": spec}
+
+
+_NOT_RENDERED = ("budget_T", "budget_s", "actions", "move_set", "speeds")
 
 
 def _root_of(store: Store):
@@ -234,7 +257,7 @@ def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: boo
         raise UavsearchError(
             f"{store.url} holds a different view set (manifest differs); choose another directory or delete it"
         )
-    tag = render_tag()
+    tag = render_tag(spec.family)
     shards: dict[str, dict] = dict((old or {}).get("shards", {}))
     stored = set(store.keys("shards"))
     for key in sorted(stored - set(shards)):  # written by a run that stopped before recording them
@@ -242,7 +265,7 @@ def generate_views(spec: ViewSetSpec, root=None, workers: int = 2, progress: boo
     manifest["shards"] = shards
     save = lambda: store.write_json("manifest.json", {**manifest, "shards": dict(sorted(shards.items()))})  # noqa: E731
     save()
-    todo = [(s, k) for s, k in spec.scenes if not finished(store, shards.get(shard_key(s, k)), tag)]
+    todo = [(s, k) for s, k in spec.scenes if not finished(store, shards.get(shard_key(s, k, spec.family)), tag)]
     if not todo:
         return _root_of(store)
     last = [time.monotonic()]
@@ -315,15 +338,23 @@ def read_manifest(root) -> dict:
     return man
 
 
+_SHARD_NAME = re.compile(r"^s(\d+)_k(\d+)(?:_([A-Za-z][\w-]*))?\.npz$")
+
+
 def shards_in(root) -> list[tuple[int, int]]:
-    """(seed, K) of every finished shard in a view set (folder or URL), sorted."""
+    """(seed, K) of every finished shard of the view set's scenes (folder or URL), sorted."""
+    family = _family_of(root)
     out = []
     for key in Store(root).keys("shards"):
-        name = key.rsplit("/", 1)[-1]
-        if name.startswith("s") and name.endswith(".npz") and "_k" in name:
-            s, k = name[:-4].split("_")
-            out.append((int(s[1:]), int(k[1:])))
+        m = _SHARD_NAME.match(key.rsplit("/", 1)[-1])
+        if m and m.group(3) == family:
+            out.append((int(m.group(1)), int(m.group(2))))
     return sorted(out)
+
+
+def _family_of(root) -> str | None:
+    man = Store(root).read_json("manifest.json") or {}
+    return man.get("spec", {}).get("family")
 
 
 def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only: bool = False,
@@ -342,11 +373,12 @@ def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only
         parts["person_frac"] = []
     store = Store(root)
     for s, k in wanted:
-        path = store.path(shard_key(s, k))
-        if not store.exists(shard_key(s, k)):
+        key = shard_key(s, k, spec.family)
+        path = store.path(key)
+        if not store.exists(key):
             raise UavsearchError(f"{path} missing: the view set is incomplete (run the generation again to resume)")
         try:
-            with np.load(io.BytesIO(store.read_bytes(shard_key(s, k)))) as z:
+            with np.load(io.BytesIO(store.read_bytes(key))) as z:
                 rows = np.flatnonzero(z["lattice_index"] == centre) if start_only else np.arange(len(z["lattice_index"]))
                 for key in ("images", "lattice_index", "position_enu", "cell_area_px", "cells_in_view", "person_px",
                             *(("person_frac",) if person_frac else ())):

@@ -20,7 +20,8 @@ Two layers, both under the gitignored ``cache/`` folder:
        occupied_cells   (S,) int64    K
        occupancy        (S, N) int8   ground truth, N = cells (100)
        log_probs        (S, P, N, 2) float32   l_i = [log p(y=0), log p(y=1)] of the view at position p
-       cell_features    (S, P, N, D) float32   f_i, the confidence network's input (D = cell_dim)
+       cell_features    (S, P, N, D) float32   f_i, the confidence network's input (D = cell_dim); float16 for a
+                                               scene family (73 views x 900 cells: 27 MB a scene in float32)
        global_feature   (S, P, G) float32      the image embedding's input (G = global_dim)
        cell_area_px     (S, P, N) float32      F_size: the cell's clipped image polygon area
        valid            (S, P, N) bool         cell measured by the view: in view (c^t) and pooled pixels > 0
@@ -55,7 +56,7 @@ from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, Store, npz_bytes
 from uavsearch.paths import REPO_ROOT
 from uavsearch.world import settings
-from uavsearch.world.settings import SETTINGS, scene_seeds
+from uavsearch.world.settings import scene_seeds
 
 from ..config import SearchConfig, config_from_dict, config_to_dict, setting_config
 from ..perception import perception_tag
@@ -98,11 +99,17 @@ class ViewCache(NamedTuple):
 
 @dataclass(frozen=True)
 class CacheKey:
-    """Which scenes a cache holds (one part of one split of one setting) and under which search config."""
-    setting: int
+    """Which scenes a cache holds (one part of one split of one setting: an id 1-3 or a scene family's name,
+    whose generator and K make the scenes) and under which search config."""
+    setting: int | str
     split: str = "paper"
     part: str = "train"
     config: SearchConfig | None = None  # None: the setting's own (config.setting_config)
+    limit: int | None = None  # only the part's first `limit` scenes (a part still rendering); None: all
+
+    def __post_init__(self):
+        if self.limit is not None and self.limit < 1:
+            raise UavsearchError(f"a cache's scene limit must be at least 1, got {self.limit}")
 
     @property
     def search_config(self) -> SearchConfig:
@@ -110,23 +117,35 @@ class CacheKey:
 
     @property
     def name(self) -> str:
+        return self.part_name + ("" if self.limit is None else f"_first{self.limit}")
+
+    @property
+    def part_name(self) -> str:
+        """The whole part's name: its renders live in one folder whatever the limit."""
         return f"{self.split}_s{self.setting}_{self.part}"
 
     def scenes(self) -> list[tuple[int, int]]:
 
         if self.part not in PARTS:
             raise UavsearchError(f"unknown part {self.part!r}; valid: {', '.join(PARTS)}")
-        return [(int(s), SETTINGS[self.setting]) for s in scene_seeds(self.setting, self.split, self.part)]
+        return [(int(s), settings.setting_params(self.setting).k)
+                for s in scene_seeds(self.setting, self.split, self.part)[: self.limit]]
+
+    @property
+    def family(self) -> str | None:
+        """The scene family whose generator renders the scenes; None for the paper's settings 1-3."""
+        name = settings.setting_params(self.setting).name
+        return None if name.isdigit() else name
 
 
 @functools.lru_cache(maxsize=8)
-def world_tag(config: SearchConfig) -> str:
+def world_tag(config: SearchConfig, family: str | None = None) -> str:
     """A hash of what decides the pixels of a config's lattice views: a probe scene's spec and its start
     view as rendered now, the scene splits and the config's render key (camera, grid, render options,
     viewpoints). Any change to how scenes are generated or drawn, or to where the camera may go, changes
     it (and so never silently reuses old renders); edits that change no pixel do not. About a second,
-    once per process and config."""
-    render_key, probe_json, image = probe_render(config)
+    once per process and config. A scene family's tag probes its own scene."""
+    render_key, probe_json, image = probe_render(config, family)
     h = hashlib.sha256(render_key.encode())
     h.update(probe_json.encode())
     h.update(image)
@@ -152,10 +171,11 @@ def render_lattice_views(key: CacheKey, scenes=None, root=None, workers: int = 2
     scenes = list(scenes) if scenes is not None else key.scenes()
     config = key.search_config
     default = config == SearchConfig(altitude_m=config.altitude_m)  # the paper's lattice at that altitude
-    spec = ViewSetSpec(name=f"lattice-{key.name}", scenes=tuple((int(s), int(k)) for s, k in scenes),
+    spec = ViewSetSpec(name=f"lattice-{key.part_name}", scenes=tuple((int(s), int(k)) for s, k in scenes),
                        views_per_scene=config.lattice.num_positions, include_start=True, seed=0,
-                       altitude_m=config.altitude_m, search=None if default else config_to_dict(config))
-    root = root if root is not None else CACHE_DIR / "lattice_views" / world_tag(config) / key.name
+                       altitude_m=config.altitude_m, search=None if default else config_to_dict(config),
+                       family=key.family)
+    root = root if root is not None else CACHE_DIR / "lattice_views" / world_tag(config, key.family) / key.part_name
     return generate_views(spec, root=root, workers=workers, progress=progress, executor=executor)
 
 
@@ -166,14 +186,16 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
     local processes). Perception runs here, over the stored renders, in scene order."""
     store = Store(cache_dir if cache_dir is not None else CACHE_DIR)
     tag = perception_tag(net)
-    world = world_tag(key.search_config)
+    world = world_tag(key.search_config, key.family)
     out_key = f"search_views/{world}-{tag}/{key.name}.npz"
     out = Path(store.path(out_key)) if store.local else store.path(out_key)
     if store.exists(out_key):
         return out
     scenes = list(scenes) if scenes is not None else key.scenes()
-    root = render_lattice_views(key, scenes, root=store.path(f"lattice_views/{world}/{key.name}"), workers=workers,
+    root = render_lattice_views(key, scenes, root=store.path(f"lattice_views/{world}/{key.part_name}"), workers=workers,
                                 progress=progress, executor=executor)
+    feature_dtype = np.float32 if key.family is None else np.float16
+    net = net.for_grid(key.search_config.grid.num_cells)
     parts: dict[str, list] = {k: [] for k in ("log_probs", "cell_features", "global_feature", "cell_area_px",
                                               "valid", "person_px", "occupancy", "scene_seed",
                                               "occupied_cells")}
@@ -184,7 +206,7 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
             raise UavsearchError(f"{root}: scene {s} does not hold every lattice position")
         o = perception_outputs(net, vs.images[order], vs.label_images(order))
         parts["log_probs"].append(o["log_probs"])
-        parts["cell_features"].append(o["cell_features"])
+        parts["cell_features"].append(o["cell_features"].astype(feature_dtype))
         parts["global_feature"].append(o["global_feature"])
         parts["cell_area_px"].append(vs.cell_area_px[order])
         parts["valid"].append(vs.cells_in_view[order] & (o["cell_pixels"] > 0))
@@ -201,8 +223,10 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
     return out
 
 
-def load_view_cache(path) -> ViewCache:
-    """Read a cache .npz written by build_view_cache (a file or an fsspec URL)."""
+def load_view_cache(path, features: bool = True) -> ViewCache:
+    """Read a cache .npz written by build_view_cache (a file or an fsspec URL); without `features` the cell
+    features stay on disk ((S, P, N, 0): enough for every fusion but the learned one, and a fraction of
+    the memory)."""
     parent, _, name = str(path).rpartition("/")
     store = Store(parent or ".")
     if not store.exists(name):
@@ -211,7 +235,9 @@ def load_view_cache(path) -> ViewCache:
         with np.load(io.BytesIO(store.read_bytes(name))) as z:
             if str(z["format"]) != FORMAT:
                 raise KeyError(f"format {z['format']}")
-            d = {k: z[k] for k in z.files}
+            d = {k: z[k] for k in z.files if features or k != "cell_features"}
+            if not features:
+                d["cell_features"] = np.zeros((*d["log_probs"].shape[:3], 0), np.float32)
     except (OSError, KeyError, ValueError) as e:
         raise UavsearchError(f"{path} is not a uavsearch view cache ({type(e).__name__}: {e}); delete it") from None
     return ViewCache(
@@ -227,11 +253,11 @@ def load_view_cache(path) -> ViewCache:
 
 def get_view_cache(net, setting: int, split: str = "paper", part: str = "train", cache_dir=None,
                    workers: int = 2, progress: bool = True, executor: Executor | None = None,
-                   config: SearchConfig | None = None) -> ViewCache:
+                   config: SearchConfig | None = None, features: bool = True, limit: int | None = None) -> ViewCache:
     """The cache of one part under `config` (default: the setting's), building it first if needed (the one
-    call training and evaluation make)."""
-    return load_view_cache(build_view_cache(net, CacheKey(setting, split, part, config), cache_dir=cache_dir,
-                                            workers=workers, progress=progress, executor=executor))
+    call training and evaluation make); `limit`: the part's first scenes only."""
+    return load_view_cache(build_view_cache(net, CacheKey(setting, split, part, config, limit), cache_dir=cache_dir,
+                                            workers=workers, progress=progress, executor=executor), features)
 
 
 def describe(cache: ViewCache) -> str:

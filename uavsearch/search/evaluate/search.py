@@ -127,8 +127,10 @@ def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = 
 
 @dataclass
 class EvalArgs(ScaleOutArgs):
-    setting: str = opt("all", "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells) | all")
-    split: str = opt("paper", "scene split (paper: 10 test scenes per setting; large: 100)")
+    setting: str = opt("all", "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells) | all (Table II), or a scene family "
+                              "wide | wide-uniform (Table III: evaluate/wide.py)")
+    split: str | None = opt(None, "scene split (paper: 10 test scenes per setting; large: 100); default: the "
+                                  "setting's own (paper for 1-3, large for the families)")
     out: str = opt("eval_search", "output folder: table2.md, table2.csv, fig6.png", required=True)
     perception: str = opt(str(MODELS_DIR / "perception.pt"), "frozen perception checkpoint")
     models_dir: str = opt(str(MODELS_DIR), "where search_s<K>_<fusion>.pt live")
@@ -140,6 +142,10 @@ class EvalArgs(ScaleOutArgs):
     bootstrap_seed: int = opt(0, "seed of the bootstrap resamples")
     bounds: bool = opt(True, "the hindsight-best route and label-peeking greedy bounds (every route on every scene)")
     progress: bool = opt(True, "progress bars")
+    wide_fusion: str = opt("bayes", "Table III: the fusion of every row but the oracle ones")
+    wide_train_scenes: int = opt(500, "Table III: training scenes the fixed view sets are searched on (the first N)")
+    wide_val_scenes: int | None = opt(None, "Table III: validation scenes choosing the best fixed route (first N; all)")
+    wide_test_scenes: int | None = opt(None, "Table III: test scenes (the first N; default all 100)")
 
 
 def evaluate_setting(setting: int, cache, args: EvalArgs, keys=None) -> dict[str, dict]:
@@ -395,8 +401,18 @@ def plot_fig6(results: dict[int, dict[str, dict]], path: Path) -> Path:
 
 
 def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
-    """Table II + Fig. 6 into args.out; `caches` ({setting: ViewCache}) skips perception and rendering."""
-    settings = parse_settings(args.setting)
+    """Table II + Fig. 6 into args.out (Table III for scene families: evaluate/wide.py); `caches`
+    ({setting: ViewCache}) skips perception and rendering."""
+    chosen = parse_settings(args.setting, families=True)
+    families = [s for s in chosen if isinstance(s, str)]
+    if families and len(families) != len(chosen):
+        raise UavsearchError("--setting: evaluate the paper's settings and the scene families in separate runs")
+    if families:
+        from .wide import eval_wide
+
+        return eval_wide(args, families, caches)
+    settings = chosen
+    split = args.split or "paper"
     if args.episodes < 1 or args.seeds < 1:
         raise UavsearchError("--episodes and --seeds must be at least 1")
     if args.bootstrap < 1:
@@ -411,7 +427,7 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
         print(f"uavsearch: {n}")
     if caches is None:
         net, _ = load_perception(args.perception)
-        caches = {s: get_view_cache(net, s, args.split, "test", cache_dir=args.cache_dir, progress=args.progress,
+        caches = {s: get_view_cache(net, s, split, "test", cache_dir=args.cache_dir, progress=args.progress,
                                     executor=Executor.from_args(args))
                   for s in settings}
     results = {s: evaluate_setting(s, caches[s], args, keys[s]) for s in settings}
@@ -420,7 +436,7 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
               for p in paired_differences(results[s], REFERENCES, LABELS, args.bootstrap, args.bootstrap_seed)]
     bounds = {s: setting_bounds(s, caches[s], results[s], args) for s in settings}
     out = Path(args.out)
-    meta = {"T": caches[settings[0]].config.budget_T, "split": args.split, "episodes": args.episodes, "seeds": args.seeds,
+    meta = {"T": caches[settings[0]].config.budget_T, "split": split, "episodes": args.episodes, "seeds": args.seeds,
             "perception": display_path(args.perception), "tag": caches[settings[0]].perception_tag,
             "models_dir": display_path(args.models_dir), "argmax": args.argmax, "notices": notices,
             "bootstrap": args.bootstrap, "bootstrap_seed": args.bootstrap_seed, "seconds": time.perf_counter() - t0}

@@ -1,0 +1,173 @@
+"""The wide-area search: its lattice (72 + the start viewpoint, any viewpoint next, flight times), the time
+budget of run_search, the baselines' routes and the rule on known maps, and Table III on a tiny synthetic
+family (no rendering)."""
+
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from uavsearch.errors import UavsearchError
+from uavsearch.search.agents import build_agent
+from uavsearch.search.config import SearchConfig, config_from_dict, config_to_dict, setting_config
+from uavsearch.search.data.view_cache import CacheKey
+from uavsearch.search.evaluate.wide import conditions, eval_wide, oracle_perception
+from uavsearch.search.fusion import FUSIONS
+from uavsearch.search.search_loop import Agent, CachedViews, PolicyInput, run_search
+from uavsearch.search.wide_policies import (SURVEY_OUTER_M, DescendRule, EntropyPerSecond, RoutePolicy,
+                                            footprints, greedy_view_set, label_routes, lawnmower,
+                                            survey_then_lawnmower, viewpoints_at)
+from uavsearch.testing.synthetic_views import synthetic_cache
+
+WIDE = setting_config("wide")
+
+
+def wide_cache(num_scenes=4, seed=0, config=WIDE, k=10):
+    """A synthetic cache on the wide lattice where each view measures only its footprint."""
+    c = synthetic_cache(num_scenes, k=k, seed=seed, config=config)
+    valid = footprints(config)[None].expand(num_scenes, -1, -1).clone()
+    px = (c.occupancy[:, None, :] & valid).int() * 5
+    return c._replace(valid=valid, person_px=px)
+
+
+def test_wide_lattice_has_72_viewpoints_plus_the_start():
+    lat = WIDE.lattice
+    assert lat.num_positions == 73 and lat.start_index == 72 and lat.extra_start
+    assert lat.positions_enu[72].tolist() == [0.0, 0.0, 70.0]
+    assert lat.positions_enu[0].tolist() == [-62.5, 62.5, 70.0] and lat.positions_enu[36].tolist() == [-62.5, 62.5, 40.0]
+    assert WIDE.grid.num_cells == 900 and WIDE.budget_T == 8 and WIDE.budget_s == 240.0
+    assert torch.equal(lat.moves[5], torch.arange(73)) and WIDE.num_actions == 73  # any viewpoint next
+    t = lat.flight_time_s
+    assert t.shape == (73, 73) and t[72, 72] == 0.0 and t[0, 36] == pytest.approx(21.1, abs=0.3)  # 30 m descent
+    assert t[0, 1] < t[0, 2] < t[0, 5]  # farther costs more
+    assert config_from_dict(config_to_dict(WIDE)) == WIDE and hash(WIDE) == hash(config_from_dict(config_to_dict(WIDE)))
+    assert setting_config(2) == SearchConfig() and CacheKey("wide", "large", "test").scenes()[0] == (132000, 10)
+    assert CacheKey("wide", "large", "train", limit=3).name == "large_swide_train_first3"
+
+
+def test_bad_wide_configs_are_one_line_errors():
+    with pytest.raises(UavsearchError, match="move_set"):
+        SearchConfig(move_set="teleport")
+    with pytest.raises(UavsearchError, match="budget_s"):
+        SearchConfig(budget_s=-1.0)
+    with pytest.raises(UavsearchError, match="odd"):
+        dataclasses.replace(WIDE, move_set="steps").lattice.moves
+
+
+def test_without_budget_s_the_loop_is_unchanged():
+    cache = synthetic_cache(3)
+    agent = build_agent("average", "random", cache.config).agent
+    ep = run_search(CachedViews(cache, [0, 1, 2, 0]), agent, generator=torch.Generator().manual_seed(0))
+    assert ep.taken is None and ep.flight_s is None and ep.maps.shape[1] == 5
+
+
+def test_time_budget_ends_episodes_and_masks_viewpoints():
+    cfg = dataclasses.replace(WIDE, budget_T=73, budget_s=30.0)
+    cache = wide_cache(2, config=cfg)
+    seen = []
+
+    class Far:  # the farthest allowed viewpoint, recording what it was offered
+        def act(self, inp, generator=None):
+            seen.append((inp.time_left_s.clone(), inp.allowed.clone()))
+            cost = torch.as_tensor(cfg.lattice.flight_time_s, dtype=torch.float32)[inp.lattice_idx]
+            return torch.where(inp.allowed, cost, torch.full_like(cost, -1.0)).argmax(1), None, None
+
+    ep = run_search(CachedViews(cache, [0, 1]), Agent(FUSIONS["average"](), Far()))
+    t = cfg.lattice.flight_time_s
+    assert seen[0][0].tolist() == [30.0, 30.0]
+    assert torch.equal(seen[0][1][0], torch.as_tensor((t[72] <= 30.0) & (np.arange(73) != 72)))
+    assert (ep.flight_s <= 30.0).all() and ep.taken[:, 0].all()
+    last = ep.lattice_idx[0, ep.taken[0]][-1]
+    left = 30.0 - float(ep.flight_s[0])
+    assert not ((t[last] <= left) & ~np.isin(np.arange(73), ep.lattice_idx[0].numpy())).any()  # nothing affordable
+    # an ended episode's map stays; the batch stopped when both ended, well before 73 views
+    assert ep.maps.shape[1] < 10
+    for b in range(2):
+        n = int(ep.taken[b].sum())
+        assert torch.equal(ep.maps[b, n - 1], ep.maps[b, -1])
+
+
+def test_a_move_it_cannot_afford_ends_the_episode():
+    cfg = dataclasses.replace(WIDE, budget_s=10.0)
+    cache = wide_cache(1, config=cfg)
+    ep = run_search(CachedViews(cache, [0]), Agent(FUSIONS["average"](), RoutePolicy([0, 1, 2])))
+    assert ep.taken[0].tolist() == [True] + [False] * (ep.maps.shape[1] - 1) and float(ep.flight_s[0]) == 0.0
+
+
+def test_fixed_routes():
+    low = lawnmower(WIDE, 40.0)
+    assert low[:7] == [36, 37, 38, 39, 40, 41, 47] and sorted(low) == list(range(36, 72))
+    assert lawnmower(WIDE, 70.0)[:7] == [0, 1, 2, 3, 4, 5, 11]
+    outer = viewpoints_at(WIDE, SURVEY_OUTER_M, 70.0)
+    assert WIDE.lattice.positions_enu[outer][:, :2].tolist() == [list(p) for p in SURVEY_OUTER_M]
+    assert survey_then_lawnmower(WIDE, SURVEY_OUTER_M)[:5] == outer + [36]
+    assert footprints(WIDE)[outer].any(0).all()  # the 4 covering 70 m views see every cell
+    with pytest.raises(UavsearchError, match="no viewpoint"):
+        viewpoints_at(WIDE, [(0.0, 0.0)], 40.0)
+
+
+def _inp(fused, visited_idx, positions, low_valid=None, step=5):
+    P, N = WIDE.lattice.num_positions, WIDE.grid.num_cells
+    visited = torch.zeros(1, P, dtype=torch.bool)
+    visited[0, visited_idx] = True
+    pos = torch.tensor([positions])
+    vv = footprints(WIDE)[pos]
+    return PolicyInput(torch.zeros(1, 4), torch.zeros(1, N), fused[None], pos[:, -1], visited, step, 8, pos,
+                       torch.zeros(1, len(positions), N), vv, None, None, None)
+
+
+def test_the_rule_surveys_then_descends_over_the_brightest_unresolved_cell():
+    rule = DescendRule(WIDE)
+    survey = viewpoints_at(WIDE, SURVEY_OUTER_M, 70.0)
+    fused = torch.full((900,), 0.05)
+    assert rule.act(_inp(fused, [72], [72], step=0), None)[0].item() == survey[0]
+    cell = 15 * 30 + 27  # a bright cell near the east edge, middle row
+    fused[cell] = 0.9
+    done = [72, *survey]
+    a = rule.act(_inp(fused, done, done, step=4), None)[0].item()
+    assert WIDE.lattice.positions_enu[a][2] == 40.0 and footprints(WIDE)[a, cell]
+    # once a 40 m view has measured the cell, the next descent goes elsewhere
+    fused2 = fused.clone()
+    fused2[0] = 0.6  # NW corner cell
+    b = rule.act(_inp(fused2, done + [a], done + [a], step=5), None)[0].item()
+    assert b != a and footprints(WIDE)[b, 0] and WIDE.lattice.positions_enu[b][2] == 40.0
+
+
+def test_entropy_per_second_prefers_near_uncertainty():
+    pol = EntropyPerSecond(WIDE)
+    fused = torch.full((900,), 0.01)
+    fused[:30 * 5] = 0.5  # the uncertain north rows
+    a = pol.act(_inp(fused, [72], [72], step=0), None)[0].item()
+    assert WIDE.lattice.positions_enu[a][1] > 0  # north of the centre
+
+
+def test_route_searches_on_a_known_map():
+    cfg = conditions(WIDE)["T = 8 views"]
+    cache = wide_cache(3, config=cfg, k=3)
+    route = greedy_view_set(cache, FUSIONS["average"](), cfg)
+    assert len(route) == 7 and len(set(route)) == 7 and 72 not in route
+    routes = label_routes(cache, FUSIONS["average"](), cfg, beam=2)
+    assert routes.shape == (3, 7)
+    oracle = oracle_perception(cache)
+    p = oracle.log_probs[..., 1].exp()
+    assert bool(((p > 0.5) == (cache.occupancy[:, None, :] & (cache.person_px > 0))).all())
+
+
+def test_table3_on_a_tiny_synthetic_family(tmp_path):
+    caches = {"wide": {"test": wide_cache(3, 1), "val": wide_cache(2, 2), "train": wide_cache(2, 3)}}
+    args = SimpleNamespace(out=str(tmp_path), wide_fusion="average", episodes=2, seeds=1, bootstrap=200,
+                           bootstrap_seed=0, perception="models/perception.pt", progress=False)
+    res = eval_wide(args, ["wide"], caches)
+    text = (tmp_path / "table3.md").read_text()
+    assert "the rule" in text and "(best fixed)" in text and "240 s" in text and "T = 8 views" in text
+    rows = res["rows"]
+    assert len(rows) == 2 * 12 and (tmp_path / "table3.csv").is_file() and (tmp_path / "table3_paired.csv").is_file()
+    timed = [r for r in rows if r["budget"] == "240 s"]
+    assert all(r["flight_s"] <= 240.0 + 1e-6 for r in timed)
+    views = [r for r in rows if r["budget"] == "T = 8 views"]
+    assert all(r["views"] <= 8 for r in views)
+    hs = next(r for r in views if r["key"] == "hindsight")
+    lg = next(r for r in views if r["key"] == "label_greedy")
+    assert hs["af1"] >= lg["af1"] - 1e-9

@@ -1,0 +1,252 @@
+"""Table III: the wide-area search (scene families "wide" and "wide-uniform") on its test scenes.
+
+Two budgets, each its own table: T = 8 views (no time limit) and 240 s of simulated flight (views until
+no unvisited viewpoint is affordable; search_loop's time budget). Every row fuses with one non-learned
+fusion (`--wide-fusion`, default bayes) over the shipped perception's view cache, except the oracle rows:
+
+    fixed routes       lawnmower at 70 m / at 40 m; survey (4 inner or 4 covering 70 m views) then the 40 m
+                       lawnmower; the view set chosen greedily on training scenes (AF1 gain, or AF1 gain per
+                       second of flight); the best of these on the validation scenes is "the best fixed route"
+    the rule           survey at 70 m, then descend over the highest fused p (wide_policies.DescendRule)
+    entropy per second greedy expected information per second of flight
+    random             uniform over the allowed viewpoints (`episodes` per scene x `seeds`)
+    bounds             the rule with oracle perception (a view detects an occupied cell iff its person shows a
+                       pixel; oracle fusion); label-peeking greedy and hindsight-best (a beam search over routes
+                       by the AF1 the labels give, the better of the two per scene): no policy that reads no
+                       labels is expected to reach them
+
+Every row is paired per test scene against the best fixed route and against the rule (final AF1; mean over
+scenes with a 95% scene-bootstrap interval, bounds.bootstrap_ci / paired_differences).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uavsearch.errors import UavsearchError
+from uavsearch.parallel import Executor
+from uavsearch.paths import display_path
+from uavsearch.world.settings import setting_params
+
+from ..agents import build_agent
+from ..config import SearchConfig
+from ..data.view_cache import ViewCache, get_view_cache
+from ..fusion import FUSIONS
+from ..perception import load_perception
+from ..scoring import score_episode
+from ..search_loop import Agent, CachedViews, run_search
+from ..wide_policies import RoutePolicy, greedy_view_set, label_routes
+from .bounds import paired_differences, scene_af1
+
+FIXED = ("lawnmower_high", "lawnmower_low", "survey_inner", "survey_outer", "viewset", "viewset_per_s")
+LABELS = {
+    "lawnmower_high": "lawnmower at 70 m", "lawnmower_low": "lawnmower at 40 m",
+    "survey_inner": "survey (4 inner 70 m views), then 40 m lawnmower",
+    "survey_outer": "survey (4 covering 70 m views), then 40 m lawnmower",
+    "viewset": "view set optimised on training scenes (AF1 gain)",
+    "viewset_per_s": "view set optimised on training scenes (AF1 gain per second)",
+    "descend_rule": "the rule: survey at 70 m, then descend over the highest fused p",
+    "entropy_per_s": "greedy expected information per second",
+    "random": "random viewpoints",
+    "rule_oracle": "the rule, oracle perception (bound)",
+    "label_greedy": "label-peeking greedy (bound)",
+    "hindsight": "hindsight-best route search (bound)",
+}
+BOUNDS = ("rule_oracle", "label_greedy", "hindsight")
+RULE = "descend_rule"
+HINDSIGHT_BEAM = 4
+
+
+def conditions(config: SearchConfig) -> dict[str, SearchConfig]:
+    """The two budgets of Table III from the family's config (which holds both)."""
+    if config.budget_s is None:
+        raise UavsearchError("the wide evaluation needs a config with budget_s (the time budget)")
+    return {f"T = {config.budget_T} views": dataclasses.replace(config, budget_s=None),
+            f"{config.budget_s:g} s": dataclasses.replace(config, budget_T=config.lattice.num_positions)}
+
+
+def oracle_perception(cache: ViewCache) -> ViewCache:
+    """The cache as a perfect detector of visible people would give it: p = 1 - 1e-3 where the cell is
+    occupied and its person shows a pixel in the view, else 1e-3."""
+    if cache.person_px is None:
+        raise UavsearchError("oracle perception needs person_px in the view cache (rebuild it)")
+    seen = cache.occupancy[:, None, :] & (cache.person_px > 0)
+    p = torch.where(seen, 1 - 1e-3, 1e-3)
+    return cache._replace(log_probs=torch.stack([(1 - p).log(), p.log()], -1).float())
+
+
+@torch.no_grad()
+def run_rows(cache: ViewCache, config: SearchConfig, agents: dict[str, tuple[Agent, int]],
+             seeds: int = 1) -> dict[str, dict]:
+    """{key: {"acc", "f1": (seeds, S*E, T'), "views": (S*E*seeds,), "flight_s", "scenes": S}}; agents map to
+    (agent, episodes per scene); stochastic rows (episodes > 1) run `seeds` seeds."""
+    out = {}
+    for key, (agent, episodes) in agents.items():
+        rows = np.repeat(np.arange(cache.num_scenes), episodes)
+        acc, f1, views, flight = [], [], [], []
+        for s in range(seeds if episodes > 1 else 1):
+            ep = run_search(CachedViews(cache, rows, config), agent, generator=torch.Generator().manual_seed(s))
+            sc = score_episode(ep)
+            acc.append(sc.acc[:, -1:])
+            f1.append(sc.f1[:, -1:])
+            views.append(ep.taken.sum(1).numpy() if ep.taken is not None else np.full(len(rows), ep.maps.shape[1]))
+            flight.append(ep.flight_s.numpy() if ep.flight_s is not None else flight_seconds(config, ep.lattice_idx))
+        out[key] = {"acc": np.stack(acc), "f1": np.stack(f1), "views": np.concatenate(views),
+                    "flight_s": np.concatenate(flight), "scenes": cache.num_scenes}
+    return out
+
+
+def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarray:
+    """(B,) seconds of flight of each episode's views."""
+    t = config.lattice.flight_time_s
+    idx = lattice_idx.numpy()
+    return t[idx[:, :-1], idx[:, 1:]].sum(1) if idx.shape[1] > 1 else np.zeros(len(idx))
+
+
+def _route_agent(fusion: str, routes) -> Agent:
+    return Agent(FUSIONS[fusion](), RoutePolicy(routes))
+
+
+def fixed_agents(config: SearchConfig, fusion: str, train: ViewCache) -> tuple[dict[str, Agent], dict[str, list]]:
+    """The fixed-route rows and their routes (the view sets searched on the training cache)."""
+    agents = {k: build_agent(fusion, k, config).agent for k in FIXED[:4]}
+    routes = {k: a.policy.routes[0].tolist() for k, a in agents.items()}
+    for key, per_s in (("viewset", False), ("viewset_per_s", True)):
+        routes[key] = greedy_view_set(train, FUSIONS[fusion](), config, per_second=per_s)
+        agents[key] = _route_agent(fusion, routes[key])
+    return agents, routes
+
+
+def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusion: str, episodes: int,
+                       seeds: int, resamples: int = 10_000, bootstrap_seed: int = 0) -> dict:
+    """Every row of one budget: routes fixed on train, the best fixed route chosen on val, all scored on test."""
+    fixed, routes = fixed_agents(config, fusion, caches["train"])
+    val = run_rows(caches["val"], config, {k: (a, 1) for k, a in fixed.items()})
+    val_af1 = {k: float(r["f1"][:, :, -1].mean()) for k, r in val.items()}
+    best = max(FIXED, key=lambda k: (val_af1[k], -FIXED.index(k)))
+    test = caches["test"]
+    agents = {**{k: (a, 1) for k, a in fixed.items()},
+              RULE: (build_agent(fusion, RULE, config).agent, 1),
+              "entropy_per_s": (build_agent(fusion, "entropy_per_s", config).agent, 1),
+              "random": (build_agent(fusion, "random", config).agent, episodes)}
+    res = run_rows(test, config, agents, seeds)
+    res.update({"rule_oracle": run_rows(oracle_perception(test), config,
+                                        {"rule_oracle": (build_agent("oracle", RULE, config).agent, 1)})["rule_oracle"]})
+    greedy = label_routes(test, FUSIONS[fusion](), config, beam=1)
+    beam = label_routes(test, FUSIONS[fusion](), config, beam=HINDSIGHT_BEAM)
+    both = run_rows(test, config, {"g": (_route_agent(fusion, greedy), 1), "b": (_route_agent(fusion, beam), 1)})
+    res["label_greedy"] = both["g"]
+    pick = torch.as_tensor(scene_af1(both["b"]) >= scene_af1(both["g"]))
+    L = max(greedy.shape[1], beam.shape[1])
+    pad = lambda r: torch.nn.functional.pad(r, (0, L - r.shape[1]), value=-1)  # noqa: E731
+    res["hindsight"] = run_rows(test, config, {"h": (_route_agent(fusion, torch.where(
+        pick[:, None], pad(beam), pad(greedy))), 1)})["h"]
+    paired = paired_differences(res, (best, RULE), LABELS, resamples, bootstrap_seed)
+    return {"results": res, "paired": paired, "best_fixed": best, "val_af1": val_af1, "routes": routes,
+            "scenes": {k: c.num_scenes for k, c in caches.items()}}
+
+
+def row_order() -> list[str]:
+    return [*FIXED, RULE, "entropy_per_s", "random", *BOUNDS]
+
+
+def table_rows(family: str, name: str, cond: dict) -> list[dict]:
+    """table3.csv rows of one family and budget."""
+    out = []
+    res, best = cond["results"], cond["best_fixed"]
+    for key in row_order():
+        r = res[key]
+        row = {"setting": family, "budget": name, "key": key, "method": LABELS[key],
+               "aacc": float(r["acc"][:, :, -1].mean() * 100), "af1": float(r["f1"][:, :, -1].mean()),
+               "views": float(r["views"].mean()), "flight_s": float(r["flight_s"].mean()),
+               "scenes": int(r["scenes"]), "best_fixed": key == best, "val_af1": cond["val_af1"].get(key, float("nan"))}
+        for ref, tag in ((best, "vs_best_fixed"), (RULE, "vs_rule")):
+            q = next((p for p in cond["paired"] if p["key"] == key and p["reference"] == ref), None)
+            nan = float("nan")
+            row.update({f"{tag}": q["diff"] if q else nan, f"{tag}_low": q["ci_low"] if q else nan,
+                        f"{tag}_high": q["ci_high"] if q else nan})
+        out.append(row)
+    return out
+
+
+def _ci(row: dict, tag: str) -> str:
+    if not np.isfinite(row[tag]):
+        return "(reference)"
+    return f"{row[tag]:+.3f} [{row[f'{tag}_low']:+.3f}, {row[f'{tag}_high']:+.3f}]"
+
+
+def table_lines(family: str, name: str, cond: dict, rows: list[dict]) -> list[str]:
+    sc = cond["scenes"]
+    lines = [f"### {family}, {name}", "",
+             f"{sc['test']} test scenes; fixed view sets searched on {sc['train']} training scenes, the best fixed route "
+             f"chosen on {sc['val']} validation scenes: **{LABELS[cond['best_fixed']]}**.", "",
+             "| method | Aacc (%) | AF1 | views | flight (s) | Δ AF1 vs best fixed [95% CI] | Δ AF1 vs the rule [95% CI] |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        name_ = r["method"] + (" (best fixed)" if r["best_fixed"] else "")
+        lines.append(f"| {name_} | {r['aacc']:.2f} | {r['af1']:.3f} | {r['views']:.1f} | {r['flight_s']:.0f} | "
+                     f"{_ci(r, 'vs_best_fixed')} | {_ci(r, 'vs_rule')} |")
+    return lines + [""]
+
+
+def write_table3(out: Path, rows: list[dict], paired: list[dict], lines: list[str], meta: dict) -> Path:
+    from .search import _csv  # one CSV writer for both tables
+
+    out.mkdir(parents=True, exist_ok=True)
+    _csv(out / "table3.csv", rows)
+    if paired:
+        _csv(out / "table3_paired.csv", paired)
+    head = ["# Table III (our testbed): the wide-area search, test scenes", "",
+            f"Fusion {meta['fusion']} for every row but the oracle ones; perception {meta['perception']} (tag "
+            f"{meta['tag']}, trained at 70 m only); random: {meta['episodes']} episodes per scene x {meta['seeds']} "
+            f"seeds. Δ: per-scene final AF1 minus the reference's, mean over scenes [95% bootstrap interval over "
+            f"scenes]. Views and flight: means per episode (the start view is free).", ""]
+    md = out / "table3.md"
+    md.write_text("\n".join(head + lines + [f"{meta['seconds']:.0f} s"]) + "\n")
+    return md
+
+
+def family_caches(args, family: str) -> dict[str, ViewCache]:
+    """test, val and train caches of a family (the first args.wide_<part>_scenes scenes of each)."""
+    net, _ = load_perception(args.perception)
+    split = args.split or setting_params(family).split
+    ex = Executor.from_args(args)
+    limits = {"test": args.wide_test_scenes, "val": args.wide_val_scenes, "train": args.wide_train_scenes}
+    return {part: get_view_cache(net, family, split, part, cache_dir=args.cache_dir, progress=args.progress,
+                                 executor=ex, features=False, limit=limits[part])
+            for part in ("test", "val", "train")}
+
+
+def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
+    """Table III for the families into args.out; `caches` ({family: {part: ViewCache}}) skips building them."""
+    if args.wide_fusion not in FUSIONS or FUSIONS[args.wide_fusion].trainable or args.wide_fusion == "oracle":
+        raise UavsearchError(f"--wide-fusion must be a fusion without weights or labels, not {args.wide_fusion!r}")
+    t0 = time.perf_counter()
+    rows, paired, lines, conds = [], [], [], {}
+    tag = ""
+    for fam in families:
+        cs = caches[fam] if caches is not None else family_caches(args, fam)
+        tag = cs["test"].perception_tag
+        config = cs["test"].config
+        for name, cfg in conditions(config).items():
+            cond = evaluate_condition(cs, cfg, args.wide_fusion, args.episodes, args.seeds, args.bootstrap,
+                                      args.bootstrap_seed)
+            conds[(fam, name)] = cond
+            r = table_rows(fam, name, cond)
+            rows += r
+            paired += [{"setting": fam, "budget": name, **p} for p in cond["paired"]]
+            lines += table_lines(fam, name, cond, r)
+            print(f"uavsearch: {fam}, {name}: done ({time.perf_counter() - t0:.0f} s)", flush=True)
+    meta = {"fusion": args.wide_fusion, "perception": display_path(args.perception), "tag": tag,
+            "episodes": args.episodes, "seeds": args.seeds, "seconds": time.perf_counter() - t0}
+    md = write_table3(Path(args.out), rows, paired, lines, meta)
+    print(md.read_text())
+    return {"rows": rows, "paired": paired, "conditions": conds, "table": md}
+
+
+__all__ = ["conditions", "eval_wide", "evaluate_condition", "oracle_perception", "run_rows", "table_rows"]

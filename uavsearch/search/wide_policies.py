@@ -1,0 +1,240 @@
+"""Policies of the wide-area search (any viewpoint next, a view and a time budget): Table III's baselines.
+
+The action of every policy here is the next viewpoint's index (config.move_set "any"); each picks among
+the viewpoints it may take (PolicyInput.allowed: unvisited and affordable in the time left; without a time
+budget every unvisited one). A viewpoint's footprint is the cells it sees (lattice cell area >= the config's
+min_cell_area_px).
+
+- `RoutePolicy`: a fixed sequence of viewpoints (one for all episodes, or one per episode); past its end it
+  stays (a revisit). Routes: `lawnmower` (boustrophedon over one 6 x 6 layer from its north-west corner),
+  `survey_then_lawnmower` (given 70 m survey viewpoints, then the 40 m lawnmower), `greedy_view_set` (the
+  route chosen greedily on training scenes) and `label_routes` (hindsight bounds that read the labels).
+- `DescendRule`, the rule: fly the survey (the start, then `SURVEY_OUTER`: four 70 m viewpoints whose
+  footprints cover the area); then repeatedly descend to the allowed lowest-layer viewpoint whose footprint
+  holds the highest fused p among the cells no lowest-layer view has measured yet (ties: the larger mean of
+  those cells, then the lower index); when no lowest-layer viewpoint is allowed, the same score over every
+  allowed viewpoint.
+- `EntropyPerSecond`: the allowed viewpoint with the most binary entropy of the fused map in its footprint
+  per second of flight from here (lattice.flight_time_s).
+- `MaskedRandom`: uniform over the allowed viewpoints (the caller's generator).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from uavsearch.errors import UavsearchError
+
+from .config import SearchConfig
+from .fusion import Fusion, FusionViews
+from .metrics import map_f1
+from .search_loop import PolicyInput
+
+SURVEY_OUTER_M = ((-37.5, 37.5), (37.5, 37.5), (37.5, -37.5), (-37.5, -37.5))  # 4 x 81 m footprints cover 150 m
+SURVEY_INNER_M = ((-12.5, 12.5), (12.5, 12.5), (12.5, -12.5), (-12.5, -12.5))
+
+
+def _need_any(config: SearchConfig) -> None:
+    if config.move_set != "any":
+        raise UavsearchError("wide-area policies choose viewpoints: they need a config with move_set='any'")
+
+
+def candidates(inp: PolicyInput) -> torch.Tensor:
+    """(B, P) bool: the viewpoints a policy may take next (affordable and unvisited, or just unvisited)."""
+    return inp.allowed if inp.allowed is not None else ~inp.visited
+
+
+def footprints(config: SearchConfig) -> torch.Tensor:
+    """(P, N) bool: the cells each viewpoint sees."""
+    return config.lattice.cell_areas >= config.min_cell_area_px
+
+
+def viewpoints_at(config: SearchConfig, xy_m, altitude_m: float) -> list[int]:
+    """Lattice indices of the viewpoints at these (east, north) positions and altitude."""
+    lat = config.lattice
+    out = []
+    for x, y in xy_m:
+        i = lat.nearest([x, y, altitude_m])
+        if np.linalg.norm(lat.positions_enu[i] - [x, y, altitude_m]) > 1e-6:
+            raise UavsearchError(f"no viewpoint at ({x:g}, {y:g}, {altitude_m:g}) m in this lattice")
+        out.append(i)
+    return out
+
+
+def lawnmower(config: SearchConfig, altitude_m: float) -> list[int]:
+    """Boustrophedon over one layer: rows north to south, alternating west->east and east->west."""
+    lat = config.lattice
+    layer = lat.altitudes_m.index(float(altitude_m))
+    L = lat.size
+    return [layer * L * L + r * L + (c if r % 2 == 0 else L - 1 - c) for r in range(L) for c in range(L)]
+
+
+def survey_then_lawnmower(config: SearchConfig, survey_xy_m, low_m: float | None = None) -> list[int]:
+    """The survey viewpoints at the start altitude, then the lawnmower of the lowest layer (default)."""
+    low = min(config.lattice.altitudes_m) if low_m is None else low_m
+    return viewpoints_at(config, survey_xy_m, config.layers_m[0]) + lawnmower(config, low)
+
+
+class RoutePolicy:
+    """Fly fixed viewpoints in order: `routes` (L,) for every episode or (B, L) per episode; -1 or past the
+    end: stay (re-take the view)."""
+
+    def __init__(self, routes):
+        r = torch.as_tensor(np.asarray(routes), dtype=torch.long)
+        self.routes = r[None] if r.dim() == 1 else r
+
+    def act(self, inp: PolicyInput, generator=None):
+        B = inp.lattice_idx.shape[0]
+        if inp.step >= self.routes.shape[1]:
+            return inp.lattice_idx.clone(), None, None
+        a = self.routes[:, inp.step].expand(B)
+        return torch.where(a < 0, inp.lattice_idx, a), None, None
+
+
+class MaskedRandom:
+    """Uniform over the allowed viewpoints."""
+
+    def __init__(self, config: SearchConfig):
+        _need_any(config)
+
+    def act(self, inp: PolicyInput, generator=None):
+        w = candidates(inp).float()
+        w[w.sum(1) == 0] = 1.0  # nothing allowed: the loop has ended these episodes anyway
+        return torch.multinomial(w, 1, generator=generator).squeeze(-1), None, None
+
+
+def _argmax_allowed(score: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
+    """The allowed index of the highest score, ties to the lowest index."""
+    return torch.where(allowed, score, torch.full_like(score, -np.inf)).argmax(1)
+
+
+class DescendRule:
+    """Survey at 70 m, then descend over the viewpoint with the highest fused p (module docstring)."""
+
+    def __init__(self, config: SearchConfig, survey_xy_m=SURVEY_OUTER_M):
+        _need_any(config)
+        self.survey = viewpoints_at(config, survey_xy_m, config.layers_m[0])
+        self.foot = footprints(config).float()  # (P, N)
+        alts = config.lattice.positions_enu[:, 2]
+        self.low = torch.as_tensor(alts == alts.min())  # (P,) viewpoints of the lowest layer
+
+    def act(self, inp: PolicyInput, generator=None):
+        allowed = candidates(inp)
+        if inp.step < len(self.survey):
+            return torch.full_like(inp.lattice_idx, self.survey[inp.step]), None, None
+        low_views = self.low[inp.view_positions][..., None] & inp.view_valid  # (B, t+1, N)
+        open_ = (~low_views.any(1)).float()  # cells no low view has measured
+        p = inp.fused * open_  # (B, N)
+        best = (p[:, None, :] * self.foot[None]).amax(-1)  # (B, P)
+        mean = (p @ self.foot.T) / self.foot.sum(1).clamp(min=1)
+        score = best + 1e-3 * mean
+        low_ok = allowed & self.low[None]
+        pick = torch.where(low_ok.any(1)[:, None], low_ok, allowed)
+        return _argmax_allowed(score, pick), None, None
+
+
+def binary_entropy(p: torch.Tensor) -> torch.Tensor:
+    q = p.clamp(1e-6, 1 - 1e-6)
+    return -(q * q.log2() + (1 - q) * (1 - q).log2())
+
+
+class EntropyPerSecond:
+    """Most fused-map entropy in the footprint per second of flight."""
+
+    def __init__(self, config: SearchConfig):
+        _need_any(config)
+        self.foot = footprints(config).float()
+        self.cost = torch.as_tensor(config.lattice.flight_time_s, dtype=torch.float32)
+
+    def act(self, inp: PolicyInput, generator=None):
+        gain = binary_entropy(inp.fused) @ self.foot.T  # (B, P)
+        score = gain / self.cost[inp.lattice_idx].clamp(min=1.0)
+        return _argmax_allowed(score, candidates(inp)), None, None
+
+
+# --------------------------------------------------------------------------------------------------
+# Routes searched offline over a view cache: fixed view sets (training scenes) and hindsight bounds (labels)
+
+
+def _route_views(cache, rows: torch.Tensor, positions: torch.Tensor) -> FusionViews:
+    """FusionViews of views at `positions` (M, t) of scenes `rows` (M,)."""
+    r = rows[:, None].expand_as(positions)
+    return FusionViews(cache.log_probs[r, positions][..., 1].exp(), cache.valid[r, positions],
+                       cache.cell_area_px[r, positions], labels=cache.occupancy[rows])
+
+
+def _check_fusion(fusion: Fusion) -> None:
+    if fusion.trainable:
+        raise UavsearchError("route search re-fuses views by their p: use a fusion without a confidence net")
+
+
+def greedy_view_set(cache, fusion: Fusion, config: SearchConfig, per_second: bool = False) -> list[int]:
+    """One route for all scenes, built greedily: each next viewpoint the one (reachable in the time left)
+    that most raises the mean final AF1 over the cache's scenes (`per_second`: per second of flight)."""
+    _check_fusion(fusion)
+    lat = config.lattice
+    cost = torch.as_tensor(lat.flight_time_s, dtype=torch.float64)
+    S, P = cache.num_scenes, lat.num_positions
+    rows = torch.arange(S)
+    y = cache.occupancy.numpy()
+    route, here = [lat.start_index], lat.start_index
+    left = float("inf") if config.budget_s is None else float(config.budget_s)
+    base = map_f1(fusion.fuse(_route_views(cache, rows, torch.tensor([route]).expand(S, -1))).numpy(), y).mean()
+    while len(route) < config.budget_T:
+        cand = [c for c in range(P) if c not in route and float(cost[here, c]) <= left + 1e-9]
+        if not cand:
+            break
+        pos = torch.tensor([route + [c] for c in cand])  # (C, t+1)
+        views = _route_views(cache, rows.repeat(len(cand)), pos.repeat_interleave(S, 0))
+        f1 = map_f1(fusion.fuse(views).numpy(), np.tile(y, (len(cand), 1))).reshape(len(cand), S).mean(1)
+        gain = f1 - base
+        if per_second:
+            gain = gain / np.maximum(cost[here, cand].numpy(), 1.0)
+        j = int(np.argmax(gain))
+        left -= float(cost[here, cand[j]])
+        here = cand[j]
+        route.append(here)
+        base = f1[j]
+    return route[1:]
+
+
+def label_routes(cache, fusion: Fusion, config: SearchConfig, beam: int = 1) -> torch.Tensor:
+    """(S, L) per-scene routes that peek at the labels (-1 pads an early end): a beam search keeping the
+    `beam` best partial routes by the AF1 of their fused map (ties: less flight time); beam = 1 is the
+    label-peeking greedy. The best final map of any kept route is the hindsight bound."""
+    _check_fusion(fusion)
+    lat = config.lattice
+    cost = lat.flight_time_s
+    P, start = lat.num_positions, lat.start_index
+    budget = float("inf") if config.budget_s is None else float(config.budget_s)
+    out = []
+    for s in range(cache.num_scenes):
+        y = cache.occupancy[s].numpy()[None]
+        states = [([start], budget, -np.inf)]  # (route, seconds left, AF1)
+        done: list = []
+        while states:
+            grow = []
+            for route, left, _ in states:
+                if len(route) >= config.budget_T:
+                    done.append((route, left, _))
+                    continue
+                cand = [c for c in range(P) if c not in route and cost[route[-1], c] <= left + 1e-9]
+                if not cand:
+                    done.append((route, left, _))
+                    continue
+                pos = torch.tensor([route + [c] for c in cand])
+                f1 = map_f1(fusion.fuse(_route_views(cache, torch.full((len(cand),), s), pos)).numpy(),
+                            np.repeat(y, len(cand), 0))
+                grow += [(route + [c], left - cost[route[-1], c], f) for c, f in zip(cand, f1)]
+            grow.sort(key=lambda st: (-st[2], -st[1]))
+            states = grow[:beam]
+        best = max(done, key=lambda st: (st[2], st[1]))[0][1:]
+        out.append(best)
+    L = max(1, max(len(r) for r in out))
+    return torch.tensor([r + [-1] * (L - len(r)) for r in out], dtype=torch.long)
+
+
+__all__ = ["DescendRule", "EntropyPerSecond", "MaskedRandom", "RoutePolicy", "SURVEY_INNER_M", "SURVEY_OUTER_M",
+           "binary_entropy", "candidates", "footprints", "greedy_view_set", "label_routes", "lawnmower",
+           "survey_then_lawnmower", "viewpoints_at"]
