@@ -37,7 +37,6 @@ loop flies a vehicle (search_loop.LiveViews), and agents.build_agent builds the 
 from __future__ import annotations
 
 import argparse
-import csv
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -61,6 +60,7 @@ from ..policy import load_search_model
 from ..scoring import evaluate_agent
 from ..search_loop import Agent
 from .bounds import RESAMPLES, bootstrap_ci, hidden_shares, label_greedy_af1, paired_differences, route_bounds
+from .tables import write_csv
 
 # (key, Table II label, fusion, policy): names from the agent registry (agents.py). The single-view row is
 # the start view alone (budget 1), so its policy never moves.
@@ -206,15 +206,6 @@ def gap_closure(rows: list[dict], setting: int, key: str = "learned_policy") -> 
     return (ours - sv) / (orc - sv) if orc != sv else float("nan")
 
 
-def _csv(path: Path, rows: list[dict]) -> Path:
-    fields = list(dict.fromkeys(k for r in rows for k in r))
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=fields)
-        w.writeheader()
-        w.writerows(rows)
-    return path
-
-
 def _num(x: float, fmt: str) -> str:
     return "—" if x is None or not np.isfinite(x) else format(x, fmt)
 
@@ -314,7 +305,7 @@ def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict, pa
                 bounds: dict[int, dict] | None = None) -> tuple[Path, Path]:
     """table2.md and table2.csv (and table2_paired.csv / table2_bounds.csv when given) into `out`."""
     out.mkdir(parents=True, exist_ok=True)
-    csv_path = _csv(out / "table2.csv", rows)
+    csv_path = write_csv(out / "table2.csv", rows)
     best = {}
     for s in settings:
         cand = [r for r in rows if r["key"] in NON_ORACLE and np.isfinite(r[f"s{s}_af1"])]
@@ -353,10 +344,10 @@ def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict, pa
     if paired is not None:
         lines += _paired_lines(paired, settings, meta)
         if paired:
-            _csv(out / "table2_paired.csv", paired)
+            write_csv(out / "table2_paired.csv", paired)
     if bounds is not None:
         lines += _bounds_lines(bounds, settings)
-        _csv(out / "table2_bounds.csv", [{k: ("; ".join(v) if k == "notes" else v) for k, v in b.items()}
+        write_csv(out / "table2_bounds.csv", [{k: ("; ".join(v) if k == "notes" else v) for k, v in b.items()}
                                          for b in bounds.values()])
     lines += [f"perception {meta['perception']} (tag {meta['tag']}); policies {meta['models_dir']}; "
               f"trained policies {'take argmax actions' if meta['argmax'] else 'sample their actions'}; "

@@ -42,6 +42,7 @@ from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
 from ..wide_policies import RoutePolicy, greedy_view_set, label_routes
 from .bounds import paired_differences, scene_af1
+from .tables import write_csv
 
 FIXED = ("lawnmower_high", "lawnmower_low", "survey_inner", "survey_outer", "viewset", "viewset_per_s")
 LABELS = {
@@ -195,12 +196,11 @@ def table_lines(family: str, name: str, cond: dict, rows: list[dict]) -> list[st
 
 
 def write_table3(out: Path, rows: list[dict], paired: list[dict], lines: list[str], meta: dict) -> Path:
-    from .search import _csv  # one CSV writer for both tables
 
     out.mkdir(parents=True, exist_ok=True)
-    _csv(out / "table3.csv", rows)
+    write_csv(out / "table3.csv", rows)
     if paired:
-        _csv(out / "table3_paired.csv", paired)
+        write_csv(out / "table3_paired.csv", paired)
     head = ["# Table III (our testbed): the wide-area search, test scenes", "",
             f"Fusion {meta['fusion']} for every row but the oracle ones; perception {meta['perception']} (tag "
             f"{meta['tag']}, trained at 70 m only); random: {meta['episodes']} episodes per scene x {meta['seeds']} "
