@@ -215,6 +215,7 @@ def test_signing_accepts_nothing_forged_and_never_locks_out():
 # ------------------------------------------------------------------------------------------------ fuzz
 
 
+@pytest.mark.slow  # 37 s: `make test-all` runs it; tools/fuzz_mavlink.py is the full fuzzer
 def test_fuzz_mid_flight_leaves_it_flying_answering_and_landing():
     r = fuzz_mavlink.fuzz_flight(seed=5, packets=2000, speed="1", rate_hz=250.0)
     assert r.alive and r.answers and r.landed, r
@@ -290,6 +291,7 @@ def test_fly_connect_refuses_a_vehicle_simulating_another_scene(tmp_path):
         sitl.stop()
 
 
+@pytest.mark.slow  # 28 s of a real-time landing: `make test-all` runs it
 def test_second_ctrl_c_says_what_became_of_the_end_action(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "uavsearch", "fly", "--speed", "1", "--out", str(tmp_path / "run"),
                              "--gcs-port", "0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

@@ -13,6 +13,11 @@ from pathlib import Path
 from .dialect import CAMERA_COMPID, M
 from .errors import StepFailed
 
+# A camera whose render queue is full answers TEMPORARILY_REJECTED (it never drops a shot silently): ask
+# again this often, this long apart (wall clock: the camera renders on its own threads).
+BUSY_RETRIES = 10
+BUSY_WAIT_S = 0.2
+
 
 def image_path(msg) -> Path:
     """The file a CAMERA_IMAGE_CAPTURED's file:// URL names; StepFailed for a URL this client cannot read."""
@@ -36,6 +41,11 @@ class Camera:
         """One picture; its CAMERA_IMAGE_CAPTURED. StepFailed if refused, unanswered or a failed capture."""
         self._captured.clear()
         r = self.system.commands.long(M.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1, sequence, compid=self.compid)
+        for _ in range(BUSY_RETRIES):  # the camera's render queue is full: it renders on, ask again shortly
+            if r != M.MAV_RESULT_TEMPORARILY_REJECTED:
+                break
+            self.system.pump(BUSY_WAIT_S)
+            r = self.system.commands.long(M.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1, sequence, compid=self.compid)
         if r != M.MAV_RESULT_ACCEPTED:
             raise StepFailed(f"camera refused IMAGE_START_CAPTURE (MAV_RESULT {r})")
         self.photos_asked += 1
