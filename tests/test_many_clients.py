@@ -7,7 +7,6 @@ other link is a replay there too; an unsigned frame never takes a signed peer's 
 full disk) make failed captures, never a stopped vehicle, and a photo that cannot be queued is refused.
 """
 
-import asyncio
 import contextlib
 import math
 import struct
@@ -21,6 +20,7 @@ from pymavlink.dialects.v20 import common as v20
 
 from uavsearch.testing.clean_env import clean_env
 from uavsearch.testing.mavlink_client import Client, PeerClient
+from uavsearch.testing.mavsdk_session import mavsdk_session
 from uavsearch.flight.mavlink.links import MAX_PEERS, PEER_TIMEOUT_S, Link, LinkConfig
 from uavsearch.flight.params import ParamStore
 from uavsearch.flight.sitl_process import SitlProcess
@@ -45,29 +45,12 @@ def vehicle(tmp_path_factory):
     assert code == 0 and "Traceback" not in out, out
 
 
-def _mavsdk_connect(port: int, result: dict) -> None:
-    from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
-
-    async def go():
-        md = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
-        try:
-            t0 = time.monotonic()
-            await md.add_any_connection(f"udpin://127.0.0.1:{port}")
-            system = await md.first_autopilot(10.0)
-            result["found"] = system is not None
-            result["connect_s"] = time.monotonic() - t0
-        finally:
-            md.destroy()
-
-    asyncio.run(go())
-
-
 def test_every_client_gets_its_own_replies_and_every_stream(vehicle):
     pytest.importorskip("mavsdk.asyncio")
     api = vehicle.link_address("api")
     clients = [PeerClient(api, sysid=200 + i) for i in range(CLIENTS)]
     mavsdk: dict = {}
-    t = threading.Thread(target=_mavsdk_connect, args=(vehicle.api_port, mavsdk))
+    t = threading.Thread(target=mavsdk_session, args=(vehicle.api_port, mavsdk, False, 10.0))
     t.start()
     try:
         asks = 5

@@ -15,7 +15,6 @@ connect time and upload result, and the machine's load.
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
 import sys
 import tempfile
@@ -27,47 +26,9 @@ from pymavlink import mavutil
 
 from uavsearch.flight.sitl_process import SitlProcess
 from uavsearch.testing.mavlink_client import PeerClient
+from uavsearch.testing.mavsdk_session import mavsdk_session
 
 M = mavutil.mavlink
-M_PER_DEG_LAT = 111_200.0
-
-
-def mavsdk_session(port: int, out: dict) -> None:
-    """Connect, find the autopilot (timed), upload a small mission; what happened goes into `out`."""
-    from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
-    from mavsdk.asyncio.plugins.mission import MissionAsync
-    from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
-    from mavsdk.plugins.mission import MissionItem, MissionPlan
-
-    async def go():
-        md = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
-        try:
-            t0 = time.monotonic()
-            await md.add_any_connection(f"udpin://127.0.0.1:{port}")
-            system = await md.first_autopilot(20.0)
-            out["connect_s"] = time.monotonic() - t0
-            out["found"] = system is not None
-            if system is None:
-                return
-            home = await asyncio.wait_for(TelemetryAsync(system).home(), 20)
-            items = [MissionItem(latitude_deg=home.latitude_deg + n / M_PER_DEG_LAT,
-                                 longitude_deg=home.longitude_deg + e / M_PER_DEG_LAT, relative_altitude_m=10.0,
-                                 speed_m_s=5.0, is_fly_through=True)
-                     for e, n in ((0, 10), (10, 10), (10, 0), (0, 0))]
-            t1 = time.monotonic()
-            try:
-                await asyncio.wait_for(MissionAsync(system).upload_mission(MissionPlan(items)), 30)
-                out["upload"] = f"ok ({len(items)} items)"
-            except Exception as e:  # noqa: BLE001 - reported, not raised
-                out["upload"] = f"failed: {type(e).__name__}: {e}"
-            out["upload_s"] = time.monotonic() - t1
-        finally:
-            md.destroy()
-
-    try:
-        asyncio.run(go())
-    except Exception as e:  # noqa: BLE001
-        out.setdefault("upload", f"failed: {type(e).__name__}: {e}")
 
 
 def measure(clients: int, speed: str, seconds: float) -> dict:
