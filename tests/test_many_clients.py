@@ -227,12 +227,13 @@ def _wait(client: PeerClient, cond, timeout: float = 3.0):
 def _small_disk(path):
     """A 6 MB tmpfs at `path` when this machine lets us mount one; else None (the test says how it falls back)."""
     path.mkdir(parents=True, exist_ok=True)
-    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(path)], capture_output=True).returncode == 0
+    ok = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=6m", "tmpfs", str(path)], capture_output=True,
+                        env=clean_env()).returncode == 0
     try:
         yield ok
     finally:
         if ok:
-            subprocess.run(["umount", "-l", str(path)], capture_output=True)
+            subprocess.run(["umount", "-l", str(path)], capture_output=True, env=clean_env())
 
 
 def _fill(path) -> None:
