@@ -96,16 +96,16 @@ def test_second_client_mission_upload_is_refused_and_the_first_completes(vehicle
         items = [M.MAVLink_mission_item_int_message(1, 1, i, 3, M.MAV_CMD_NAV_WAYPOINT, 0, 1, 0, 0, 0, math.nan,
                                                     473977420 + 100 * i, 85455940, 10.0) for i in range(3)]
         first.mav.mission_count_send(1, 1, len(items), 0)
-        req = _wait(first, lambda m: m.get_type() == "MISSION_REQUEST_INT")
+        req = first.wait(lambda m: m.get_type() == "MISSION_REQUEST_INT")
         assert req is not None and req.seq == 0 and req.target_system == 210
         first.mav.send(items[0])
-        assert _wait(first, lambda m: m.get_type() == "MISSION_REQUEST_INT" and m.seq == 1) is not None
+        assert first.wait(lambda m: m.get_type() == "MISSION_REQUEST_INT" and m.seq == 1) is not None
         second.mav.mission_count_send(1, 1, 5, 0)  # meanwhile
-        ack = _wait(second, lambda m: m.get_type() == "MISSION_ACK")
+        ack = second.wait(lambda m: m.get_type() == "MISSION_ACK")
         assert ack is not None and ack.type == M.MAV_MISSION_DENIED and ack.target_system == 211
         for it in items[1:]:
             first.mav.send(it)
-        done = _wait(first, lambda m: m.get_type() == "MISSION_ACK")
+        done = first.wait(lambda m: m.get_type() == "MISSION_ACK")
         assert done is not None and done.type == M.MAV_MISSION_ACCEPTED
         assert not [m for m in second.drain() if m.get_type().startswith("MISSION_REQUEST")]
     finally:
@@ -122,7 +122,7 @@ def test_signed_frame_replayed_on_the_other_link_is_dropped(vehicle):
         owner.mav.send(msg)
         captured = bytes(msg.get_msgbuf())  # what anybody on the wire could copy
         assert captured[0] == 0xFD and captured[2] & 1  # a signed MAVLink 2 frame
-        assert _wait(owner, lambda m: m.get_type() == "COMMAND_ACK") is not None  # accepted where it was sent
+        assert owner.wait(lambda m: m.get_type() == "COMMAND_ACK") is not None  # accepted where it was sent
         watcher = PeerClient(gcs, sysid=222, signing_key=KEY)  # the key holder on the GCS link sees what happens
         for _ in range(20):
             watcher.conn.port.sendto(captured, gcs)  # the captured frame, replayed from the GCS link's peer
@@ -130,7 +130,7 @@ def test_signed_frame_replayed_on_the_other_link_is_dropped(vehicle):
         assert not [m for m in watcher.drain() if m.get_type() == "COMMAND_ACK"]
         watcher.mav.command_long_send(1, 1, M.MAV_CMD_REQUEST_MESSAGE, 0, M.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
                                       0, 0, 0, 0, 0, 0)
-        assert _wait(watcher, lambda m: m.get_type() == "COMMAND_ACK") is not None  # the link itself works
+        assert watcher.wait(lambda m: m.get_type() == "COMMAND_ACK") is not None  # the link itself works
         watcher.close()
     finally:
         owner.close()
@@ -208,16 +208,6 @@ def test_peer_table_times_out_and_unsigned_frames_never_displace_a_signed_peer()
         link.close()
         for s in socks:
             s.close()
-
-
-def _wait(client: PeerClient, cond, timeout: float = 3.0):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        for m in client.drain():
-            if cond(m):
-                return m
-        time.sleep(0.005)
-    return None
 
 
 # ----------------------------------------------------------------------------------------------- storage

@@ -148,6 +148,16 @@ class PeerClient:
             if m.get_type() != "BAD_DATA":
                 out.append(m)
 
+    def wait(self, cond, timeout: float = 3.0):
+        """The first message for which cond(m) holds within `timeout` wall seconds, or None."""
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            for m in self.drain():
+                if cond(m):
+                    return m
+            time.sleep(0.005)
+        return None
+
     def close(self) -> None:
         self.conn.close()
 
