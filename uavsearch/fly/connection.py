@@ -97,9 +97,6 @@ class MavlinkConnection:
         """fn(msg) for every routed frame (any system), after its System has seen it."""
         self._listeners.append(fn)
 
-    def remove_listener(self, fn) -> None:
-        self._listeners.remove(fn)
-
     # ------------------------------------------------------------------ the pump
     def send_heartbeat(self, force: bool = False) -> None:
         now = time.monotonic()

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-import struct
 
+from ..flight.mavlink.params import decode_param
 from .dialect import AUTOPILOT_COMPID, M
 
 
@@ -14,9 +14,7 @@ class Params:
     @staticmethod
     def _value(m) -> float:
         """int32 parameters arrive bytewise in the float (PX4's encoding)."""
-        if m.param_type == M.MAV_PARAM_TYPE_INT32:
-            return float(struct.unpack("<i", struct.pack("<f", m.param_value))[0])
-        return float(m.param_value)
+        return decode_param(m.param_value, m.param_type, m.param_type == M.MAV_PARAM_TYPE_INT32)
 
     def get(self, name: str) -> float | None:
         """The parameter's value, None if the vehicle has none of that name."""

@@ -75,9 +75,6 @@ class Telemetry:
     def on_position(self, fn) -> None:
         self._position_listeners.append(fn)
 
-    def off_position(self, fn) -> None:
-        self._position_listeners.remove(fn)
-
     def set_rates(self, rates_hz: dict | None = None) -> None:
         """SET_MESSAGE_INTERVAL for each message id (0 Hz: off)."""
         for mid, hz in (STREAM_RATES_HZ if rates_hz is None else rates_hz).items():

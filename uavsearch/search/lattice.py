@@ -153,6 +153,11 @@ class Lattice:
         np.fill_diagonal(out, 0.0)
         return out
 
+    @functools.cached_property
+    def flight_time_t(self) -> torch.Tensor:
+        """flight_time_s as a float64 tensor (the search loop's budget reads it every view)."""
+        return torch.as_tensor(self.flight_time_s, dtype=torch.float64)
+
 
 @functools.lru_cache(maxsize=16)
 def lattice_of(config) -> Lattice:

@@ -271,7 +271,7 @@ class Episode(NamedTuple):
 
 def affordable(config: SearchConfig, idx: torch.Tensor, visited: torch.Tensor, time_left_s: torch.Tensor):
     """(B, P) bool: the unvisited viewpoints each episode can still fly to in the time it has left."""
-    cost = torch.as_tensor(config.lattice.flight_time_s, dtype=torch.float64)[idx]  # (B, P)
+    cost = config.lattice.flight_time_t[idx]  # (B, P)
     return ~visited & (cost <= time_left_s[:, None] + 1e-9)
 
 
@@ -310,7 +310,7 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
     positions, actions, logps, ents, revisits, maps = [], [], [], [], [], []
     timed = config.budget_s is not None
     if timed:
-        cost_s = torch.as_tensor(config.lattice.flight_time_s, dtype=torch.float64)
+        cost_s = config.lattice.flight_time_t
         time_left = torch.full((B,), float(config.budget_s), dtype=torch.float64)
         ended = torch.zeros(B, dtype=torch.bool)
         takens = []

@@ -174,7 +174,7 @@ def greedy_view_set(cache, fusion: Fusion, config: SearchConfig, per_second: boo
     that most raises the mean final AF1 over the cache's scenes (`per_second`: per second of flight)."""
     _check_fusion(fusion)
     lat = config.lattice
-    cost = torch.as_tensor(lat.flight_time_s, dtype=torch.float64)
+    cost = lat.flight_time_t
     S, P = cache.num_scenes, lat.num_positions
     rows = torch.arange(S)
     y = cache.occupancy.numpy()

@@ -72,6 +72,7 @@ class Link:
         self.sock.bind(("127.0.0.1" if cfg.remote_host in ("127.0.0.1", "localhost") else "0.0.0.0", cfg.local_port))
         self.default_remote = (cfg.remote_host, cfg.remote_port) if cfg.remote_port else None
         self.peers: dict[tuple, Peer] = {}
+        self._dests: list[tuple] = []  # destinations(), rebuilt only when the peer table changes
         self.mav = SigningMAVLink(_Writer(self), srcSystem=sysid, srcComponent=AUTOPILOT_COMPID)
         self.mav.robust_parsing = True
         if cfg.signing_key is not None:
@@ -84,6 +85,7 @@ class Link:
         self.tx_packets = 0
         self._out: dict[tuple, bytearray] = {}  # per destination: frames waiting for flush()
         self._to = None  # the destination of the frame being packed (None: every stream destination)
+        self._peers_changed()
 
     @property
     def local_port(self) -> int:
@@ -91,9 +93,11 @@ class Link:
 
     def destinations(self) -> list[tuple]:
         """Where streams and events go: the default port and every live peer."""
-        out = [self.default_remote] if self.default_remote is not None else []
-        out += [a for a in self.peers if a != self.default_remote]
-        return out
+        return self._dests
+
+    def _peers_changed(self) -> None:
+        self._dests = ([self.default_remote] if self.default_remote is not None else []) + \
+            [a for a in self.peers if a != self.default_remote]
 
     def send_raw(self, buf: bytes) -> None:
         """Queue one frame; flush() packs queued frames into datagrams of at most DATAGRAM_BYTES (as PX4 does)."""
@@ -134,6 +138,8 @@ class Link:
         gone = [a for a, p in self.peers.items() if now_wall - p.last_seen > PEER_TIMEOUT_S]
         for a in gone:
             del self.peers[a]
+        if gone:
+            self._peers_changed()
 
     def _peer(self, addr: tuple, m, now_wall: float) -> Peer:
         """The table entry for `addr`, made or refreshed by its good frame `m`; a transient Peer (replies still reach
@@ -147,6 +153,7 @@ class Link:
             if len(self.peers) >= MAX_PEERS and not self._make_room(signed):
                 return p
             self.peers[addr] = p
+            self._peers_changed()
         p.sysid, p.compid, p.last_seen = m.get_srcSystem(), m.get_srcComponent(), now_wall
         p.signed = p.signed or signed
         return p
@@ -157,6 +164,7 @@ class Link:
         if not pool:
             return False
         del self.peers[min(pool, key=lambda p: p.last_seen).addr]
+        self._peers_changed()
         return True
 
     def receive(self, now_wall: float = 0.0) -> list[tuple[Peer, object]]:
