@@ -339,18 +339,21 @@ def cell_image_polygons(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) ->
     """Each cell's image polygon, clipped to the camera's near plane and the image (never wrapped).
 
     Returns one (k, 2) array of pixel coordinates per cell (k = 0 when the cell is out of view).
-    Cells wholly in front of the camera and inside the image (the common case) skip the clipping.
+    Cells wholly in front of the camera and inside the image skip the clipping, and so do those wholly
+    beyond one image edge (empty: what the clipping would return). On a wide grid most cells are one or
+    the other, so only the cells the image border crosses are clipped one by one.
     """
     pc = pose.world_to_camera(grid.all_corners_enu)  # (cells, 4, 3)
     z = pc[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.stack([intr.fx * pc[..., 0] / z + intr.cx, intr.fy * pc[..., 1] / z + intr.cy], axis=-1)
-    whole = (
-        np.all(z > NEAR_PLANE_M, axis=1)
-        & np.all((uv[..., 0] >= 0) & (uv[..., 0] <= intr.width_px), axis=1)
-        & np.all((uv[..., 1] >= 0) & (uv[..., 1] <= intr.height_px), axis=1)
-    )
-    return [uv[i] if whole[i] else _clip_to_view(pc[i], intr) for i in range(grid.num_cells)]
+    front = np.all(z > NEAR_PLANE_M, axis=1)
+    u, v = uv[..., 0], uv[..., 1]
+    whole = front & np.all((u >= 0) & (u <= intr.width_px), axis=1) & np.all((v >= 0) & (v <= intr.height_px), axis=1)
+    beyond = front & (np.all(u < 0, axis=1) | np.all(u > intr.width_px, axis=1)
+                      | np.all(v < 0, axis=1) | np.all(v > intr.height_px, axis=1))
+    empty = np.zeros((0, 2))
+    return [uv[i] if whole[i] else empty if beyond[i] else _clip_to_view(pc[i], intr) for i in range(grid.num_cells)]
 
 
 def cell_pixel_areas(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> np.ndarray:

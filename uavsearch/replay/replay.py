@@ -312,7 +312,7 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
                 img = np.asarray(renderer.render(pose, None).rgb)
             view = make_view(img, pose, config.grid, config.intrinsics, None, config.min_cell_area_px)
             with torch.no_grad():
-                o = loaded.perception.forward_all(view.image[None], view.cell_label[None])
+                o = loaded.perception.forward_all(view.image[None], view.cell_label[None], altitude_m=view.position_enu[2])
                 p_list.append(o.log_probs[0, :, 1].exp().numpy())
                 valid_list.append(np.asarray(view.cells_in_view) & (o.cell_pixels[0].numpy() > 0))
                 area_list.append(view.cell_area_px)

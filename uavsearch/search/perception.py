@@ -41,6 +41,8 @@ EMBED_DIM = 512
 GEOMETRY_DIM = 3  # log pixel count, centroid u, centroid v
 # Reference pixel count for the log-area feature: a 5 m cell at 70 m with the default camera is ~190 px.
 AREA_REF_PX = 200.0
+# Reference camera altitude of the altitude feature (log(altitude / ALTITUDE_REF_M), 0 at the paper's 70 m).
+ALTITUDE_REF_M = 70.0
 IMAGE_MEAN, IMAGE_STD = 0.5, 0.25
 
 
@@ -65,6 +67,10 @@ class PerceptionConfig:
     # every cell pools, so the classifier sees small people the deep map blurs away.
     person_head: bool = True
     person_hidden: int = 16
+    # The camera's altitude as one more geometry feature of every cell: a net trained across altitudes then
+    # knows the scale it looks at (a person is ~4 px at 70 m and ~11 px at 40 m) even for a cell the image
+    # edge clips, whose pixel count alone would read as a farther cell. Off for nets of one altitude.
+    altitude_feature: bool = False
 
     @property
     def stride(self) -> int:
@@ -89,7 +95,7 @@ class PerceptionConfig:
 
     @property
     def cell_dim(self) -> int:
-        return 2 * self.channels + (GEOMETRY_DIM if self.use_geometry else 0)
+        return 2 * self.channels + (GEOMETRY_DIM + int(self.altitude_feature) if self.use_geometry else 0)
 
     @property
     def global_dim(self) -> int:
@@ -102,6 +108,7 @@ class PerceptionConfig:
         d["hidden"] = tuple(d["hidden"])
         d["conf_hidden"] = tuple(d["conf_hidden"])
         d.setdefault("person_head", False)  # checkpoints written before the head existed
+        d.setdefault("altitude_feature", False)
         return PerceptionConfig(**d)
 
 
@@ -330,11 +337,28 @@ class PerceptionNet(nn.Module):
         return other
 
     # -- pieces ------------------------------------------------------------------------------------
-    def cell_features(self, fmap: torch.Tensor, pooling: CellPooling) -> torch.Tensor:
+    def cell_features(self, fmap: torch.Tensor, pooling: CellPooling, altitude_m=None) -> torch.Tensor:
         f = pool_cells(fmap, pooling, self.cfg.num_cells)
         if self.cfg.use_geometry:
             f = torch.cat([f, self._geometry(pooling.pixels, pooling.centroid)], dim=-1)
+            if self.cfg.altitude_feature:
+                alt = self.altitudes(altitude_m, fmap.shape[0])
+                f = torch.cat([f, torch.log(alt / ALTITUDE_REF_M)[:, None, None].expand(-1, f.shape[1], 1)], dim=-1)
         return f
+
+    @staticmethod
+    def altitudes(altitude_m, batch: int) -> torch.Tensor:
+        """(B,) camera altitudes in metres from a number, a sequence or a tensor; a net that reads the altitude
+        refuses to guess it."""
+        if altitude_m is None:
+            raise UavsearchError("this perception net reads the camera altitude: pass altitude_m (the view's "
+                                 "position_enu[2])")
+        alt = torch.as_tensor(np.asarray(altitude_m, dtype=np.float32)).reshape(-1)
+        if alt.numel() == 1:
+            alt = alt.expand(batch)
+        if alt.numel() != batch or not bool((alt > 0).all()):
+            raise UavsearchError(f"altitude_m must be {batch} positive altitudes, got {alt.tolist()}")
+        return alt
 
     @staticmethod
     def _geometry(pixels: torch.Tensor, centroid: torch.Tensor) -> torch.Tensor:
@@ -349,11 +373,13 @@ class PerceptionNet(nn.Module):
         return F.log_softmax(self.classifier(cell_features), dim=-1)
 
     # -- forward -----------------------------------------------------------------------------------
-    def forward_all(self, images, labels, geometry: tuple[torch.Tensor, torch.Tensor] | None = None) -> ViewOutputs:
+    def forward_all(self, images, labels, geometry: tuple[torch.Tensor, torch.Tensor] | None = None,
+                    altitude_m=None) -> ViewOutputs:
         """The pooled forward pass: backbone once per image, all cells at once.
 
         `geometry` ((B, N) pixels, (B, N, 2) centroids) overrides the cells' geometry features: training on
-        crops passes those of the whole view, so a cell cut by the crop still reads as the cell it is."""
+        crops passes those of the whole view, so a cell cut by the crop still reads as the cell it is.
+        `altitude_m` (B,) or one number: the camera altitudes, read by a net with `altitude_feature`."""
         x = images if isinstance(images, torch.Tensor) and images.dtype == torch.float32 else images_to_tensor(images)
         lab = torch.as_tensor(np.asarray(labels) if not isinstance(labels, torch.Tensor) else labels)
         if lab.dim() == 2:
@@ -364,14 +390,14 @@ class PerceptionNet(nn.Module):
         pooling = cell_pooling(lab, self.cfg.stride, self.cfg.num_cells)
         if geometry is not None:
             pooling = pooling._replace(pixels=geometry[0], centroid=geometry[1])
-        f = self.cell_features(fmap, pooling)
+        f = self.cell_features(fmap, pooling, altitude_m)
         return ViewOutputs(self.classify(f), f, self.global_feature(deep), pooling.pixels, person)
 
-    def forward(self, images, labels) -> torch.Tensor:
+    def forward(self, images, labels, altitude_m=None) -> torch.Tensor:
         """(B, num_cells, 2) log-probabilities; cells with no pixels get meaningless values (mask them)."""
-        return self.forward_all(images, labels).log_probs
+        return self.forward_all(images, labels, altitude_m=altitude_m).log_probs
 
-    def forward_literal(self, images, labels, batch_cells: bool = True) -> torch.Tensor:
+    def forward_literal(self, images, labels, batch_cells: bool = True, altitude_m=None) -> torch.Tensor:
         """Eq. 2 as written: run the backbone on O ⊙ m_i for every cell in view, pool under m_i.
 
         The reference for correctness (equal to `forward` for a pointwise backbone) and speed.
@@ -383,6 +409,7 @@ class PerceptionNet(nn.Module):
             lab = lab.unsqueeze(0)
         B = x.shape[0]
         N, s = self.cfg.num_cells, self.cfg.stride
+        alt = self.altitudes(altitude_m, B) if self.cfg.altitude_feature else None
         out = torch.zeros(B, N, 2)
         for b in range(B):
             cells = [i for i in range(N) if bool((lab[b] == i).any())]
@@ -399,7 +426,7 @@ class PerceptionNet(nn.Module):
             for j, i in enumerate(cells):
                 one = torch.where(lab[b] == i, lab[b], torch.full_like(lab[b], -1))
                 pooling = cell_pooling(one.unsqueeze(0), s, N)
-                f = self.cell_features(fmaps[j : j + 1], pooling)[0, i]
+                f = self.cell_features(fmaps[j : j + 1], pooling, None if alt is None else alt[b : b + 1])[0, i]
                 out[b, i] = self.classify(f.unsqueeze(0))[0]
         return out
 
@@ -435,6 +462,17 @@ def load_perception(path, map_location: str = "cpu") -> tuple[PerceptionNet, dic
         raise UavsearchError(f"{path} is not a uavsearch perception checkpoint ({type(e).__name__}: {e})") from None
     net.eval()
     return net, ckpt.get("extra", {})
+
+
+def shipped_perception(setting=None) -> Path:
+    """The shipped net for a setting: a scene family's own (models/perception_<family>.pt, trained on its
+    altitudes) where it exists, else the paper's models/perception.pt."""
+    from uavsearch.paths import MODELS_DIR
+
+    family = MODELS_DIR / f"perception_{setting}.pt"
+    if isinstance(setting, str) and not setting.isdigit() and family.is_file():
+        return family
+    return MODELS_DIR / "perception.pt"
 
 
 def perception_tag(net: torch.nn.Module) -> str:

@@ -55,7 +55,7 @@ def predict_views(net: PerceptionNet, views, batch_size: int = 64, progress: boo
     probs, pixels = [], []
     for i in tqdm(range(0, len(views), batch_size), desc="predict", disable=not progress, leave=False):
         rows = np.arange(i, min(i + batch_size, len(views)))
-        out = net.forward_all(views.images[rows], views.label_images(rows))
+        out = net.forward_all(views.images[rows], views.label_images(rows), altitude_m=views.position_enu[rows, 2])
         probs.append(out.log_probs[..., 1].exp().numpy())
         pixels.append(out.cell_pixels.numpy())
     p, px = np.concatenate(probs), np.concatenate(pixels)

@@ -169,7 +169,7 @@ class LiveViews:
     def observe(self, lattice_idx: torch.Tensor) -> Observation:
         view = self.vehicle.capture(self._lattice[int(lattice_idx.reshape(-1)[0])])
         self.views.append(view)
-        o = self.perception.forward_all(view.image[None], view.cell_label[None])
+        o = self.perception.forward_all(view.image[None], view.cell_label[None], altitude_m=view.position_enu[2])
         valid = torch.as_tensor(view.cells_in_view).reshape(1, -1) & (o.cell_pixels > 0)
         return Observation(o.log_probs, o.cell_features, o.global_feature,
                            torch.as_tensor(view.cell_area_px, dtype=torch.float32).reshape(1, -1), valid)

@@ -154,12 +154,13 @@ def world_tag(config: SearchConfig, family: str | None = None) -> str:
 
 
 @torch.no_grad()
-def perception_outputs(net, images: np.ndarray, labels: np.ndarray, batch: int = 25) -> dict[str, np.ndarray]:
-    """Run the frozen net over (V, H, W, 3) images with their (V, H, W) label images, in batches."""
+def perception_outputs(net, images: np.ndarray, labels: np.ndarray, altitudes_m: np.ndarray, batch: int = 25) -> dict[str, np.ndarray]:
+    """Run the frozen net over (V, H, W, 3) images with their (V, H, W) label images and (V,) camera
+    altitudes, in batches."""
     net.eval()
     out: dict[str, list] = {"log_probs": [], "cell_features": [], "global_feature": [], "cell_pixels": []}
     for i in range(0, len(images), batch):
-        o = net.forward_all(images[i : i + batch], labels[i : i + batch])
+        o = net.forward_all(images[i : i + batch], labels[i : i + batch], altitude_m=altitudes_m[i : i + batch])
         for k in out:
             out[k].append(getattr(o, k).numpy())
     return {k: np.concatenate(v).astype(np.float32) for k, v in out.items()}
@@ -204,7 +205,7 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
         order = np.argsort(vs.lattice_index)
         if not np.array_equal(vs.lattice_index[order], np.arange(len(order))):
             raise UavsearchError(f"{root}: scene {s} does not hold every lattice position")
-        o = perception_outputs(net, vs.images[order], vs.label_images(order))
+        o = perception_outputs(net, vs.images[order], vs.label_images(order), vs.position_enu[order, 2])
         parts["log_probs"].append(o["log_probs"])
         parts["cell_features"].append(o["cell_features"].astype(feature_dtype))
         parts["global_feature"].append(o["global_feature"])

@@ -37,6 +37,7 @@ loop flies a vehicle (search_loop.LiveViews), and agents.build_agent builds the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,7 +56,7 @@ from uavsearch.world.settings import SETTINGS, parse_settings
 from ..agents import POLICIES, build_agent, checkpoint_path, trained_fusion
 from ..config import SearchConfig
 from ..data.view_cache import get_view_cache
-from ..perception import load_perception
+from ..perception import load_perception, shipped_perception
 from ..policy import load_search_model
 from ..scoring import evaluate_agent
 from ..search_loop import Agent
@@ -132,7 +133,8 @@ class EvalArgs(ScaleOutArgs):
     split: str | None = opt(None, "scene split (paper: 10 test scenes per setting; large: 100); default: the "
                                   "setting's own (paper for 1-3, large for the families)")
     out: str = opt("eval_search", "output folder: table2.md, table2.csv, fig6.png", required=True)
-    perception: str = opt(str(MODELS_DIR / "perception.pt"), "frozen perception checkpoint")
+    perception: str | None = opt(None, "frozen perception checkpoint (default: models/perception.pt; a scene "
+                                       "family's own models/perception_<family>.pt)")
     models_dir: str = opt(str(MODELS_DIR), "where search_s<K>_<fusion>.pt live")
     episodes: int = opt(10, "episodes per test scene per seed")
     seeds: int = opt(5, "evaluation seeds (0..seeds-1): the spread over seeds")
@@ -416,6 +418,7 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
         notices += left_out
     for n in notices:
         print(f"uavsearch: {n}")
+    args = dataclasses.replace(args, perception=args.perception or str(shipped_perception()))
     if caches is None:
         net, _ = load_perception(args.perception)
         caches = {s: get_view_cache(net, s, split, "test", cache_dir=args.cache_dir, progress=args.progress,

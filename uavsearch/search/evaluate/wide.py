@@ -37,7 +37,7 @@ from ..agents import build_agent
 from ..config import SearchConfig
 from ..data.view_cache import ViewCache, get_view_cache
 from ..fusion import FUSIONS
-from ..perception import load_perception
+from ..perception import load_perception, shipped_perception
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
 from ..wide_policies import RoutePolicy, greedy_view_set, label_routes
@@ -203,7 +203,7 @@ def write_table3(out: Path, rows: list[dict], paired: list[dict], lines: list[st
         write_csv(out / "table3_paired.csv", paired)
     head = ["# Table III (our testbed): the wide-area search, test scenes", "",
             f"Fusion {meta['fusion']} for every row but the oracle ones; perception {meta['perception']} (tag "
-            f"{meta['tag']}, trained at 70 m only); random: {meta['episodes']} episodes per scene x {meta['seeds']} "
+            f"{meta['tag']}, {meta['altitudes']}); random: {meta['episodes']} episodes per scene x {meta['seeds']} "
             f"seeds. Δ: per-scene final AF1 minus the reference's, mean over scenes [95% bootstrap interval over "
             f"scenes]. Views and flight: means per episode (the start view is free).", ""]
     md = out / "table3.md"
@@ -211,9 +211,14 @@ def write_table3(out: Path, rows: list[dict], paired: list[dict], lines: list[st
     return md
 
 
+def perception_of(args, family: str) -> str:
+    """The net a family is evaluated with: --perception, else the family's shipped one."""
+    return args.perception or str(shipped_perception(family))
+
+
 def family_caches(args, family: str) -> dict[str, ViewCache]:
     """test, val and train caches of a family (the first args.wide_<part>_scenes scenes of each)."""
-    net, _ = load_perception(args.perception)
+    net, _ = load_perception(perception_of(args, family))
     split = args.split or setting_params(family).split
     ex = Executor.from_args(args)
     limits = {"test": args.wide_test_scenes, "val": args.wide_val_scenes, "train": args.wide_train_scenes}
@@ -242,7 +247,10 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
             paired += [{"setting": fam, "budget": name, **p} for p in cond["paired"]]
             lines += table_lines(fam, name, cond, r)
             print(f"uavsearch: {fam}, {name}: done ({time.perf_counter() - t0:.0f} s)", flush=True)
-    meta = {"fusion": args.wide_fusion, "perception": display_path(args.perception), "tag": tag,
+    net_path = perception_of(args, families[0])
+    altitudes = ("trained across altitudes" if load_perception(net_path)[0].cfg.altitude_feature
+                 else "trained at 70 m only")
+    meta = {"altitudes": altitudes, "fusion": args.wide_fusion, "perception": display_path(perception_of(args, families[0])), "tag": tag,
             "episodes": args.episodes, "seeds": args.seeds, "seconds": time.perf_counter() - t0}
     md = write_table3(Path(args.out), rows, paired, lines, meta)
     print(md.read_text())

@@ -35,6 +35,7 @@ names: losses/, charts/, eval/), learning_curve.png and the best checkpoint. Onl
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -73,7 +74,8 @@ class Args(ScaleOutArgs):
     exp_name: str = opt("perception", "the run's name in runs/")
     seed: int = opt(1, "seeds numpy, torch and the batch draw")
     split: str = opt("large", "scene split whose lattice views train (train part) and validate (val part)")
-    settings: str = opt("1,2,3", "comma-separated settings whose scenes are used (K = 2, 5, 10 people)")
+    settings: str = opt("1,2,3", "comma-separated settings whose scenes are used (K = 2, 5, 10 people), or a scene "
+                                 "family (wide: every viewpoint of its lattice, both altitudes)")
     train_scenes: int = opt(500, "training scenes per setting (large split: 500 = all, 37,500 views)")
     val_scenes: int = opt(10, "validation scenes per setting, every lattice position")
     data_dir: str | None = opt(None, "where lattice views are rendered and cached (default cache/, shared with the "
@@ -97,6 +99,7 @@ class Args(ScaleOutArgs):
     ship: bool = opt(False, "copy the best checkpoint over the shipped models/perception.pt")
     runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
     progress: bool = opt(True, "tqdm bars")
+    altitude_feature: bool = opt(False, "the camera altitude as a cell feature (for nets trained across altitudes)")
     layers: tuple = opt(factory=lambda: PerceptionConfig().layers, help="backbone (out, kernel, stride)", cli=False)
 
 
@@ -142,11 +145,11 @@ class HardNegatives:
 
 
 def batch_loss(net: PerceptionNet, images, labels, occupancy, args: Args, person=None, geometry=None,
-               negative_weight=None):
+               negative_weight=None, altitude_m=None):
     """Stage 1's loss on a batch: weighted cell NLL (+ hard negatives) + the dense person loss.
     Returns (loss, parts dict, log_probs, trained-cell mask)."""
     lab = torch.as_tensor(np.asarray(labels))
-    out = net.forward_all(images, lab, geometry)
+    out = net.forward_all(images, lab, geometry, altitude_m)
     y = torch.as_tensor(np.asarray(occupancy), dtype=torch.long)
     B, N = y.shape
     keys = (torch.arange(B)[:, None, None] * (N + 1) + lab.long() + 1).reshape(-1)
@@ -212,6 +215,14 @@ def apply_shift(net: PerceptionNet, shift: float) -> None:
         last.bias[0] -= shift / 2.0
 
 
+def shipped_path(settings: str) -> Path:
+    """Where --ship puts the net: models/perception.pt for the paper's settings, models/perception_<family>.pt
+    for a scene family's (the paper's stage-2 models read the features of the paper's net, so a net of
+    another setting never replaces it)."""
+    fams = [s for s in parse_settings(settings, "--settings", families=True) if isinstance(s, str)]
+    return MODELS_DIR / (f"perception_{fams[0]}.pt" if fams else "perception.pt")
+
+
 def _plot_curves(rows: list[dict], path: Path) -> None:
     save_figure(curves_figure(rows), path)
 
@@ -247,13 +258,13 @@ def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     sets = {}
     for part, n in (("train", args.train_scenes), ("val", args.val_scenes)):
         loaded = []
-        for setting in parse_settings(args.settings, "--settings"):
+        for setting in parse_settings(args.settings, "--settings", families=True):
             key = CacheKey(setting, args.split, part)
             scenes = key.scenes()
             if not 1 <= n <= len(scenes):
                 raise UavsearchError(f"--{part}-scenes {n}: the {args.split} split has {len(scenes)} {part} scenes per "
                                      f"setting; give --{part}-scenes 1..{len(scenes)} (or another --split)")
-            world = world_tag(key.search_config)
+            world = world_tag(key.search_config, key.family)
             root = render_lattice_views(key, scenes[:n], root=store.path(f"lattice_views/{world}/{key.name}"),
                                         progress=args.progress, executor=executor)
             loaded.append(load_views(root, scenes[:n], person_frac=part == "train"))
@@ -269,7 +280,7 @@ def train(args: Args) -> dict:
     if args.batch_size < 1 or args.steps < 1:
         raise UavsearchError("batch_size and steps must be positive")
     torch.set_num_threads(max(1, args.threads))
-    cfg = PerceptionConfig(layers=tuple(tuple(x) for x in args.layers))
+    cfg = PerceptionConfig(layers=tuple(tuple(x) for x in args.layers), altitude_feature=args.altitude_feature)
     if args.crop and args.crop % cfg.stride:
         raise UavsearchError(f"--crop {args.crop} must be a multiple of the net's stride {cfg.stride}")
     rng = seed_everything(args.seed)
@@ -285,6 +296,7 @@ def train(args: Args) -> dict:
     train_set, val_set, centre = prepare_data(args)
     t_data = time.perf_counter() - t_start
     scene_row = np.unique(train_set.scene_seed, return_inverse=True)[1]
+    cfg = dataclasses.replace(cfg, num_cells=int(train_set.occupancy.shape[1]))  # the grid of the views trained on
     hard = HardNegatives(int(scene_row.max()) + 1, cfg.num_cells)
 
     net = PerceptionNet(cfg)
@@ -333,7 +345,8 @@ def train(args: Args) -> dict:
         neg_w = hard.weights(sr, y == 0, args.hard_negative_weight)
         loss, parts, log_probs, mask = batch_loss(
             net, images_to_tensor(np.ascontiguousarray(imgs)), np.ascontiguousarray(labs), y, args,
-            person=np.ascontiguousarray(pers), geometry=(pooling.pixels, pooling.centroid), negative_weight=neg_w)
+            person=np.ascontiguousarray(pers), geometry=(pooling.pixels, pooling.centroid), negative_weight=neg_w,
+            altitude_m=train_set.position_enu[rows_b, 2])
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -370,7 +383,7 @@ def train(args: Args) -> dict:
                                           "val_before_calibration": extra["val"]})
         best.update(val)
     _plot_curves(rows, run_dir / "learning_curve.png")
-    out = copy_checkpoint(ckpt, args.out, args.ship, MODELS_DIR / "perception.pt")
+    out = copy_checkpoint(ckpt, args.out, args.ship, shipped_path(args.settings))
     report = {
         "best_step": best["step"], **{k: best[k] for k in best if k.startswith("eval/")},
         "calibration_shift": shift, "train_views": len(train_set), "val_views": len(val_set), "data_s": t_data,
