@@ -142,6 +142,23 @@ def test_stage1_smoke_trains_resumes_and_writes_a_run(tmp_path):
     assert steps == [1, 2, 3, 4, 5, 6]
 
 
+@pytest.mark.slow  # renders two wide scenes (146 views): about a minute on two busy cores
+def test_stage1_on_a_scene_family_trains_across_both_altitudes(tmp_path):
+    from uavsearch.paths import MODELS_DIR
+    from uavsearch.search.perception import load_perception
+    from uavsearch.search.train.perception import Args, shipped_path, train
+
+    args = Args(exp_name="wide", seed=1, settings="wide", split="paper", train_scenes=1, val_scenes=1,
+                data_dir=str(tmp_path / "cache"), workers=1, steps=2, batch_size=4, eval_every=2,
+                altitude_feature=True, out=str(tmp_path / "w.pt"), runs_dir=str(tmp_path / "runs"), progress=False)
+    rep = train(args)
+    assert rep["train_views"] == 73 and rep["val_views"] == 73  # every viewpoint of the family's lattice
+    net, _ = load_perception(tmp_path / "w.pt")
+    assert net.cfg.altitude_feature and net.cfg.num_cells == 900
+    assert shipped_path("wide") == MODELS_DIR / "perception_wide.pt"
+    assert shipped_path("1,2,3") == MODELS_DIR / "perception.pt"
+
+
 def test_table1_scenes_are_balanced_per_density_pair_and_disjoint_from_training():
     from uavsearch.search.evaluate.single_view import PAPER_TABLE1, density_test_scenes
 

@@ -159,3 +159,34 @@ def test_confidence_forward_rows_equals_the_net_on_the_gathered_rows_with_a_mask
     out = conf.forward_rows(feats, rows)
     assert out.shape == (2, 3, 10)
     assert not torch.equal(out[0, 1], out[0, 2])  # the same view in two places: two dropout draws
+
+
+def test_a_net_across_altitudes_reads_the_altitude_and_refuses_to_guess_it(tmp_path):
+    torch.manual_seed(0)
+    cfg = PerceptionConfig(altitude_feature=True)
+    assert cfg.cell_dim == PerceptionConfig().cell_dim + 1
+    net = PerceptionNet(cfg).eval()
+    img = torch.rand(2, 3, 224, 224)
+    lab = _labels((0, 0), (5, 0))
+    with pytest.raises(UavsearchError, match="altitude"):
+        net.forward_all(img, lab)
+    with pytest.raises(UavsearchError, match="positive"):
+        net.forward_all(img, lab, altitude_m=[70.0, -1.0])
+    with torch.no_grad():
+        high = net.forward_all(img, lab, altitude_m=70.0)
+        low = net.forward_all(img, lab, altitude_m=[40.0, 40.0])
+    # the same pixels read at another altitude are another input: only the altitude column differs
+    assert torch.equal(high.cell_features[..., :-1], low.cell_features[..., :-1])
+    assert torch.allclose(high.cell_features[..., -1], torch.zeros(()))  # log(70 / 70)
+    assert torch.allclose(low.cell_features[..., -1], torch.log(torch.tensor(40.0 / 70.0)))
+    assert not torch.equal(high.log_probs, low.log_probs)
+    # checkpoints keep it; a net of one altitude ignores the argument
+    save_perception(net, tmp_path / "alt.pt")
+    back, _ = load_perception(tmp_path / "alt.pt")
+    assert back.cfg.altitude_feature
+    with torch.no_grad():
+        assert torch.equal(back.forward_all(img, lab, altitude_m=40.0).log_probs, low.log_probs)
+    plain = PerceptionNet().eval()
+    with torch.no_grad():
+        assert torch.equal(plain.forward_all(img, lab).log_probs, plain.forward_all(img, lab, altitude_m=40.0).log_probs)
+    assert not PerceptionConfig.from_dict({k: v for k, v in cfg.__dict__.items() if k != "altitude_feature"}).altitude_feature

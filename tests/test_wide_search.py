@@ -171,3 +171,28 @@ def test_table3_on_a_tiny_synthetic_family(tmp_path):
     hs = next(r for r in views if r["key"] == "hindsight")
     lg = next(r for r in views if r["key"] == "label_greedy")
     assert hs["af1"] >= lg["af1"] - 1e-9
+
+
+def test_family_perception_report_judges_each_altitude_on_its_own_views(tmp_path):
+    from uavsearch.search.evaluate.perception import EvalArgs, eval_perception
+
+    cache = wide_cache(3, 4)
+    alt = torch.as_tensor(WIDE.lattice.positions_enu[:, 2].copy())
+    occ = cache.occupancy[:, None, :].expand_as(cache.valid)
+    # 40 m views: perfect; 70 m views: every empty cell in view fires
+    p = torch.where((alt == 40.0)[None, :, None], occ.float(), torch.ones_like(occ, dtype=torch.float32))
+    p = p.clamp(1e-3, 1 - 1e-3)
+    net = cache._replace(log_probs=torch.stack([(1 - p).log(), p.log()], -1), person_px=occ.int() * 9)
+    args = EvalArgs(out=str(tmp_path / "same"), setting="wide")
+    res = eval_perception(args, {"net": net, "reference": net})
+    low, high = res["stats"]["40 m"], res["stats"]["70 m"]
+    assert low["recall_8px"] == 1.0 and low["fa_per_cell_view"] == 0.0
+    assert high["fa_per_cell_view"] == 1.0 and high["views"] == 3 * 37
+    text = (tmp_path / "same" / "perception_targets.md").read_text()
+    assert "| recall at >= 8 visible person pixels at 40 m | >= 0.75 | 1.000 | 1.000 | yes |" in text
+    assert "holds up against the reference: yes" in text
+    # a net that misses every occupied cell at 70 m falls short of a reference that finds them
+    miss = torch.where((alt == 70.0)[None, :, None], torch.full_like(p, 1e-3), p)
+    worse = net._replace(log_probs=torch.stack([(1 - miss).log(), miss.log()], -1))
+    eval_perception(dataclasses.replace(args, out=str(tmp_path / "worse")), {"net": worse, "reference": net})
+    assert "holds up against the reference: **no**" in (tmp_path / "worse" / "perception_targets.md").read_text()

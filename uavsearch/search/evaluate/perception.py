@@ -14,11 +14,20 @@ perception only where the cache is missing). A cell counts where the view measur
 Also precision / recall at 0.5 and recall per visible-pixel bin (0 = hidden, 1-3, 4-7, 8-15, 16+; needs the
 cache's person_px, skipped with a note for an older cache). Outputs in --out: perception_targets.md,
 perception_targets.csv, perception_targets.png (recall vs visible person pixels; false alarms per view).
+
+A scene family (`--setting wide`) is judged per altitude of its lattice, with the targets of a net that
+reads 900 cells from two heights (a view sees 80-260 of them, so false alarms count per cell-view):
+
+    at 40 m   recall of occupied cells showing >= 8 visible person pixels   >= 0.75
+    at 40 m   false alarms per cell-view                                     <= 0.015
+    at 70 m   recall per visible-pixel bin no worse than the reference net's (--reference, default the
+              paper's models/perception.pt, trained at 70 m only) on the same views
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,13 +38,13 @@ import torch
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs
-from uavsearch.paths import MODELS_DIR, display_path
+from uavsearch.paths import display_path
 from uavsearch.viz import pyplot, save_figure
-from uavsearch.world.settings import SETTINGS, parse_settings
+from uavsearch.world.settings import SETTINGS, parse_settings, setting_params
 
 from ..data.view_cache import PARTS, get_view_cache
 from ..metrics import average_precision, rate_by_bin
-from ..perception import load_perception
+from ..perception import load_perception, shipped_perception
 
 THRESHOLD = 0.5
 PX_BINS: tuple[tuple[int, int | None], ...] = ((0, 0), (1, 3), (4, 7), (8, 15), (16, None))  # [lo, hi] pixels
@@ -46,6 +55,13 @@ TARGETS: tuple[tuple[str, str, str, float], ...] = (
     ("recall_4_7px", "recall at 4-7 visible person pixels", ">=", 0.80),
     ("persistent_fa_per_scene", "persistent false-alarm cells per scene", "<=", 0.3),
 )
+
+
+FAMILY_TARGETS: tuple[tuple[str, str, str, float], ...] = (
+    ("recall_8px", "recall at >= 8 visible person pixels", ">=", 0.75),
+    ("fa_per_cell_view", "false alarms per cell-view", "<=", 0.015),
+)
+LOW_M, HIGH_M = 40.0, 70.0  # the altitudes the family targets name
 
 
 def bin_name(lo: int, hi: int | None) -> str:
@@ -68,7 +84,8 @@ def perception_stats(caches, threshold: float = THRESHOLD) -> dict:
     persistent = (~occ & (n_valid > 0) & (2 * n_fa > n_valid)).sum(-1)  # (S,)
     stats = {"scenes": int(p.shape[0]), "views": int(p.shape[0] * p.shape[1]), "valid_cells": int(valid.sum()),
              "occupied_valid_cells": tp + fn, "cell_ap": average_precision(p[valid], y[valid]),
-             "fa_per_view": float(fa_view.mean()), "precision": tp / (tp + fp) if tp + fp else float("nan"),
+             "fa_per_view": float(fa_view.mean()), "fa_per_cell_view": fp / max(int((valid & ~y).sum()), 1),
+             "precision": tp / (tp + fp) if tp + fp else float("nan"),
              "recall": tp / (tp + fn) if tp + fn else float("nan"),
              "persistent_fa_per_scene": float(persistent.mean()), "fa_hist": np.bincount(fa_view),
              "recall_by_px": None}
@@ -80,9 +97,22 @@ def perception_stats(caches, threshold: float = THRESHOLD) -> dict:
         by = {bin_name(lo, hi): (float(r), int(n)) for (lo, hi), r, n in zip(PX_BINS, rates, counts)}
         stats["recall_by_px"] = by
         stats["recall_4_7px"] = by["4-7"][0]
+        big = seen & (px >= 8)
+        stats["recall_8px"] = float(fires[big].mean()) if big.any() else float("nan")
     else:
-        stats["recall_4_7px"] = float("nan")
+        stats["recall_4_7px"] = stats["recall_8px"] = float("nan")
     return stats
+
+
+def at_altitude(cache, altitude_m: float):
+    """The cache's views from one altitude of its lattice (a ViewCache over those positions only)."""
+    pos = np.flatnonzero(np.isclose(cache.config.lattice.positions_enu[:, 2], altitude_m))
+    if not len(pos):
+        raise UavsearchError(f"the lattice has no viewpoint at {altitude_m:g} m")
+    t = torch.as_tensor(pos)
+    return cache._replace(log_probs=cache.log_probs[:, t], cell_features=cache.cell_features[:, t],
+                          global_feature=cache.global_feature[:, t], cell_area_px=cache.cell_area_px[:, t],
+                          valid=cache.valid[:, t], person_px=None if cache.person_px is None else cache.person_px[:, t])
 
 
 def meets(value: float, op: str, target: float) -> bool | None:
@@ -97,10 +127,15 @@ def meets(value: float, op: str, target: float) -> bool | None:
 @dataclass
 class EvalArgs(ScaleOutArgs):
     out: str = opt("runs/perception_targets", "output folder: perception_targets.md/.csv/.png", required=True)
-    setting: str = opt("all", "paper setting 1 | 2 | 3 | all (pooled in the last column)")
-    split: str = opt("paper", "scene split (paper: 10 test scenes per setting; large: 100)")
+    setting: str = opt("all", "paper setting 1 | 2 | 3 | all (pooled in the last column), or a scene family (wide: "
+                              "judged per altitude)")
+    split: str | None = opt(None, "scene split (paper: 10 test scenes per setting; large: 100); default: paper for "
+                                  "1-3, the family's own (large) for a family")
     part: str = opt("test", "which part of the split", choices=PARTS)
-    perception: str = opt(str(MODELS_DIR / "perception.pt"), "perception checkpoint")
+    perception: str | None = opt(None, "perception checkpoint (default models/perception.pt; a family's own "
+                                       "models/perception_<family>.pt)")
+    reference: str | None = opt(None, "a family's reference net at 70 m (default models/perception.pt)")
+    scenes: int | None = opt(None, "only the part's first N scenes (a family; default all)")
     cache_dir: str | None = opt(None, "view caches: a folder or an fsspec URL (default cache/)")
     progress: bool = opt(True, "progress bars")
 
@@ -182,12 +217,113 @@ def targets_figure(stats: dict[str, dict]):
     return fig
 
 
+def family_stats(cache, reference) -> dict[str, dict]:
+    """Columns of a family's report: each altitude of the net, and of the reference net (same views)."""
+    out = {}
+    for alt in (LOW_M, HIGH_M):
+        out[f"{alt:g} m"] = perception_stats([at_altitude(cache, alt)])
+    for alt in (LOW_M, HIGH_M):
+        out[f"{alt:g} m, reference net"] = perception_stats([at_altitude(reference, alt)])
+    return out
+
+
+def family_rows(stats: dict[str, dict]) -> tuple[list[dict], bool | None]:
+    """Rows of the family's targets and its recall per bin (the net against the reference at 70 m); whether the
+    70 m bins hold up: no bin with >= 50 occupied cells more than 0.02 below the reference."""
+    low, high, ref = stats[f"{LOW_M:g} m"], stats[f"{HIGH_M:g} m"], stats[f"{HIGH_M:g} m, reference net"]
+    rows = [{"measure": f"{what} at {LOW_M:g} m", "key": key, "target": f"{op} {target:g}", "value": low[key],
+             "reference": stats[f"{LOW_M:g} m, reference net"][key], "met": meets(low[key], op, target)}
+            for key, what, op, target in FAMILY_TARGETS]
+    for key, what in (("fa_per_cell_view", "false alarms per cell-view"), ("recall_8px", "recall at >= 8 px"),
+                      ("cell_ap", "cell average precision"), ("precision", "precision at 0.5"),
+                      ("recall", "recall at 0.5")):
+        rows.append({"measure": f"{what} at {HIGH_M:g} m", "key": key, "target": "", "value": high[key],
+                     "reference": ref[key], "met": None})
+    holds = None
+    if high["recall_by_px"] is not None and ref["recall_by_px"] is not None:
+        judged = []
+        for name, (r, n) in high["recall_by_px"].items():
+            r_ref = ref["recall_by_px"][name][0]
+            ok = None if n < 50 or not np.isfinite(r) else bool(r >= r_ref - 0.02)
+            if ok is not None:
+                judged.append(ok)
+            rows.append({"measure": f"recall at {name} px at {HIGH_M:g} m (n = {n})", "key": f"recall_{name}px_high",
+                         "target": ">= reference - 0.02", "value": r, "reference": r_ref, "met": ok})
+        holds = all(judged) if judged else None
+    return rows, holds
+
+
+def write_family_report(stats: dict[str, dict], out: Path, meta: dict) -> tuple[Path, Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    rows, holds = family_rows(stats)
+    csv_path = out / "perception_targets.csv"
+    with csv_path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["measure", "key", "target", "value", "reference", "met"])
+        w.writeheader()
+        w.writerows(rows)
+    low = stats[f"{LOW_M:g} m"]
+    lines = [f"# Perception targets of the {meta['family']} family: {meta['split']} split, {meta['part']} scenes, "
+             "every lattice view, per altitude", "",
+             f"perception `{meta['perception']}` (tag {meta['tag']}); reference `{meta['reference']}` (tag "
+             f"{meta['reference_tag']}); {low['scenes']} scenes; threshold {THRESHOLD}. A cell counts where the view "
+             "measured it.", "",
+             "| measure | target | net | reference net | met |", "|---|---|---|---|---|"]
+    for r in rows:
+        met = {True: "yes", False: "**no**", None: ""}[r["met"]]
+        lines.append(f"| {r['measure']} | {r['target']} | {_fmt(r['value'])} | {_fmt(r['reference'])} | {met} |")
+    lines += ["", f"70 m recall per visible-pixel bin holds up against the reference: "
+                  f"{ {True: 'yes', False: '**no**', None: 'not measured'}[holds] } (bins with at least 50 occupied "
+                  "cells; at most 0.02 lower).", "",
+              "| altitude | views | cell-views | false alarms per view | recall by px: " +
+              " / ".join(bin_name(lo, hi) for lo, hi in PX_BINS) + " |", "|---|---|---|---|---|"]
+    for c, st in stats.items():
+        by = st["recall_by_px"] or {}
+        lines.append(f"| {c} | {st['views']} | {st['valid_cells']} | {st['fa_per_view']:.2f} | "
+                     + " / ".join(_fmt(by.get(bin_name(lo, hi), (np.nan,))[0], 2) for lo, hi in PX_BINS) + " |")
+    lines += ["", f"{meta['seconds']:.0f} s"]
+    md_path = out / "perception_targets.md"
+    md_path.write_text("\n".join(lines) + "\n")
+    return md_path, csv_path
+
+
+def eval_family_perception(args: EvalArgs, family: str, caches: dict | None = None) -> dict:
+    """A family's report: the net per altitude against the family targets and the reference net."""
+    t0 = time.perf_counter()
+    split = args.split or setting_params(family).split
+    paths = {"net": args.perception or str(shipped_perception(family)),
+             "reference": args.reference or str(shipped_perception())}
+    if caches is None:
+        caches = {}
+        for name, path in paths.items():
+            net, _ = load_perception(path)
+            caches[name] = get_view_cache(net, family, split, args.part, cache_dir=args.cache_dir,
+                                          progress=args.progress, executor=Executor.from_args(args),
+                                          features=False, limit=args.scenes)
+    stats = family_stats(caches["net"], caches["reference"])
+    meta = {"family": family, "split": split, "part": args.part, "perception": display_path(paths["net"]),
+            "tag": caches["net"].perception_tag, "reference": display_path(paths["reference"]),
+            "reference_tag": caches["reference"].perception_tag, "seconds": time.perf_counter() - t0}
+    md, csv_path = write_family_report(stats, Path(args.out), meta)
+    fig = save_figure(targets_figure(stats), Path(args.out) / "perception_targets.png")
+    print(md.read_text())
+    print(f"wrote {md}, {csv_path}, {fig}")
+    return {"stats": stats, "table": md, "csv": csv_path, "figure": fig}
+
+
 def eval_perception(args: EvalArgs, caches: dict | None = None) -> dict:
-    """The report into args.out; `caches` ({setting: ViewCache}) skips perception and rendering."""
-    settings = parse_settings(args.setting)
+    """The report into args.out; `caches` ({setting: ViewCache}; for a family {"net", "reference"}) skips
+    perception and rendering."""
+    settings = parse_settings(args.setting, families=True)
     if args.part not in PARTS:
         raise UavsearchError(f"unknown part {args.part!r}; valid: {', '.join(PARTS)}")
     torch.set_num_threads(1)
+    families = [s for s in settings if isinstance(s, str)]
+    if families:
+        if len(settings) > 1:
+            raise UavsearchError("--setting: evaluate one scene family at a time, apart from the paper's settings")
+        return eval_family_perception(args, families[0], caches)
+    args = dataclasses.replace(args, perception=args.perception or str(shipped_perception()),
+                               split=args.split or "paper")
     t0 = time.perf_counter()
     if caches is None:
         net, _ = load_perception(args.perception)
