@@ -196,3 +196,13 @@ def test_family_perception_report_judges_each_altitude_on_its_own_views(tmp_path
     worse = net._replace(log_probs=torch.stack([(1 - miss).log(), miss.log()], -1))
     eval_perception(dataclasses.replace(args, out=str(tmp_path / "worse")), {"net": worse, "reference": net})
     assert "holds up against the reference: **no**" in (tmp_path / "worse" / "perception_targets.md").read_text()
+
+
+def test_wide_fusion_specs():
+    from uavsearch.search.evaluate.wide import fusion_name, make_fusion
+
+    assert fusion_name(make_fusion("bayes")) == "bayes:0.1"
+    assert fusion_name(make_fusion("bayes:0.02")) == "bayes:0.02" and make_fusion("size").name == "size"
+    for bad in ("learned", "oracle", "bayes:2", "bayes:x", "nope"):
+        with pytest.raises(UavsearchError):
+            make_fusion(bad)

@@ -36,7 +36,7 @@ from uavsearch.world.settings import setting_params
 from ..agents import build_agent
 from ..config import SearchConfig
 from ..data.view_cache import ViewCache, get_view_cache
-from ..fusion import FUSIONS
+from ..fusion import FUSIONS, Fusion
 from ..perception import load_perception, shipped_perception
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
@@ -109,21 +109,48 @@ def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarra
     return t[idx[:, :-1], idx[:, 1:]].sum(1) if idx.shape[1] > 1 else np.zeros(len(idx))
 
 
-def _route_agent(fusion: str, routes) -> Agent:
-    return Agent(FUSIONS[fusion](), RoutePolicy(routes))
+def make_fusion(spec: str) -> Fusion:
+    """A fusion without weights or labels from "name" or "name:prior" (e.g. bayes:0.02: Bayes' rule with
+    that prior, which is also the p of a cell no view has measured)."""
+    name, _, prior = str(spec).partition(":")
+    plain = [n for n, f in FUSIONS.items() if not f.trainable and "labels" not in f.needs]
+    if name not in plain:
+        raise UavsearchError(f"--wide-fusion must be a fusion without weights or labels ({', '.join(plain)}), "
+                             f"optionally with :prior, not {spec!r}")
+    if not prior:
+        return FUSIONS[name]()
+    try:
+        value = float(prior)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value < 1.0:
+        raise UavsearchError(f"--wide-fusion {spec}: the prior must be a number in (0, 1)")
+    return FUSIONS[name](value)
 
 
-def fixed_agents(config: SearchConfig, fusion: str, train: ViewCache) -> tuple[dict[str, Agent], dict[str, list]]:
+def fusion_name(fusion: Fusion) -> str:
+    return f"{fusion.name}:{fusion.prior:g}"
+
+
+def _agent(fusion: Fusion, policy: str, config: SearchConfig) -> Agent:
+    return build_agent(fusion.name, policy, config).agent._replace(fusion=fusion)
+
+
+def _route_agent(fusion: Fusion, routes) -> Agent:
+    return Agent(fusion, RoutePolicy(routes))
+
+
+def fixed_agents(config: SearchConfig, fusion: Fusion, train: ViewCache) -> tuple[dict[str, Agent], dict[str, list]]:
     """The fixed-route rows and their routes (the view sets searched on the training cache)."""
-    agents = {k: build_agent(fusion, k, config).agent for k in FIXED[:4]}
+    agents = {k: _agent(fusion, k, config) for k in FIXED[:4]}
     routes = {k: a.policy.routes[0].tolist() for k, a in agents.items()}
     for key, per_s in (("viewset", False), ("viewset_per_s", True)):
-        routes[key] = greedy_view_set(train, FUSIONS[fusion](), config, per_second=per_s)
+        routes[key] = greedy_view_set(train, fusion, config, per_second=per_s)
         agents[key] = _route_agent(fusion, routes[key])
     return agents, routes
 
 
-def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusion: str, episodes: int,
+def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusion: Fusion, episodes: int,
                        seeds: int, resamples: int = 10_000, bootstrap_seed: int = 0) -> dict:
     """Every row of one budget: routes fixed on train, the best fixed route chosen on val, all scored on test."""
     fixed, routes = fixed_agents(config, fusion, caches["train"])
@@ -132,14 +159,14 @@ def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusio
     best = max(FIXED, key=lambda k: (val_af1[k], -FIXED.index(k)))
     test = caches["test"]
     agents = {**{k: (a, 1) for k, a in fixed.items()},
-              RULE: (build_agent(fusion, RULE, config).agent, 1),
-              "entropy_per_s": (build_agent(fusion, "entropy_per_s", config).agent, 1),
-              "random": (build_agent(fusion, "random", config).agent, episodes)}
+              RULE: (_agent(fusion, RULE, config), 1),
+              "entropy_per_s": (_agent(fusion, "entropy_per_s", config), 1),
+              "random": (_agent(fusion, "random", config), episodes)}
     res = run_rows(test, config, agents, seeds)
     res.update({"rule_oracle": run_rows(oracle_perception(test), config,
                                         {"rule_oracle": (build_agent("oracle", RULE, config).agent, 1)})["rule_oracle"]})
-    greedy = label_routes(test, FUSIONS[fusion](), config, beam=1)
-    beam = label_routes(test, FUSIONS[fusion](), config, beam=HINDSIGHT_BEAM)
+    greedy = label_routes(test, fusion, config, beam=1)
+    beam = label_routes(test, fusion, config, beam=HINDSIGHT_BEAM)
     both = run_rows(test, config, {"g": (_route_agent(fusion, greedy), 1), "b": (_route_agent(fusion, beam), 1)})
     res["label_greedy"] = both["g"]
     pick = torch.as_tensor(scene_af1(both["b"]) >= scene_af1(both["g"]))
@@ -229,8 +256,7 @@ def family_caches(args, family: str) -> dict[str, ViewCache]:
 
 def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
     """Table III for the families into args.out; `caches` ({family: {part: ViewCache}}) skips building them."""
-    if args.wide_fusion not in FUSIONS or FUSIONS[args.wide_fusion].trainable or args.wide_fusion == "oracle":
-        raise UavsearchError(f"--wide-fusion must be a fusion without weights or labels, not {args.wide_fusion!r}")
+    fusion = make_fusion(args.wide_fusion)
     t0 = time.perf_counter()
     rows, paired, lines, conds = [], [], [], {}
     tag = ""
@@ -239,7 +265,7 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
         tag = cs["test"].perception_tag
         config = cs["test"].config
         for name, cfg in conditions(config).items():
-            cond = evaluate_condition(cs, cfg, args.wide_fusion, args.episodes, args.seeds, args.bootstrap,
+            cond = evaluate_condition(cs, cfg, fusion, args.episodes, args.seeds, args.bootstrap,
                                       args.bootstrap_seed)
             conds[(fam, name)] = cond
             r = table_rows(fam, name, cond)
@@ -250,7 +276,7 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
     net_path = perception_of(args, families[0])
     altitudes = ("trained across altitudes" if load_perception(net_path)[0].cfg.altitude_feature
                  else "trained at 70 m only")
-    meta = {"altitudes": altitudes, "fusion": args.wide_fusion, "perception": display_path(perception_of(args, families[0])), "tag": tag,
+    meta = {"altitudes": altitudes, "fusion": fusion_name(fusion), "perception": display_path(perception_of(args, families[0])), "tag": tag,
             "episodes": args.episodes, "seeds": args.seeds, "seconds": time.perf_counter() - t0}
     md = write_table3(Path(args.out), rows, paired, lines, meta)
     print(md.read_text())
