@@ -227,6 +227,24 @@ def family_stats(cache, reference) -> dict[str, dict]:
     return out
 
 
+def visibility(cache) -> dict[str, float]:
+    """How hard the family is to see, from the renders alone: the median visible person pixels of an occupied
+    cell in the views measuring it, per altitude, and the share of occupied cells no view shows a pixel of."""
+    if cache.person_px is None:
+        return {}
+    alts = cache.config.lattice.positions_enu[:, 2]
+    px, valid = cache.person_px.numpy(), cache.valid.numpy()
+    occ = cache.occupancy.numpy()[:, None, :]
+    out = {}
+    for alt in (HIGH_M, LOW_M):
+        m = np.isclose(alts, alt)[None, :, None] & valid & occ
+        out[f"median_px_{alt:g}m"] = float(np.median(px[m])) if m.any() else float("nan")
+    shown = ((px > 0) & valid).any(1)  # (S, N) some view shows a person pixel of the cell
+    o = cache.occupancy.numpy()
+    out["hidden_share"] = float((o & ~shown).sum() / max(o.sum(), 1))
+    return out
+
+
 def family_rows(stats: dict[str, dict]) -> tuple[list[dict], bool | None]:
     """Rows of the family's targets and its recall per bin (the net against the reference at 70 m); whether the
     70 m bins hold up: no bin with >= 50 occupied cells more than 0.02 below the reference."""
@@ -280,6 +298,11 @@ def write_family_report(stats: dict[str, dict], out: Path, meta: dict) -> tuple[
         by = st["recall_by_px"] or {}
         lines.append(f"| {c} | {st['views']} | {st['valid_cells']} | {st['fa_per_view']:.2f} | "
                      + " / ".join(_fmt(by.get(bin_name(lo, hi), (np.nan,))[0], 2) for lo, hi in PX_BINS) + " |")
+    vis = meta.get("visibility") or {}
+    if vis:
+        lines += ["", f"Visibility (renders only): median visible person pixels of an occupied cell in a view measuring "
+                      f"it {vis['median_px_70m']:g} at 70 m, {vis['median_px_40m']:g} at 40 m; "
+                      f"{100 * vis['hidden_share']:.1f}% of occupied cells show no person pixel in any view."]
     lines += ["", f"{meta['seconds']:.0f} s"]
     md_path = out / "perception_targets.md"
     md_path.write_text("\n".join(lines) + "\n")
@@ -302,7 +325,8 @@ def eval_family_perception(args: EvalArgs, family: str, caches: dict | None = No
     stats = family_stats(caches["net"], caches["reference"])
     meta = {"family": family, "split": split, "part": args.part, "perception": display_path(paths["net"]),
             "tag": caches["net"].perception_tag, "reference": display_path(paths["reference"]),
-            "reference_tag": caches["reference"].perception_tag, "seconds": time.perf_counter() - t0}
+            "reference_tag": caches["reference"].perception_tag, "visibility": visibility(caches["net"]),
+            "seconds": time.perf_counter() - t0}
     md, csv_path = write_family_report(stats, Path(args.out), meta)
     fig = save_figure(targets_figure(stats), Path(args.out) / "perception_targets.png")
     print(md.read_text())
