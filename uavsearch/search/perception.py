@@ -383,12 +383,14 @@ class PerceptionNet(nn.Module):
 
     # -- forward -----------------------------------------------------------------------------------
     def forward_all(self, images, labels, geometry: tuple[torch.Tensor, torch.Tensor] | None = None,
-                    altitude_m=None) -> ViewOutputs:
+                    altitude_m=None, cells: torch.Tensor | None = None) -> ViewOutputs:
         """The pooled forward pass: backbone once per image, all cells at once.
 
         `geometry` ((B, N) pixels, (B, N, 2) centroids) overrides the cells' geometry features: training on
         crops passes those of the whole view, so a cell cut by the crop still reads as the cell it is.
-        `altitude_m` (B,) or one number: the camera altitudes, read by a net with `altitude_feature`."""
+        `altitude_m` (B,) or one number: the camera altitudes, read by a net with `altitude_feature`.
+        `cells` (B, N) bool: classify only these cells (the others get log p = log 0.5): training on crops of a
+        900-cell grid uses a few dozen cells of each view, and the classifier need not read the rest."""
         x = images if isinstance(images, torch.Tensor) and images.dtype == torch.float32 else images_to_tensor(images)
         lab = torch.as_tensor(np.asarray(labels) if not isinstance(labels, torch.Tensor) else labels)
         if lab.dim() == 2:
@@ -400,7 +402,12 @@ class PerceptionNet(nn.Module):
         if geometry is not None:
             pooling = pooling._replace(pixels=geometry[0], centroid=geometry[1])
         f = self.cell_features(fmap, pooling, altitude_m)
-        return ViewOutputs(self.classify(f), f, self.global_feature(deep), pooling.pixels, person)
+        if cells is None:
+            log_probs = self.classify(f)
+        else:
+            log_probs = torch.full((*f.shape[:2], 2), float(np.log(0.5)), dtype=f.dtype)
+            log_probs[cells] = self.classify(f[cells])
+        return ViewOutputs(log_probs, f, self.global_feature(deep), pooling.pixels, person)
 
     def forward(self, images, labels, altitude_m=None) -> torch.Tensor:
         """(B, num_cells, 2) log-probabilities; cells with no pixels get meaningless values (mask them)."""

@@ -149,12 +149,12 @@ def batch_loss(net: PerceptionNet, images, labels, occupancy, args: Args, person
     """Stage 1's loss on a batch: weighted cell NLL (+ hard negatives) + the dense person loss.
     Returns (loss, parts dict, log_probs, trained-cell mask)."""
     lab = torch.as_tensor(np.asarray(labels))
-    out = net.forward_all(images, lab, geometry, altitude_m)
     y = torch.as_tensor(np.asarray(occupancy), dtype=torch.long)
     B, N = y.shape
     keys = (torch.arange(B)[:, None, None] * (N + 1) + lab.long() + 1).reshape(-1)
     in_crop = torch.bincount(keys, minlength=B * (N + 1)).view(B, N + 1)[:, 1:]
     mask = in_crop >= args.min_cell_px
+    out = net.forward_all(images, lab, geometry, altitude_m, cells=mask)
     nll = F.nll_loss(out.log_probs.reshape(-1, 2), y.reshape(-1), reduction="none").view_as(y)
     w = torch.where(y == 1, torch.full_like(nll, args.pos_weight), torch.ones_like(nll))
     if negative_weight is not None:
