@@ -93,6 +93,7 @@ UAV="$PY -m uavsearch"
 
 # The perception stage 2 trains on and is evaluated with: the new one in full mode.
 NEWPERC=$RUN/perception.pt
+NEWPERC_WIDE=$RUN/perception_wide.pt   # the wide families' (trained across 70 m and 40 m)
 
 # ---------------------------------------------------------------------------------------------------
 # Steps: name | mode (quick = also in --quick, full = full mode only, ship = --ship only) | what | command
@@ -122,8 +123,12 @@ for seed in $SEEDS; do for s in $SETTINGS; do
 done; done
 add train_reactive full "the reactive policy: settings 1-3 x training seeds 0-2 -> $RUN/seed<S>/ ($JOBS in parallel)" \
   "printf '%s' \"\$REACTIVE_CMDS\" | xargs -P $JOBS -I{} sh -c '{}'"
-add ship ship "copy $NEWPERC and $RUN/seed0/search_s*_*.pt into models/" \
-  "cp $NEWPERC models/perception.pt && cp $RUN/seed0/search_s*_*.pt models/"
+add wide_renders full "every viewpoint of the wide families' scenes (wide: 50 val, 100 train, 100 test; wide-uniform: 50 test, 20 val, 20 train; resumable)" \
+  "$PY tools/render_wide.py --families wide --parts val --workers 2 && $PY tools/render_wide.py --families wide --parts train --scenes 100 --workers 2 && $PY tools/render_wide.py --families wide --parts test --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts test --scenes 50 --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts val,train --scenes 20 --workers 2"
+add train_perception_wide full "stage 1 across altitudes (seed 1, 2000 steps, every viewpoint of 100 wide training scenes) -> $NEWPERC_WIDE" \
+  "$UAV train perception --settings wide --train-scenes 100 --val-scenes 4 --altitude-feature --steps 2000 --eval-every 400 --seed 1 --threads 2 --runs-dir $RUN --out $NEWPERC_WIDE --no-progress"
+add ship ship "copy $NEWPERC, $NEWPERC_WIDE and $RUN/seed0/search_s*_*.pt into models/" \
+  "cp $NEWPERC models/perception.pt && cp $NEWPERC_WIDE models/perception_wide.pt && cp $RUN/seed0/search_s*_*.pt models/"
 add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \
   "$UAV eval single-view --checkpoint models/perception.pt --scenes-per-pair 80 --views-per-scene 3 --seed 0 --out results/single_view --no-progress"
 add perception full "stage-1 targets on the large split's test views, models/perception.pt -> results/perception/" \
@@ -132,8 +137,10 @@ add search quick "Table II + Fig. 6, paper split, models/ -> results/search/" \
   "$UAV eval search --setting all --split paper --perception models/perception.pt --models-dir models $EVAL --out results/search"
 add search_large full "Table II + Fig. 6, large split (100 test scenes), models/ -> results/search_large/" \
   "$UAV eval search --setting all --split large --perception models/perception.pt --models-dir models $EVAL --out results/search_large && $PY tools/route_diversity.py --out results/search_large/routes.md"
-add wide full "Table III: the wide families (renders 73 viewpoints per scene, resumable), models/perception.pt -> results/search_wide/" \
-  "$PY tools/render_wide.py --parts test,val --workers $JOBS && $PY tools/render_wide.py --parts train --scenes 100 --workers $JOBS && $UAV eval search --setting wide,wide-uniform --perception models/perception.pt --wide-train-scenes 100 --episodes 10 --seeds 2 --no-progress --out results/search_wide"
+add perception_wide full "the wide net against its targets per altitude (test views), models/perception_wide.pt -> results/perception_wide/" \
+  "$UAV eval perception --setting wide --part test --out results/perception_wide --no-progress"
+add wide full "Table III: wide (100 test scenes) and wide-uniform (50), models/perception_wide.pt -> results/search_wide/, results/search_wide_uniform/" \
+  "$UAV eval search --setting wide --wide-train-scenes 20 --episodes 10 --seeds 2 --no-progress --out results/search_wide && $UAV eval search --setting wide-uniform --wide-test-scenes 50 --wide-val-scenes 20 --wide-train-scenes 20 --episodes 10 --seeds 2 --no-progress --out results/search_wide_uniform"
 FLIGHT_CMD=""
 for s in $SETTINGS; do
   FLIGHT_CMD+="rm -rf $RUN/flight_s$s && $UAV eval search --vehicle mavlink --setting $s --split paper --speed max --no-progress --out $RUN/flight_s$s && mkdir -p results/flight && cp $RUN/flight_s$s/flight_vs_teleport.md results/flight/flight_vs_teleport_s$s.md && "
