@@ -149,10 +149,12 @@ class SearchBatch:
         self.idx = torch.full((B,), config.lattice.start_index, dtype=torch.long)
         self.t = torch.zeros(B, dtype=torch.long)
         self.visits = torch.zeros(B, P, dtype=torch.long)
-        self.hist_p = torch.zeros(B, T, N)
+        # float64 views: the fused map then rounds to the same float32 whatever the batch's size and layout (a
+        # vector env equals its single envs bit for bit)
+        self.hist_p = torch.zeros(B, T, N, dtype=torch.float64)
         self.hist_valid = torch.zeros(B, T, N, dtype=torch.bool)
-        self.hist_area = torch.zeros(B, T, N)
-        self.hist_scores = torch.zeros(B, T, N)
+        self.hist_area = torch.zeros(B, T, N, dtype=torch.float64)
+        self.hist_scores = torch.zeros(B, T, N, dtype=torch.float64)
         self.fused = torch.full((B, N), float(fusion.prior))
         self.labels = torch.zeros(B, N, dtype=torch.bool)
         self.time_left = torch.zeros(B, dtype=torch.float64)
@@ -167,9 +169,10 @@ class SearchBatch:
         """Episodes `envs` take their next view (index t) at viewpoints `idx` and re-fuse."""
         c = self.source.cells(envs, idx)
         t = self.t[envs]
-        self.hist_p[envs, t], self.hist_valid[envs, t], self.hist_area[envs, t] = c.p, c.valid, c.area_px
+        self.hist_p[envs, t], self.hist_valid[envs, t] = c.p.double(), c.valid
+        self.hist_area[envs, t] = c.area_px.double()
         if c.scores is not None:
-            self.hist_scores[envs, t] = c.scores
+            self.hist_scores[envs, t] = c.scores.double()
         views = FusionViews(self.hist_p[envs], self.hist_valid[envs], self.hist_area[envs],
                             scores=self.hist_scores[envs] if c.scores is not None else None, labels=self.labels[envs])
         self.fused[envs] = self.fusion.fuse(views).float()

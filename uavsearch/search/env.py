@@ -65,7 +65,7 @@ def make_fusion(name: str, setting, models_dir=None) -> Fusion:
     sid = settings.setting_params(setting).name
     if not sid.isdigit():
         raise UavsearchError(f"{name} fusion has no shipped checkpoint for scene family {sid!r}; choose bayes")
-    return load_search_model(checkpoint_path(int(sid), name, models_dir)).fusion.frozen()
+    return load_search_model(checkpoint_path(int(sid), name, models_dir)).fusion  # eval mode; saves whole
 
 
 class SceneViews:
@@ -97,7 +97,7 @@ class SceneViews:
             self._perception = MODELS_DIR / "perception.pt"
         if not isinstance(self._perception, torch.nn.Module):
             self._perception, _ = load_perception(self._perception)
-        return self._perception.for_grid(self.config.grid.num_cells)
+        return self._perception.eval().for_grid(self.config.grid.num_cells)
 
     @property
     def tables(self):
