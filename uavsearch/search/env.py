@@ -384,7 +384,7 @@ class ActiveSearchEnv(gym.Env):
             self.scenes.tables  # builds the renders too
             vs = load_views(self.scenes.renders_root(), scenes=[(seed, self.scenes.k)])
             self._images[row] = vs.subset(np.argsort(vs.lattice_index))
-            while len(self._images) > self._cache_scenes:
+            while len(self._images) > max(self._cache_scenes, 32):  # about 4 MB a paper scene
                 self._images.popitem(last=False)
         return self._images[row]
 

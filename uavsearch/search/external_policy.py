@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
-from .cells import cells_observation, flatten_cells
+from .cells import cells_observation, flatten_cells, observation_keys
 from .config import SearchConfig, config_from_dict, config_to_dict
 from .search_loop import PolicyInput, sample_actions
 
@@ -56,6 +56,8 @@ class ExternalPolicyNet(nn.Module):
         layers.append(nn.Linear(prev, cfg.num_actions))
         self.mlp = nn.Sequential(*layers)
         self._config = cfg.search_config if cfg.search else None
+        if cfg.mask and (self._config is None or observation_keys(self._config)[0] != "action_mask"):
+            raise ValueError("a masking actor needs a search config whose observation starts with action_mask")
 
     @classmethod
     def for_config(cls, config: SearchConfig, hidden=(64, 64), trainer: str = "") -> "ExternalPolicyNet":
@@ -69,8 +71,13 @@ class ExternalPolicyNet(nn.Module):
                                   config_to_dict(config), config.budget_s is not None, trainer))
 
     def forward(self, flat_obs: torch.Tensor) -> torch.Tensor:
-        """(B, obs_dim) flattened observations -> (B, num_actions) logits (unmasked)."""
-        return self.mlp(flat_obs)
+        """(B, obs_dim) flattened observations -> (B, num_actions) logits, those outside the observation's
+        action_mask set to MASKED_LOGIT when the actor masks (its first num_actions entries: "action_mask" is
+        the first of the sorted keys)."""
+        logits = self.mlp(flat_obs)
+        if self.cfg.mask:
+            logits = torch.where(flat_obs[:, : self.cfg.num_actions] > 0, logits, MASKED_LOGIT)
+        return logits
 
     def observation(self, inp: PolicyInput) -> dict:
         """The "cells" observation the env would give for this point of the episode."""
@@ -82,11 +89,7 @@ class ExternalPolicyNet(nn.Module):
                                  torch.full((B,), int(inp.step), dtype=torch.long), inp.time_left_s, inp.allowed)
 
     def logits(self, inp: PolicyInput) -> torch.Tensor:
-        obs = self.observation(inp)
-        logits = self(torch.as_tensor(flatten_cells(obs)))
-        if self.cfg.mask and "action_mask" in obs:
-            logits = torch.where(torch.as_tensor(obs["action_mask"]) > 0, logits, MASKED_LOGIT)
-        return logits
+        return self(torch.as_tensor(flatten_cells(self.observation(inp))))
 
     def act(self, inp: PolicyInput, generator: torch.Generator | None = None, greedy: bool = False):
         return sample_actions(self.logits(inp), generator, greedy)

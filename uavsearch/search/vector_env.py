@@ -101,7 +101,7 @@ class SearchVectorEnv(VectorEnv):
         return {**info, **{f"_{k}": ones for k in list(info)}}
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
-        super().reset(seed=seed)
+        super().reset(seed=seed if seed is None or isinstance(seed, int) else None)
         if seed is not None:
             seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else list(seed)
             if len(seeds) != self.num_envs:
