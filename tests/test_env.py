@@ -14,7 +14,7 @@ from gymnasium.utils.env_checker import check_env
 from uavsearch.errors import SceneError
 from uavsearch.search.fusion import FUSIONS
 from uavsearch.search.config import SearchConfig
-from uavsearch.search.env import ActiveSearchEnv
+from uavsearch.search.envs.search_env import ActiveSearchEnv
 from uavsearch.search.perception import PerceptionConfig, PerceptionNet
 from uavsearch.search.metrics import map_f1
 from uavsearch.search.search_loop import R_RE, Agent, LiveViews, run_search, step_rewards

@@ -14,11 +14,11 @@ from gymnasium.wrappers import FlattenObservation
 import uavsearch.envs  # noqa: F401 - registers the ids
 from uavsearch.search.cells import flatten_cells
 from uavsearch.search.config import setting_config
-from uavsearch.search.env import ActiveSearchEnv, WideSearchEnv
+from uavsearch.search.envs.search_env import ActiveSearchEnv, WideSearchEnv
 from uavsearch.search.external_policy import ExternalPolicyNet
 from uavsearch.search.fusion import FUSIONS
 from uavsearch.search.search_loop import R_RE, Agent, CachedViews, classification_reward, run_search
-from uavsearch.search.vector_env import SearchVectorEnv
+from uavsearch.search.envs.vector_env import SearchVectorEnv
 from uavsearch.testing.synthetic_views import synthetic_cache
 
 PAPER = synthetic_cache(4, k=5, seed=1)  # setting 2's K, scene seeds 0..3

@@ -20,7 +20,7 @@ import torch
 import uavsearch.envs  # noqa: F401 - registers the ids
 import gymnasium as gym
 
-from uavsearch.search.env import ActiveSearchEnv
+from uavsearch.search.envs.search_env import ActiveSearchEnv
 from uavsearch.search.policy import RandomPolicy
 from uavsearch.search.search_loop import Agent, CachedViews, run_search
 

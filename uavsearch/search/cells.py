@@ -1,6 +1,6 @@
 """Search episodes stepped on per-cell views, batched: the state machine of the gymnasium environments.
 
-The envs (search/env.py, search/vector_env.py) and the external-policy adapter (external_policy.py) share
+The envs (search/envs/) and the external-policy adapter (external_policy.py) share
 this module, so what a learner is trained on and what `uavsearch eval search` feeds it are one code path.
 Nothing here imports gymnasium (flying and evaluation never load it).
 

@@ -2,7 +2,7 @@
 
 - `ActiveSearchEnv` (``uavsearch/ActiveSearch-v0``): the paper's settings 1-3, image or "cells" observations.
 - `WideSearchEnv` (``uavsearch/WideSearch-v0``): the wide scene family (any viewpoint next, time budget).
-- The batched form of both is `vector_env.SearchVectorEnv` (``gym.make_vec(id, num_envs=N,
+- The batched form of both is `envs.vector_env.SearchVectorEnv` (``gym.make_vec(id, num_envs=N,
   vectorization_mode="vector_entry_point")``).
 
 Every env steps the same state machine (cells.SearchBatch) on the project's view caches
@@ -23,15 +23,15 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from ..errors import SceneError, UavsearchError
-from ..paths import MODELS_DIR
-from ..world import settings
-from ..world.scene import SceneSpec, scene_from_json, scene_to_json
-from .cells import REWARD_MODES, SearchBatch, TableSource, ViewCells, cell_tables, observation_keys
-from .config import SearchConfig, setting_config
-from .fusion import FUSIONS, Fusion
-from .search_loop import R_FP, R_RE, R_TP
-from .views import TeleportVehicle, View
+from ...errors import SceneError, UavsearchError
+from ...paths import MODELS_DIR
+from ...world import settings
+from ...world.scene import SceneSpec, scene_from_json, scene_to_json
+from ..cells import REWARD_MODES, SearchBatch, TableSource, ViewCells, cell_tables, observation_keys
+from ..config import SearchConfig, setting_config
+from ..fusion import FUSIONS, Fusion
+from ..search_loop import R_FP, R_RE, R_TP
+from ..views import TeleportVehicle, View
 
 OBS_MODES = ("image", "cells")
 VIEW_MODES = ("cache", "live")
@@ -55,8 +55,8 @@ def default_fusion(setting) -> str:
 
 def make_fusion(name: str, setting, models_dir=None) -> Fusion:
     """The fusion object `name` (search/fusion.py's FUSIONS); a trained one comes from the setting's checkpoint."""
-    from .agents import checkpoint_path
-    from .policy import load_search_model
+    from ..agents import checkpoint_path
+    from ..policy import load_search_model
 
     if name not in FUSIONS:
         raise UavsearchError(f"unknown fusion method {name!r}; choose one of {', '.join(FUSIONS)}")
@@ -91,7 +91,7 @@ class SceneViews:
     @property
     def perception(self):
         """The frozen perception net (models/perception.pt unless given), for the grid of the config."""
-        from .perception import load_perception
+        from ..perception import load_perception
 
         if self._perception is None:
             self._perception = MODELS_DIR / "perception.pt"
@@ -103,7 +103,7 @@ class SceneViews:
     def tables(self):
         if self._tables is None:
             if self._cache is None:
-                from .data.view_cache import get_view_cache
+                from ..data.view_cache import get_view_cache
 
                 torch.set_num_threads(min(torch.get_num_threads(), 2))
                 self._cache = get_view_cache(self.perception, self.setting, self.split, self.part,
@@ -129,7 +129,7 @@ class SceneViews:
 
     def renders_root(self) -> Path:
         """The folder of the lattice renders (view_cache's first layer) the cache was computed from."""
-        from .data.view_cache import CACHE_DIR, CacheKey, world_tag
+        from ..data.view_cache import CACHE_DIR, CacheKey, world_tag
 
         key = CacheKey(self.setting, self.split, self.part, self.config, self.limit)
         return Path(self.cache_dir or CACHE_DIR) / "lattice_views" / world_tag(self.config, key.family) / key.part_name
@@ -349,7 +349,7 @@ class ActiveSearchEnv(gym.Env):
                 return self.scenes.seeds.index(seed), None, seed, k
             if k == fam.k:
                 return None, settings.generate_setting_scene(setting, seed), seed, k
-            from ..world.scene import generate_scene
+            from ...world.scene import generate_scene
 
             return None, generate_scene(seed, k), seed, k
         if ours:
@@ -377,7 +377,7 @@ class ActiveSearchEnv(gym.Env):
         return v
 
     def _cached_images(self, row: int):
-        from .data.dataset import load_views
+        from ..data.dataset import load_views
 
         if row not in self._images:
             seed = self.scenes.seeds[row]

@@ -15,12 +15,12 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from ..errors import UavsearchError
-from ..world import settings
-from .cells import SearchBatch, TableSource
-from .config import SearchConfig, setting_config
-from .env import SceneViews, cells_space, default_fusion, make_fusion
-from .search_loop import R_FP, R_RE, R_TP
+from ...errors import UavsearchError
+from ...world import settings
+from ..cells import SearchBatch, TableSource
+from ..config import SearchConfig, setting_config
+from .search_env import SceneViews, cells_space, default_fusion, make_fusion
+from ..search_loop import R_FP, R_RE, R_TP
 
 
 class SearchVectorEnv(VectorEnv):
