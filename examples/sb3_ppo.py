@@ -44,6 +44,7 @@ class Args:
     env_id: str = "uavsearch/ActiveSearch-v0"  # the gymnasium id
     setting: str = "2"  # paper setting 1 | 2 | 3
     reward: str = "shaped"  # the env's reward: shaped (per step) or terminal (the same sum)
+    limit: int = 0  # train on the part's first scenes only (0: all)
     seed: int = 1  # seeds random, numpy, torch, the envs and SB3
     total_timesteps: int = 200_000  # env steps in all
     n_envs: int = 16  # episodes stepped together
@@ -136,7 +137,7 @@ def train(args: Args) -> dict:
     run_dir = Path(args.runs_dir) / f"sb3_ppo_s{args.setting}__{args.seed}__{int(time.time())}"
     run_dir.mkdir(parents=True)
     (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
-    kw = {"obs": "cells", "reward": args.reward, "setting": int(args.setting)}
+    kw = {"obs": "cells", "reward": args.reward, "setting": int(args.setting), **({"limit": args.limit} if args.limit else {})}
     if args.single:
         venv = make_vec_env(lambda: FlattenObservation(gym.make(args.env_id, **kw)), n_envs=args.n_envs, seed=args.seed)
         env = venv.envs[0].unwrapped

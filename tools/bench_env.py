@@ -100,7 +100,8 @@ def main(argv=None) -> int:
     print("| run | steps/s | share of the limit | steps | s |")
     print("|---|---|---|---|---|")
     for name, (rate, n, dt) in rows:
-        print(f"| {name} | {rate:,.0f} | {rate / limit:.3f} | {n} | {dt:.1f} |")
+        print(f"| {name} | {rate:,.0f} | {rate / limit:.3f} | {n} | {dt:.1f} |" if rate >= 100 else
+              f"| {name} | {rate:.2f} | {rate / limit:.5f} | {n} | {dt:.1f} |")
     return 0
 
 
