@@ -79,8 +79,7 @@ ROWS: tuple[tuple[str, str, str, str], ...] = (
     ("oracle_policy", "oracle fusion + policy", "oracle", "learned"),
     ("learned_coverage", "learned confidence fusion + coverage route", "learned", "coverage"),
     ("learned_greedy", "learned confidence fusion + greedy uncertainty", "learned", "greedy"),
-    ("external_ppo", "PPO (external): learned confidence fusion + a PPO actor trained on the gymnasium env", "learned",
-     "external"),
+    ("external_ppo", "PPO (external): learned confidence fusion + PPO actor", "learned", "external"),
 )
 NON_ORACLE = [r[0] for r in ROWS if r[2] != "oracle"]
 LABELS = {key: label for key, label, _, _ in ROWS}
