@@ -72,12 +72,14 @@ class SceneViews:
     """Where an env's scenes come from: the view cache of one (setting, split, part) under a config, loaded on
     first use (built then if missing, with progress bars), plus the scene seeds it holds.
 
-    `cache` (a view_cache.ViewCache already in memory, e.g. a synthetic one) replaces the lookup."""
+    `cache` (a view_cache.ViewCache already in memory, e.g. a synthetic one) replaces the lookup. `workers`: render
+    processes for a cache being built (1, the default, renders in this process: a script without an
+    ``if __name__ == "__main__":`` guard cannot start spawned workers)."""
 
     def __init__(self, setting, split, part, config: SearchConfig, fusion: Fusion, perception=None, limit=None,
-                 cache_dir=None, cache=None, progress: bool = True):
+                 cache_dir=None, cache=None, progress: bool = True, workers: int = 1):
         self.setting, self.split, self.part, self.config, self.fusion = setting, split, part, config, fusion
-        self.limit, self.cache_dir, self.progress = limit, cache_dir, progress
+        self.limit, self.cache_dir, self.progress, self.workers = limit, cache_dir, progress, workers
         self._perception, self._cache = perception, cache
         self._tables = None
         if cache is not None:
@@ -108,6 +110,7 @@ class SceneViews:
                 torch.set_num_threads(min(torch.get_num_threads(), 2))
                 self._cache = get_view_cache(self.perception, self.setting, self.split, self.part,
                                              cache_dir=self.cache_dir, progress=self.progress, config=self.config,
+                                             workers=self.workers,
                                              features=self.fusion.scorer is not None, limit=self.limit)
             self._tables = cell_tables(self._cache, self.fusion)
         return self._tables
@@ -249,7 +252,8 @@ class ActiveSearchEnv(gym.Env):
     ``fusion``, ``views``, ``perception`` (checkpoint path or net; default models/perception.pt),
     ``models_dir`` (where a trained fusion's checkpoint lives), ``cache_dir``, ``cache`` (a ViewCache in
     memory instead), ``r_tp`` / ``r_fp`` / ``r_revisit``, ``render_mode`` (``"rgb_array"``: the last view's
-    image; image mode), ``cache_scenes`` (live scenes whose renders are kept), ``progress``.
+    image; image mode), ``cache_scenes`` (live scenes whose renders are kept), ``progress``, ``workers`` (render
+    processes when a cache is built; 1 renders in this process).
 
     **Info.** ``occupancy`` (N*N,) int8 ground truth; ``f1`` / ``acc`` of the fused map after this view
     (search/metrics.py); ``revisit`` bool; ``scene_seed``; ``occupied_cells``; ``lattice_index`` of the camera
@@ -280,6 +284,7 @@ class ActiveSearchEnv(gym.Env):
         render_mode: str | None = None,
         cache_scenes: int = 8,
         progress: bool = True,
+        workers: int = 1,
     ):
         settings.setting_params(setting)  # a bad setting is a one-line error now
         if isinstance(setting, str) and setting.strip().isdigit():
@@ -301,7 +306,7 @@ class ActiveSearchEnv(gym.Env):
         self.render_mode = render_mode
         self.fusion = make_fusion(fusion or default_fusion(setting), setting, models_dir)
         self.scenes = SceneViews(setting, self.split, part, self.config, self.fusion, perception, limit, cache_dir,
-                                 cache, progress)
+                                 cache, progress, workers)
         self._batch = SearchBatch(self.config, self.fusion, 1, reward, r_tp, r_fp, r_revisit)
         self._vehicles: OrderedDict[str, TeleportVehicle] = OrderedDict()  # live scenes' renderers
         self._cache_scenes = cache_scenes

@@ -51,7 +51,7 @@ class SearchVectorEnv(VectorEnv):
                  split: str | None = None, part: str = "train", obs: str = "cells", reward: str = "terminal",
                  fusion: str | None = None, limit: int | None = None, perception=None, models_dir=None,
                  cache_dir=None, cache=None, r_tp: float = R_TP, r_fp: float = R_FP, r_revisit: float = R_RE,
-                 progress: bool = True, views: str = "cache", render_mode: str | None = None):
+                 progress: bool = True, views: str = "cache", render_mode: str | None = None, workers: int = 1):
         if obs != "cells" or views != "cache":
             raise UavsearchError("the native vector env steps cached 'cells' observations only; for images use "
                                  "gym.make_vec(..., vectorization_mode='sync') of the single env")
@@ -65,7 +65,7 @@ class SearchVectorEnv(VectorEnv):
         self.setting, self.split, self.part = setting, split or settings.setting_params(setting).split, part
         self.fusion = make_fusion(fusion or default_fusion(setting), setting, models_dir)
         self.scenes = SceneViews(setting, self.split, part, self.config, self.fusion, perception, limit, cache_dir,
-                                 cache, progress)
+                                 cache, progress, workers)
         self.render_mode = render_mode
         self.single_observation_space = cells_space(self.config)
         self.single_action_space = gym.spaces.Discrete(self.config.num_actions)
