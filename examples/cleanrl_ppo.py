@@ -16,7 +16,7 @@ import csv
 import json
 import shutil
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import gymnasium as gym
@@ -26,6 +26,7 @@ from gymnasium.wrappers.vector import FlattenObservation
 from torch import nn
 
 import uavsearch.envs  # noqa: F401 - registers the ids
+from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
 from uavsearch.search.agents import checkpoint_path
 from uavsearch.search.config import config_to_dict
@@ -36,28 +37,28 @@ from uavsearch.search.train.runs import seed_everything
 
 @dataclass
 class Args:
-    env_id: str = "uavsearch/ActiveSearch-v0"  # the gymnasium id (uavsearch/WideSearch-v0: the wide family)
-    setting: str = "2"  # paper setting 1 | 2 | 3, or a scene family (wide) for WideSearch-v0
-    fusion: str = ""  # the env's fusion (default: learned for 1-3, bayes for the families)
-    reward: str = "shaped"  # the env's reward: shaped (per step) or terminal (the same sum)
-    limit: int = 0  # train on the part's first scenes only (0: all)
-    seed: int = 1  # seeds random, numpy, torch and the envs
-    total_timesteps: int = 300_000  # env steps in all (over every env)
-    num_envs: int = 64  # episodes stepped together
-    num_steps: int = 32  # steps per env per rollout
-    learning_rate: float = 2.5e-4  # Adam's, annealed linearly to 0
-    gamma: float = 1.0  # discount (episodes are a handful of steps)
-    gae_lambda: float = 0.95  # GAE's lambda
-    num_minibatches: int = 4  # minibatches per epoch
-    update_epochs: int = 4  # epochs per rollout
-    clip_coef: float = 0.2  # the surrogate's clip
-    ent_coef: float = 0.01  # entropy bonus
-    vf_coef: float = 0.5  # value loss weight
-    max_grad_norm: float = 0.5  # gradient clip
-    hidden: str = "64,64"  # the actor's (and critic's) hidden layers
-    threads: int = 1  # torch CPU threads
-    runs_dir: str = str(RUNS_DIR)  # parent of the run directory
-    ship: bool = False  # copy the checkpoint to models/ (what `uavsearch eval search` reads)
+    env_id: str = opt("uavsearch/ActiveSearch-v0", "the gymnasium id (uavsearch/WideSearch-v0: the wide family)")
+    setting: str = opt("2", "paper setting 1 | 2 | 3, or a scene family (wide) for WideSearch-v0")
+    fusion: str = opt("", "the env's fusion (default: learned for 1-3, bayes for the families)")
+    reward: str = opt("shaped", "the env's reward: shaped (per step) or terminal (the same sum)")
+    limit: int = opt(0, "train on the part's first scenes only (0: all)")
+    seed: int = opt(1, "seeds random, numpy, torch and the envs")
+    total_timesteps: int = opt(300_000, "env steps in all (over every env)")
+    num_envs: int = opt(64, "episodes stepped together")
+    num_steps: int = opt(32, "steps per env per rollout")
+    learning_rate: float = opt(2.5e-4, "Adam's, annealed linearly to 0")
+    gamma: float = opt(1.0, "discount (episodes are a handful of steps)")
+    gae_lambda: float = opt(0.95, "GAE's lambda")
+    num_minibatches: int = opt(4, "minibatches per epoch")
+    update_epochs: int = opt(4, "epochs per rollout")
+    clip_coef: float = opt(0.2, "the surrogate's clip")
+    ent_coef: float = opt(0.01, "entropy bonus")
+    vf_coef: float = opt(0.5, "value loss weight")
+    max_grad_norm: float = opt(0.5, "gradient clip")
+    hidden: str = opt("64,64", "the actor's (and critic's) hidden layers")
+    threads: int = opt(1, "torch CPU threads")
+    runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
+    ship: bool = opt(False, "copy the checkpoint to models/ (what `uavsearch eval search` reads)")
 
 
 def critic(obs_dim: int, hidden: tuple[int, ...]) -> nn.Module:
@@ -186,13 +187,7 @@ def train(args: Args) -> dict:
 
 def parse_args(argv=None) -> Args:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for f in fields(Args):
-        flag = "--" + f.name.replace("_", "-")
-        if f.type == "bool":
-            p.add_argument(flag, action="store_true", default=f.default)
-        else:
-            p.add_argument(flag, type={"int": int, "float": float}.get(f.type, str), default=f.default)
-    return Args(**vars(p.parse_args(argv)))
+    return dataclass_from_args(Args, add_dataclass_args(p, Args).parse_args(argv))
 
 
 if __name__ == "__main__":

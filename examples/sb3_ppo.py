@@ -21,7 +21,7 @@ import argparse
 import json
 import shutil
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import gymnasium as gym
@@ -31,6 +31,7 @@ from gymnasium.wrappers import FlattenObservation
 from torch import nn
 
 import uavsearch.envs  # noqa: F401 - registers the ids
+from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
 from uavsearch.search.agents import checkpoint_path
 from uavsearch.search.config import config_to_dict
@@ -41,24 +42,24 @@ from uavsearch.search.train.runs import seed_everything
 
 @dataclass
 class Args:
-    env_id: str = "uavsearch/ActiveSearch-v0"  # the gymnasium id
-    setting: str = "2"  # paper setting 1 | 2 | 3
-    reward: str = "shaped"  # the env's reward: shaped (per step) or terminal (the same sum)
-    limit: int = 0  # train on the part's first scenes only (0: all)
-    seed: int = 1  # seeds random, numpy, torch, the envs and SB3
-    total_timesteps: int = 200_000  # env steps in all
-    n_envs: int = 16  # episodes stepped together
-    single: bool = False  # SB3's DummyVecEnv of single envs instead of the native vector env
-    n_steps: int = 128  # steps per env per rollout
-    batch_size: int = 256  # SB3's minibatch
-    n_epochs: int = 4  # epochs per rollout
-    learning_rate: float = 3e-4  # Adam's
-    gamma: float = 1.0  # discount (episodes are a handful of steps)
-    ent_coef: float = 0.01  # entropy bonus
-    hidden: str = "64,64"  # the actor's and critic's hidden layers (tanh)
-    threads: int = 1  # torch CPU threads
-    runs_dir: str = str(RUNS_DIR)  # parent of the run directory
-    ship: bool = False  # copy the checkpoint to models/ (what `uavsearch eval search` reads)
+    env_id: str = opt("uavsearch/ActiveSearch-v0", "the gymnasium id")
+    setting: str = opt("2", "paper setting 1 | 2 | 3")
+    reward: str = opt("shaped", "the env's reward: shaped (per step) or terminal (the same sum)")
+    limit: int = opt(0, "train on the part's first scenes only (0: all)")
+    seed: int = opt(1, "seeds random, numpy, torch, the envs and SB3")
+    total_timesteps: int = opt(200_000, "env steps in all")
+    n_envs: int = opt(16, "episodes stepped together")
+    single: bool = opt(False, "SB3's DummyVecEnv of single envs instead of the native vector env")
+    n_steps: int = opt(128, "steps per env per rollout")
+    batch_size: int = opt(256, "SB3's minibatch")
+    n_epochs: int = opt(4, "epochs per rollout")
+    learning_rate: float = opt(3e-4, "Adam's")
+    gamma: float = opt(1.0, "discount (episodes are a handful of steps)")
+    ent_coef: float = opt(0.01, "entropy bonus")
+    hidden: str = opt("64,64", "the actor's and critic's hidden layers (tanh)")
+    threads: int = opt(1, "torch CPU threads")
+    runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
+    ship: bool = opt(False, "copy the checkpoint to models/ (what `uavsearch eval search` reads)")
 
 
 def export_actor(model, config) -> ExternalPolicyNet:
@@ -166,13 +167,7 @@ def train(args: Args) -> dict:
 
 def parse_args(argv=None) -> Args:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for f in fields(Args):
-        flag = "--" + f.name.replace("_", "-")
-        if f.type == "bool":
-            p.add_argument(flag, action="store_true", default=f.default)
-        else:
-            p.add_argument(flag, type={"int": int, "float": float}.get(f.type, str), default=f.default)
-    return Args(**vars(p.parse_args(argv)))
+    return dataclass_from_args(Args, add_dataclass_args(p, Args).parse_args(argv))
 
 
 if __name__ == "__main__":
