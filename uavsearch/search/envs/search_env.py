@@ -107,7 +107,6 @@ class SceneViews:
             if self._cache is None:
                 from ..data.view_cache import get_view_cache
 
-                torch.set_num_threads(min(torch.get_num_threads(), 2))
                 self._cache = get_view_cache(self.perception, self.setting, self.split, self.part,
                                              cache_dir=self.cache_dir, progress=self.progress, config=self.config,
                                              workers=self.workers,
