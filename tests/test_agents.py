@@ -14,7 +14,8 @@ from uavsearch.replay.replay import _fuse_all
 from uavsearch.fly.missions import mission_from_dict
 from uavsearch.search import fusion
 from uavsearch.search.agents import POLICIES, build_agent, checkpoint_path, new_agent, trained_fusion
-from uavsearch.search.config import SearchConfig, setting_config
+from uavsearch.search.config import SearchConfig, config_to_dict, setting_config
+from uavsearch.search.external_policy import ExternalPolicyNet
 from uavsearch.search.fusion import FUSIONS, Fusion
 from uavsearch.search.policy import save_search_model
 from uavsearch.search.reactive import ReactivePolicyNet
@@ -27,6 +28,8 @@ def _ship(models, setting=2, cell_dim=6, global_dim=16):
         a = new_agent(f, SearchConfig(), global_dim, cell_dim)
         save_search_model(checkpoint_path(setting, f, models), a.fusion, a.policy)
         save_search_model(checkpoint_path(setting, f, models, policy="reactive"), a.fusion, ReactivePolicyNet())
+        save_search_model(checkpoint_path(setting, f, models, policy="external"), a.fusion,
+                          ExternalPolicyNet.for_config(SearchConfig()), {"search_config": config_to_dict(SearchConfig())})
 
 
 @pytest.mark.parametrize("policy", list(POLICIES))

@@ -1,4 +1,5 @@
-"""The teleport environment: gymnasium conformance, determinism, lattice moves and revisits."""
+"""The teleport environments: gymnasium conformance in every mode, determinism, lattice moves and revisits, the
+paper's reward, the cached views (and the live fallback), the native vector env against N single envs."""
 
 import os
 import subprocess
@@ -13,10 +14,10 @@ from gymnasium.utils.env_checker import check_env
 from uavsearch.errors import SceneError
 from uavsearch.search.fusion import FUSIONS
 from uavsearch.search.config import SearchConfig
-from uavsearch.search.env import ActiveSearchEnv
+from uavsearch.search.envs.search_env import ActiveSearchEnv
 from uavsearch.search.perception import PerceptionConfig, PerceptionNet
-from uavsearch.search.search_loop import R_RE, Agent, LiveViews, run_search
-from uavsearch.search.train.policy import Args, returns
+from uavsearch.search.metrics import map_f1
+from uavsearch.search.search_loop import R_RE, Agent, LiveViews, run_search, step_rewards
 from uavsearch.search.views import TeleportVehicle
 from uavsearch.world.scene import generate_scene
 
@@ -25,7 +26,7 @@ NORTH, EAST, WEST, SOUTH = 0, 1, 2, 3
 
 @pytest.fixture(scope="module")
 def env():
-    e = ActiveSearchEnv(setting=1)
+    e = ActiveSearchEnv(setting=1, views="live")
     yield e
     e.close()
 
@@ -42,7 +43,7 @@ def test_lattice_is_the_paper_one():
 
 
 def test_check_env_passes():
-    e = gym.make("uavsearch.envs:uavsearch/ActiveSearch-v0", setting=1)
+    e = gym.make("uavsearch.envs:uavsearch/ActiveSearch-v0", setting=1, views="live")
     check_env(e.unwrapped, skip_render_check=True)
     e.close()
 
@@ -84,7 +85,7 @@ def test_going_back_is_a_revisit(env):
 
 
 def test_same_seed_same_scene_and_images():
-    a, b = ActiveSearchEnv(setting=2), ActiveSearchEnv(setting=2)
+    a, b = ActiveSearchEnv(setting=2, views="live"), ActiveSearchEnv(setting=2, views="live")
     oa, ia = a.reset(seed=7)
     ob, ib = b.reset(seed=7)
     assert ia["scene_seed"] == ib["scene_seed"]
@@ -120,10 +121,13 @@ class _Scripted:
 
 
 @pytest.mark.parametrize("actions", [(WEST, WEST, WEST, EAST), (NORTH, SOUTH, NORTH, EAST), (EAST, NORTH, WEST, SOUTH)])
-def test_env_and_search_loop_agree_step_for_step(env, actions):
-    """Same scene, seed and actions: the env and run_search visit the same positions, flag the same
-    revisits and give the same move rewards as training computes from the episode."""
+def test_env_and_search_loop_agree_step_for_step(actions):
+    """Same scene, perception, fusion and actions: the env and run_search visit the same positions, flag the
+    same revisits, and the env pays each step what training's step_rewards pays that view."""
     scene = generate_scene(11, 2)
+    torch.manual_seed(0)
+    net = PerceptionNet(PerceptionConfig())
+    env = ActiveSearchEnv(setting=1, views="live", perception=net, fusion="average")
     obs, info = env.reset(seed=0, options={"scene": scene})
     env_pos, env_idx, env_rev, env_r = [obs["position_enu"]], [info["lattice_index"]], [info["revisit"]], []
     for a in actions:
@@ -133,17 +137,16 @@ def test_env_and_search_loop_agree_step_for_step(env, actions):
         env_rev.append(info["revisit"])
         env_r.append(r)
     assert term
-    torch.manual_seed(0)
+    env.close()
     with TeleportVehicle(scene, env.config) as vehicle, torch.no_grad():
-        views = LiveViews(vehicle, PerceptionNet(PerceptionConfig()), scene.occupancy_array())
+        views = LiveViews(vehicle, net, scene.occupancy_array())
         ep = run_search(views, Agent(FUSIONS["average"](), _Scripted(actions)), generator=torch.Generator().manual_seed(0))
     assert ep.lattice_idx[0].tolist() == env_idx
     assert ep.revisit[0].tolist() == env_rev
     np.testing.assert_array_equal(np.stack([v.position_enu for v in views.views]).astype(np.float32), env_pos)
-    R, r_cls = returns(ep._replace(maps=torch.zeros_like(ep.maps)), Args())  # empty maps: R_cls = 0
-    assert float(r_cls[0]) == 0.0
-    per_move = (R[0] - torch.cat([R[0, 1:], torch.zeros(1)])).tolist()
-    assert per_move == pytest.approx(env_r, abs=0) and sum(env_r) == R_RE * sum(env_rev)
+    r = step_rewards(ep.maps, ep.labels, ep.revisit)[0]  # training's reward of each view
+    assert float(r[0]) == 0.0 and env_r == pytest.approx(r[1:].tolist(), abs=1e-6)
+    assert info["f1"] == pytest.approx(float(map_f1(ep.maps[0, -1].numpy(), ep.labels[0].numpy())))
 
 
 def test_gymnasium_finds_the_env_by_module_id_and_plain_import_skips_gymnasium():

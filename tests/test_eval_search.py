@@ -19,6 +19,8 @@ from uavsearch.search.evaluate.search import (
     model_path,
     summarise,
 )
+from uavsearch.search.config import SearchConfig
+from uavsearch.search.external_policy import ExternalPolicyNet
 from uavsearch.search.fusion import FUSIONS, LearnedFusion
 from uavsearch.search.agents import checkpoint_path
 from uavsearch.search.perception import ConfidenceNet
@@ -36,6 +38,8 @@ def _models(tmp_path, settings=(2,), cell_dim=6, global_dim=16):
             if fusion == "learned":  # the reactive row: its own net on the same confidence net
                 save_search_model(checkpoint_path(s, fusion, tmp_path, policy="reactive"), fu,
                                   ReactivePolicyNet())
+                save_search_model(checkpoint_path(s, fusion, tmp_path, policy="external"), fu,
+                                  ExternalPolicyNet.for_config(SearchConfig()))
     return tmp_path
 
 

@@ -3,6 +3,12 @@
 gymnasium imports it itself for an id written ``"uavsearch.envs:uavsearch/ActiveSearch-v0"`` (its
 ``module:id`` form), or after ``import uavsearch.envs``; nothing else in uavsearch imports gymnasium, so the
 vehicle and render processes of a flight never pay for it.
+
+- ``uavsearch/ActiveSearch-v0``: the paper's settings 1-3 (``setting=`` 1 | 2 | 3; search/envs/search_env.py ActiveSearchEnv).
+- ``uavsearch/WideSearch-v0``: the wide scene family (search/envs/search_env.py WideSearchEnv).
+
+Both have a native vector env (search/envs/vector_env.py SearchVectorEnv, "cells" observations on the view caches):
+``gym.make_vec(id, num_envs=N, vectorization_mode="vector_entry_point", obs="cells")``.
 """
 
 from __future__ import annotations
@@ -10,10 +16,24 @@ from __future__ import annotations
 from gymnasium.envs.registration import register, registry
 
 ACTIVE_SEARCH_ID = "uavsearch/ActiveSearch-v0"
+WIDE_SEARCH_ID = "uavsearch/WideSearch-v0"
 
+
+def wide_vector_env(num_envs: int = 1, **kwargs):
+    """The vector entry point of WideSearch-v0: SearchVectorEnv on the wide family (setting "wide")."""
+    from uavsearch.search.envs.vector_env import SearchVectorEnv
+
+    kwargs.setdefault("setting", "wide")
+    return SearchVectorEnv(num_envs=num_envs, **kwargs)
+
+
+# No max_episode_steps: the view budget T (and the wide family's time budget) is part of the task (a mission
+# parameter), and the env terminates itself.
 if ACTIVE_SEARCH_ID not in registry:
-    # No max_episode_steps: the view budget T is part of the task (a mission parameter), and the env
-    # terminates itself after T views.
-    register(id=ACTIVE_SEARCH_ID, entry_point="uavsearch.search.env:ActiveSearchEnv")
+    register(id=ACTIVE_SEARCH_ID, entry_point="uavsearch.search.envs.search_env:ActiveSearchEnv",
+             vector_entry_point="uavsearch.search.envs.vector_env:SearchVectorEnv")
+if WIDE_SEARCH_ID not in registry:
+    register(id=WIDE_SEARCH_ID, entry_point="uavsearch.search.envs.search_env:WideSearchEnv",
+             vector_entry_point="uavsearch.envs:wide_vector_env")
 
-__all__ = ["ACTIVE_SEARCH_ID"]
+__all__ = ["ACTIVE_SEARCH_ID", "WIDE_SEARCH_ID", "wide_vector_env"]

@@ -7,7 +7,8 @@ log) and training all build their agents here, so a fusion method or a policy is
   with its weights from a search checkpoint, which saves the fusion object whole.
 - policies: `POLICIES` below. "learned" (the paper's PolicyNet) loads its net from a search checkpoint
   (search_s<K>_<fusion>.pt, trained with that fusion), "reactive" (reactive.ReactivePolicyNet) from
-  search_s<K>_<fusion>_reactive.pt; the others are built from the search config.
+  search_s<K>_<fusion>_reactive.pt, "external" (external_policy.ExternalPolicyNet, a PPO actor trained on the
+  gymnasium env) from search_s<K>_<fusion>_external.pt; the others are built from the search config.
 
 Adding a fusion method is one class and one entry in fusion.py's FUSIONS; adding a policy is one entry here.
 """
@@ -48,6 +49,8 @@ POLICIES: dict[str, PolicyKind] = {
     "learned": PolicyKind(None, "the REINFORCE view-selection net of a search checkpoint", "paper"),
     "reactive": PolicyKind(None, "a conv net on the map of what each view said (DAgger + REINFORCE; beyond the "
                                  "paper)", "reactive"),
+    "external": PolicyKind(None, "a PPO actor trained outside on the gymnasium env's cells observations "
+                                 "(examples/sb3_ppo.py, examples/cleanrl_ppo.py; beyond the paper)", "external"),
     "random": PolicyKind(lambda config: RandomPolicy(len(config.actions)) if config.move_set == "steps"
                          else MaskedRandom(config), "uniform random moves (any viewpoint: uniform over the allowed)"),
     "coverage": PolicyKind(CoverageRoute, "a fixed geometric route (beyond the paper)"),

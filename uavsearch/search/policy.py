@@ -31,6 +31,7 @@ from torch import nn
 from uavsearch.errors import UavsearchError
 
 from .config import SearchConfig
+from .external_policy import ExternalConfig, ExternalPolicyNet
 from .fusion import Fusion, load_fusion
 from .perception import EMBED_DIM, ImageEmbedding
 from .reactive import ReactiveConfig, ReactivePolicyNet
@@ -170,6 +171,7 @@ FORMAT_V1 = "uavsearch-search-model/1"  # fusion as a name, learned fusion's con
 POLICY_NETS: dict[str, tuple[type[nn.Module], type]] = {
     PolicyNet.KIND: (PolicyNet, PolicyConfig),
     ReactivePolicyNet.KIND: (ReactivePolicyNet, ReactiveConfig),
+    ExternalPolicyNet.KIND: (ExternalPolicyNet, ExternalConfig),
 }
 
 

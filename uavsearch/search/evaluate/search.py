@@ -13,6 +13,9 @@ agents.build_agent from its (fusion, policy) names:
     oracle fusion + policy
     learned fusion + coverage route      beyond the paper: a fixed geometric route (policy.CoverageRoute)
     learned fusion + greedy uncertainty  beyond the paper: toward the most uncertain cells
+    PPO (external)                       beyond the paper: learned fusion + a PPO actor trained on the gymnasium
+                                         env's cells observations (search_s<K>_learned_external.pt, written by
+                                         examples/sb3_ppo.py or examples/cleanrl_ppo.py; argmax moves)
 
 Each stochastic method runs `episodes` episodes per test scene for each of `seeds` evaluation seeds
 (the seeds drive the policies' action sampling); the table gives the mean over seeds and, after ±, the
@@ -77,12 +80,15 @@ ROWS: tuple[tuple[str, str, str, str], ...] = (
     ("oracle_policy", "oracle fusion + policy", "oracle", "learned"),
     ("learned_coverage", "learned confidence fusion + coverage route", "learned", "coverage"),
     ("learned_greedy", "learned confidence fusion + greedy uncertainty", "learned", "greedy"),
+    ("external_ppo", "PPO (external): learned confidence fusion + PPO actor", "learned", "external"),
 )
 NON_ORACLE = [r[0] for r in ROWS if r[2] != "oracle"]
 LABELS = {key: label for key, label, _, _ in ROWS}
 # The reactive policy is trained to act on its most likely move (DAgger, then checkpoints chosen by their argmax
 # moves), so it is evaluated that way; the paper's policy samples, as in the paper (or --argmax for all).
-ARGMAX_POLICIES = ("reactive",)
+# A PPO actor trained outside (the "external" policy) is scored by its most likely move too, as SB3's
+# predict(deterministic=True) does.
+ARGMAX_POLICIES = ("reactive", "external")
 REFERENCES = ("learned_coverage", "learned_greedy")  # the fixed baselines every row is paired with
 model_path = checkpoint_path  # where the shipped policy trained with a fusion for a setting lives
 
