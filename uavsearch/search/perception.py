@@ -482,12 +482,14 @@ def load_perception(path, map_location: str = "cpu") -> tuple[PerceptionNet, dic
 
 def shipped_perception(setting=None) -> Path:
     """The shipped net for a setting: a scene family's own (models/perception_<family>.pt, trained on its
-    altitudes) where it exists, else the paper's models/perception.pt."""
+    altitudes; a variant such as wide-uniform shares its base family's, perception_wide.pt) where it exists,
+    else the paper's models/perception.pt."""
     from uavsearch.paths import MODELS_DIR
 
-    family = MODELS_DIR / f"perception_{setting}.pt"
-    if isinstance(setting, str) and not setting.isdigit() and family.is_file():
-        return family
+    if isinstance(setting, str) and not setting.strip().isdigit():
+        for name in dict.fromkeys((setting, setting.split("-")[0])):
+            if (MODELS_DIR / f"perception_{name}.pt").is_file():
+                return MODELS_DIR / f"perception_{name}.pt"
     return MODELS_DIR / "perception.pt"
 
 

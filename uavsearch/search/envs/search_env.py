@@ -24,7 +24,6 @@ import torch
 from gymnasium import spaces
 
 from ...errors import SceneError, UavsearchError
-from ...paths import MODELS_DIR
 from ...world import settings
 from ...world.scene import SceneSpec, scene_from_json, scene_to_json
 from ..cells import REWARD_MODES, SearchBatch, TableSource, ViewCells, cell_tables, observation_keys
@@ -92,11 +91,12 @@ class SceneViews:
 
     @property
     def perception(self):
-        """The frozen perception net (models/perception.pt unless given), for the grid of the config."""
-        from ..perception import load_perception
+        """The frozen perception net (the setting's shipped one unless given: perception.shipped_perception),
+        for the grid of the config."""
+        from ..perception import load_perception, shipped_perception
 
         if self._perception is None:
-            self._perception = MODELS_DIR / "perception.pt"
+            self._perception = shipped_perception(self.setting)
         if not isinstance(self._perception, torch.nn.Module):
             self._perception, _ = load_perception(self._perception)
         return self._perception.eval().for_grid(self.config.grid.num_cells)
@@ -149,7 +149,8 @@ class LiveSource:
         if idx not in self._memo:
             view = self.vehicle.capture(self.positions[idx])
             with torch.no_grad():
-                o = self.perception.forward_all(view.image[None], view.cell_label[None])
+                o = self.perception.forward_all(view.image[None], view.cell_label[None],
+                                                altitude_m=view.position_enu[2])
                 valid = torch.as_tensor(view.cells_in_view).reshape(1, -1) & (o.cell_pixels > 0)
                 scores = None if self.scorer is None else self.scorer(o.cell_features.float())
             self._memo[idx] = (view, ViewCells(o.log_probs[..., 1].exp().float(), valid,
@@ -248,7 +249,8 @@ class ActiveSearchEnv(gym.Env):
 
     **Arguments.** ``config`` (SearchConfig: altitude, step, budget T, action set, camera; default the
     setting's), ``setting`` / ``split`` / ``part`` / ``limit`` (which scenes reset draws), ``obs``, ``reward``,
-    ``fusion``, ``views``, ``perception`` (checkpoint path or net; default models/perception.pt),
+    ``fusion``, ``views``, ``perception`` (checkpoint path or net; default the setting's shipped one: models/perception.pt, or
+    models/perception_wide.pt for the wide families where it exists),
     ``models_dir`` (where a trained fusion's checkpoint lives), ``cache_dir``, ``cache`` (a ViewCache in
     memory instead), ``r_tp`` / ``r_fp`` / ``r_revisit``, ``render_mode`` (``"rgb_array"``: the last view's
     image; image mode), ``cache_scenes`` (live scenes whose renders are kept), ``progress``, ``workers`` (render
