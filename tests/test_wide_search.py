@@ -206,3 +206,20 @@ def test_wide_fusion_specs():
     for bad in ("learned", "oracle", "bayes:2", "bayes:x", "nope"):
         with pytest.raises(UavsearchError):
             make_fusion(bad)
+
+
+def test_table3_chooses_its_fusion_on_validation(tmp_path):
+    from uavsearch.search.evaluate.wide import choose_fusion
+
+    val = wide_cache(2, 5)
+    fusion, scores = choose_fusion(val, dataclasses.replace(WIDE, budget_s=None), ("bayes:0.1", "average"))
+    assert set(scores) == {"bayes:0.1", "average"} and all(0.0 <= v <= 1.0 for v in scores.values())
+    assert f"{fusion.name}:{fusion.prior:g}" == max(scores, key=scores.get).replace("average", "average:0.1")
+    caches = {"wide": {"test": wide_cache(2, 1), "val": val, "train": wide_cache(2, 3)}}
+    args = SimpleNamespace(out=str(tmp_path), wide_fusion="auto", episodes=1, seeds=1, bootstrap=100,
+                           bootstrap_seed=0, perception="models/perception.pt", progress=False)
+    res = eval_wide(args, ["wide"], caches)
+    text = (tmp_path / "table3.md").read_text()
+    assert text.count("chosen on the validation scenes by the mean AF1") == 2
+    assert {r["fusion"] for r in res["rows"]} <= {"bayes:0.05", "bayes:0.1", "bayes:0.2", "bayes:0.3", "bayes:0.5",
+                                                  "average:0.1"}
