@@ -190,3 +190,23 @@ def test_a_net_across_altitudes_reads_the_altitude_and_refuses_to_guess_it(tmp_p
     with torch.no_grad():
         assert torch.equal(plain.forward_all(img, lab).log_probs, plain.forward_all(img, lab, altitude_m=40.0).log_probs)
     assert not PerceptionConfig.from_dict({k: v for k, v in cfg.__dict__.items() if k != "altitude_feature"}).altitude_feature
+
+
+def test_positive_crops_are_centred_on_an_occupied_cell_that_shows_a_person():
+    from uavsearch.search.train.perception import positive_centres, random_crops
+
+    lab = _labels((0, 0), (0, 0), (0, 0))
+    pooling = cell_pooling(lab, 4)
+    occ = np.zeros((3, 100), np.int8)
+    occ[:, [11, 88]] = 1
+    px = np.zeros((3, 100), np.int32)
+    px[0, 88] = 5  # view 0: only cell 88 shows its person; view 1: nobody shows; view 2: not asked
+    px[2, 11] = 5
+    rng = np.random.default_rng(0)
+    centres = positive_centres(rng, 2, occ, px, pooling)
+    assert np.allclose(centres[0], pooling.centroid[0, 88].numpy()) and np.isnan(centres[1:]).all()
+    image = np.repeat(lab.numpy()[..., None], 3, -1)
+    crops = random_crops(rng, 96, 4, image, centres=centres)[0]
+    assert crops.shape == (3, 96, 96, 3)
+    assert (crops[0, 44:52, 44:52, 0] == 88).all()  # the cell sits at the window's centre
+    assert positive_centres(rng, 0, occ, px, pooling) is None

@@ -91,6 +91,8 @@ class Args(ScaleOutArgs):
     person_pos_weight: float = opt(20.0, "weight of person pixels in the dense loss")
     augment: bool = opt(True, "random flips / 90-degree rotations of image + label image + person map")
     min_cell_px: float = opt(16.0, "cells with fewer pixels in the crop are not trained on")
+    positive_share: float = opt(0.0, "share of each batch drawn from views where an occupied cell shows a person, the "
+                                     "crop centred on that cell (sparse people: the wide family's 10 of 900 cells)")
     calibrate: bool = opt(True, "fold the validation-chosen logit shift into the classifier (module docstring)")
     eval_every: int = opt(500, "steps between validations (and resumable checkpoints)")
     threads: int = opt(2, "torch CPU threads")
@@ -100,6 +102,8 @@ class Args(ScaleOutArgs):
     runs_dir: str = opt(str(RUNS_DIR), "parent of the run directory")
     progress: bool = opt(True, "tqdm bars")
     altitude_feature: bool = opt(False, "the camera altitude as a cell feature (for nets trained across altitudes)")
+    init: str | None = opt(None, "start from this perception checkpoint's weights (e.g. the paper's models/perception.pt "
+                                 "to fine-tune across altitudes) instead of from scratch")
     layers: tuple = opt(factory=lambda: PerceptionConfig().layers, help="backbone (out, kernel, stride)", cli=False)
 
 
@@ -115,15 +119,58 @@ def augment_batch(rng: np.random.Generator, *arrays: np.ndarray) -> list[np.ndar
     return outs
 
 
-def random_crops(rng: np.random.Generator, size: int, step: int, *arrays: np.ndarray) -> list[np.ndarray]:
+def random_crops(rng: np.random.Generator, size: int, step: int, *arrays: np.ndarray, centres=None) -> list[np.ndarray]:
     """One random size x size window per view (offsets on the `step` grid, so feature pixels stay aligned),
-    the same window in every (V, H, W, ...) array."""
+    the same window in every (V, H, W, ...) array. `centres` (V, 2) image (u, v) in [-1, 1], NaN where
+    none: those views' windows are centred there instead (as near as the image edge allows)."""
     V, H, W = arrays[0].shape[:3]
     if size <= 0 or size >= min(H, W):
         return list(arrays)
     r0 = rng.integers(0, (H - size) // step + 1, V) * step
     c0 = rng.integers(0, (W - size) // step + 1, V) * step
+    if centres is not None:
+        c = np.asarray(centres, dtype=float)
+        ok = np.isfinite(c).all(1)
+        at = lambda x, n: np.clip(np.round(((x + 1) / 2 * n - size / 2) / step) * step, 0, n - size)  # noqa: E731
+        r0 = np.where(ok, at(np.nan_to_num(c[:, 1]), H), r0).astype(int)
+        c0 = np.where(ok, at(np.nan_to_num(c[:, 0]), W), c0).astype(int)
     return [np.stack([x[b, r0[b]:r0[b] + size, c0[b]:c0[b] + size] for b in range(V)]) for x in arrays]
+
+
+def init_from(net: PerceptionNet, path) -> None:
+    """Copy a checkpoint's weights into `net`. Layers of the same shape are copied whole; a layer that reads
+    more inputs than the checkpoint's (the classifier's and confidence net's first layer once the altitude
+    feature is added) gets the checkpoint's weights for the inputs both have and zeros for the new ones, so
+    the net starts out computing exactly what the checkpoint did."""
+    src, _ = load_perception(path)
+    if src.cfg.layers != net.cfg.layers or src.cfg.person_head != net.cfg.person_head:
+        raise UavsearchError(f"--init {path}: its backbone {src.cfg.layers} differs from this run's {net.cfg.layers}")
+    own = net.state_dict()
+    for k, v in src.state_dict().items():
+        if k not in own:
+            continue
+        if own[k].shape == v.shape:
+            own[k] = v.clone()
+        elif own[k].dim() == 2 and own[k].shape[0] == v.shape[0] and own[k].shape[1] > v.shape[1]:
+            w = torch.zeros_like(own[k])
+            w[:, : v.shape[1]] = v
+            own[k] = w
+        else:
+            raise UavsearchError(f"--init {path}: {k} has shape {tuple(v.shape)}, this net {tuple(own[k].shape)}")
+    net.load_state_dict(own)
+
+
+def positive_centres(rng: np.random.Generator, n: int, occupancy: np.ndarray, person_px: np.ndarray, pooling):
+    """(V, 2) crop centres: for each of the first `n` views, the image centroid of one occupied cell showing a
+    person (drawn at random); NaN elsewhere. None when n is 0."""
+    if not n:
+        return None
+    out = np.full((len(occupancy), 2), np.nan)
+    for b in range(n):
+        cand = np.flatnonzero((occupancy[b] == 1) & (person_px[b] > 0) & (pooling.pixels[b].numpy() > 0))
+        if len(cand):
+            out[b] = pooling.centroid[b, int(rng.choice(cand))].numpy()
+    return out
 
 
 class HardNegatives:
@@ -296,10 +343,14 @@ def train(args: Args) -> dict:
     train_set, val_set, centre = prepare_data(args)
     t_data = time.perf_counter() - t_start
     scene_row = np.unique(train_set.scene_seed, return_inverse=True)[1]
+    shows = np.flatnonzero(((train_set.occupancy == 1) & (train_set.person_px > 0)).any(1))  # views showing a person
+    n_pos = int(round(args.positive_share * args.batch_size)) if len(shows) else 0
     cfg = dataclasses.replace(cfg, num_cells=int(train_set.occupancy.shape[1]))  # the grid of the views trained on
     hard = HardNegatives(int(scene_row.max()) + 1, cfg.num_cells)
 
     net = PerceptionNet(cfg)
+    if args.init:
+        init_from(net, args.init)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: 0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * min(s, args.steps) / args.steps)))
@@ -335,12 +386,15 @@ def train(args: Args) -> dict:
     for step in bar:
         net.train()
         rows_b = rng.integers(0, len(train_set), args.batch_size)
+        if n_pos:
+            rows_b[:n_pos] = rng.choice(shows, n_pos)
         imgs, labs, pers = train_set.images[rows_b], train_set.label_images(rows_b), train_set.person_frac[rows_b]
         if args.augment:
             imgs, labs, pers = augment_batch(rng, imgs, labs, pers)
         pooling = cell_pooling(torch.as_tensor(np.ascontiguousarray(labs)), cfg.stride, cfg.num_cells)
-        imgs, labs, pers = random_crops(rng, args.crop, cfg.stride, imgs, labs, pers)
         y = train_set.occupancy[rows_b]
+        imgs, labs, pers = random_crops(rng, args.crop, cfg.stride, imgs, labs, pers,
+                                        centres=positive_centres(rng, n_pos, y, train_set.person_px[rows_b], pooling))
         sr = scene_row[rows_b]
         neg_w = hard.weights(sr, y == 0, args.hard_negative_weight)
         loss, parts, log_probs, mask = batch_loss(
