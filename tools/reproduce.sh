@@ -44,10 +44,16 @@
 #                     (results/perception/). measured: 12 s (after view_caches).
 #     search_large    Table II + Fig. 6 on the large split's 100 test scenes per setting (seeds 0-4).
 #                     estimate: ~8 min rendering 7500 views the first time (shipped perception), 35 s after.
-#     wide            Table III (results/search_wide/): the wide and wide-uniform families, 73 viewpoints per
-#                     scene, test + val + the first 100 training scenes each. measured: renders 3-5 s wall per
-#                     scene (2 workers; ~35 min for 500 scenes), perception caches ~4.5 s per scene, then the
-#                     table (route searches included) in minutes.
+#     wide_renders    every viewpoint (73) of the wide families' scenes: wide 50 val + 100 train + 100 test,
+#                     wide-uniform 50 test + 20 val + 20 train. measured: 7-11 s wall per scene (2 workers,
+#                     shared machine at load 4-6), 3.6 MB per scene.
+#     train_perception_wide  stage 1 across altitudes: the paper's net fine-tuned on the 7,300 views of 100
+#                     wide training scenes (seed 1, 1500 steps). measured: see docs/results.md.
+#     perception_wide the wide net's targets per altitude on the 100 wide test scenes
+#                     (results/perception_wide/), against the paper's net on the same views.
+#     wide            Table III: wide on 100 test scenes (results/search_wide/), wide-uniform on 50
+#                     (results/search_wide_uniform/), fusion chosen on validation, fixed view sets searched on
+#                     20 training scenes. measured: see docs/results.md.
 #     flight          flight vs teleport, settings 1-3, the 10 paper test scenes each, missions/default.yaml
 #                     (vehicle seed 0, policy acting greedily), lockstep at speed max. measured: 652 s
 #                     (load 6-7; ~5 min idle at ~10 s per flown mission). Every Aacc, F1 and route is the
@@ -125,8 +131,8 @@ add train_reactive full "the reactive policy: settings 1-3 x training seeds 0-2 
   "printf '%s' \"\$REACTIVE_CMDS\" | xargs -P $JOBS -I{} sh -c '{}'"
 add wide_renders full "every viewpoint of the wide families' scenes (wide: 50 val, 100 train, 100 test; wide-uniform: 50 test, 20 val, 20 train; resumable)" \
   "$PY tools/render_wide.py --families wide --parts val --workers 2 && $PY tools/render_wide.py --families wide --parts train --scenes 100 --workers 2 && $PY tools/render_wide.py --families wide --parts test --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts test --scenes 50 --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts val,train --scenes 20 --workers 2"
-add train_perception_wide full "stage 1 across altitudes (seed 1, 2000 steps, every viewpoint of 100 wide training scenes) -> $NEWPERC_WIDE" \
-  "$UAV train perception --settings wide --train-scenes 100 --val-scenes 4 --altitude-feature --steps 2000 --eval-every 400 --seed 1 --threads 2 --runs-dir $RUN --out $NEWPERC_WIDE --no-progress"
+add train_perception_wide full "stage 1 across altitudes: the paper's net fine-tuned (seed 1, 1500 steps) on every viewpoint of 100 wide training scenes -> $NEWPERC_WIDE" \
+  "$UAV train perception --settings wide --train-scenes 100 --val-scenes 4 --altitude-feature --init models/perception.pt --lr 1e-3 --steps 1500 --eval-every 300 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 2 --runs-dir $RUN --out $NEWPERC_WIDE --no-progress"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE and $RUN/seed0/search_s*_*.pt into models/" \
   "cp $NEWPERC models/perception.pt && cp $NEWPERC_WIDE models/perception_wide.pt && cp $RUN/seed0/search_s*_*.pt models/"
 add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \
