@@ -32,7 +32,7 @@ from uavsearch.search.evaluate.perception import (
     perception_stats,
     targets_figure,
 )
-from uavsearch.search.evaluate.search import EvalArgs, eval_search
+from uavsearch.search.evaluate.search import ROWS, EvalArgs, eval_search
 from uavsearch.search.scoring import evaluate_agent
 from uavsearch.search.perception import ConfidenceNet
 from uavsearch.search.policy import CoverageRoute, RandomPolicy
@@ -134,7 +134,8 @@ def test_eval_search_leaves_out_rows_without_checkpoints_and_writes_the_comparis
                                episodes=1, seeds=1, bootstrap=50, progress=False), caches={2: synthetic_cache(2)})
     assert set(res["results"][2]) == {"single_view", "oracle_random"}
     assert "route bounds skipped" in (tmp_path / "none" / "table2.md").read_text()
-    assert len(res["notices"]) == 9
+    trained_rows = [r for r in ROWS if r[0] not in ("single_view", "oracle_random")]
+    assert len(res["notices"]) == len(trained_rows) == 10  # every row with a checkpoint, the PPO (external) one too
 
 
 def test_person_px_is_optional_in_the_cache_file(tmp_path):

@@ -89,3 +89,12 @@ def test_overflow_is_measured():
     fig, ax = pyplot().subplots(figsize=(2, 2))
     ax.set_title("a title far too long for a two-inch canvas to hold")
     assert _fits(fig) > 0.5
+
+
+def test_family_perception_figure_fits():
+    from uavsearch.search.evaluate.perception import PX_BINS, bin_name, family_figure
+
+    by = {bin_name(lo, hi): (0.5, 100) for lo, hi in PX_BINS}
+    st = {"recall_by_px": by, "fa_per_cell_view": 0.02}
+    stats = {c: st for c in ("40 m", "70 m", "40 m, reference net", "70 m, reference net")}
+    assert _fits(family_figure(stats)) <= TOLERANCE_IN

@@ -309,6 +309,34 @@ def write_family_report(stats: dict[str, dict], out: Path, meta: dict) -> tuple[
     return md_path, csv_path
 
 
+def family_figure(stats: dict[str, dict]):
+    """Left: recall vs visible person pixels per altitude and net; right: false alarms per cell-view against
+    the family target."""
+    fig, (a, b) = pyplot().subplots(1, 2, figsize=(11, 4), layout="constrained")
+    names = [bin_name(lo, hi) for lo, hi in PX_BINS]
+    for c, st in stats.items():
+        if st["recall_by_px"] is not None:
+            a.plot(range(len(names)), [st["recall_by_px"][n][0] for n in names], "o-" if "reference" not in c else "o--",
+                   label=c)
+    a.set_xticks(range(len(names)), names)
+    a.set_ylim(0, 1.05)
+    a.set_xlabel("visible person pixels in the cell")
+    a.set_ylabel("recall of occupied cells (p > 0.5)")
+    a.set_title("recall vs visible person pixels")
+    a.grid(alpha=0.3)
+    a.legend(fontsize=8)
+    cols = list(stats)
+    b.bar(range(len(cols)), [stats[c]["fa_per_cell_view"] for c in cols], color=["C0", "C1", "C2", "C3"][: len(cols)])
+    target = dict((t[0], t[3]) for t in FAMILY_TARGETS)["fa_per_cell_view"]
+    b.axhline(target, color="k", ls="--", label=f"target at {LOW_M:g} m: <= {target:g}")
+    b.set_xticks(range(len(cols)), [c.replace(", ", "\n") for c in cols], fontsize=8)
+    b.set_ylabel("false alarms per cell-view")
+    b.set_title("false alarms (empty measured cells with p > 0.5)")
+    b.grid(alpha=0.3, axis="y")
+    b.legend(fontsize=8)
+    return fig
+
+
 def eval_family_perception(args: EvalArgs, family: str, caches: dict | None = None) -> dict:
     """A family's report: the net per altitude against the family targets and the reference net."""
     t0 = time.perf_counter()
@@ -328,7 +356,7 @@ def eval_family_perception(args: EvalArgs, family: str, caches: dict | None = No
             "reference_tag": caches["reference"].perception_tag, "visibility": visibility(caches["net"]),
             "seconds": time.perf_counter() - t0}
     md, csv_path = write_family_report(stats, Path(args.out), meta)
-    fig = save_figure(targets_figure(stats), Path(args.out) / "perception_targets.png")
+    fig = save_figure(family_figure(stats), Path(args.out) / "perception_targets.png")
     print(md.read_text())
     print(f"wrote {md}, {csv_path}, {fig}")
     return {"stats": stats, "table": md, "csv": csv_path, "figure": fig}
