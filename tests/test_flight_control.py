@@ -266,3 +266,16 @@ def test_sensor_noise_matches_its_parameters_and_the_seed(params):
     _, gyro3, _ = record(6)
     assert np.array_equal(gyro, gyro2) and np.array_equal(gps, gps2)
     assert not np.array_equal(gyro, gyro3)
+
+
+def test_making_an_fdm_prints_no_banner_and_leaves_the_environment_as_it_was(capfd, monkeypatch):
+    import os
+
+    from uavsearch.flight.fdm import QuadFdm
+    from uavsearch.geometry import GeodeticOrigin
+
+    monkeypatch.delenv("JSBSIM_DEBUG", raising=False)
+    before = dict(os.environ)
+    QuadFdm(GeodeticOrigin(47.0, 8.0, 400.0), 250)
+    assert dict(os.environ) == before
+    assert "JSBSim" not in capfd.readouterr().out

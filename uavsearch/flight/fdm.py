@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,14 +18,25 @@ from ..errors import UavsearchError
 from ..geometry import GeodeticOrigin
 from ..paths import AIRCRAFT_DIR
 
-os.environ.setdefault("JSBSIM_DEBUG", "0")  # before the first FGFDMExec: no banner on stdout
-
-import jsbsim  # noqa: E402
+import jsbsim
 
 FT = 0.3048
 LBF = 4.4482216152605
 LBFFT = 1.3558179483314  # N*m per lbf*ft
 N_ROTORS = 4
+
+
+@contextmanager
+def _quiet_jsbsim():
+    """JSBSIM_DEBUG=0 while an FGFDMExec is made (JSBSim reads it there: no banner on stdout), then the
+    environment as it was, so no process started later inherits a setting it never asked for."""
+    before = os.environ.get("JSBSIM_DEBUG")
+    os.environ["JSBSIM_DEBUG"] = "0" if before is None else before
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("JSBSIM_DEBUG", None)
 
 
 @dataclass(frozen=True)
@@ -62,7 +74,8 @@ class QuadFdm:
         self.airframe = airframe
         self.home = home
         self.dt = 1.0 / physics_hz
-        fdm = jsbsim.FGFDMExec(root)
+        with _quiet_jsbsim():
+            fdm = jsbsim.FGFDMExec(root)
         fdm.set_debug_level(0)
         fdm.set_aircraft_path(root)
         if not fdm.load_model(model):
