@@ -186,18 +186,16 @@ def write_report(stats: dict[str, dict], out: Path, meta: dict) -> tuple[Path, P
     return md_path, csv_path
 
 
-def targets_figure(stats: dict[str, dict]):
-    """Left: recall vs visible person pixels per column; right: false alarms per view (pooled column)."""
-    fig, (a, b) = pyplot().subplots(1, 2, figsize=(11, 4), layout="constrained")
+def _recall_panel(a, stats: dict[str, dict], extra=None) -> None:
+    """Recall vs visible person pixels, one line per column (a reference net's dashed); `extra(axes, bin
+    names)` draws what a report adds (its target) before the legend."""
     names = [bin_name(lo, hi) for lo, hi in PX_BINS]
     for c, st in stats.items():
         if st["recall_by_px"] is not None:
-            a.plot(range(len(names)), [st["recall_by_px"][n][0] for n in names], "o-", label=c)
-    x = names.index("4-7")
-    a.hlines(dict((t[0], t[3]) for t in TARGETS)["recall_4_7px"], x - 0.3, x + 0.3, colors="k", lw=2,
-             label="target at 4-7 px")
-    if all(st["recall_by_px"] is None for st in stats.values()):
-        a.text(0.5, 0.5, "no person_px in these view caches", transform=a.transAxes, ha="center", color="0.4")
+            a.plot(range(len(names)), [st["recall_by_px"][n][0] for n in names], "o--" if "reference" in c else "o-",
+                   label=c)
+    if extra is not None:
+        extra(a, names)
     a.set_xticks(range(len(names)), names)
     a.set_ylim(0, 1.05)
     a.set_xlabel("visible person pixels in the cell")
@@ -205,6 +203,20 @@ def targets_figure(stats: dict[str, dict]):
     a.set_title("recall vs visible person pixels")
     a.grid(alpha=0.3)
     a.legend(fontsize=8)
+
+
+def targets_figure(stats: dict[str, dict]):
+    """Left: recall vs visible person pixels per column; right: false alarms per view (pooled column)."""
+    fig, (a, b) = pyplot().subplots(1, 2, figsize=(11, 4), layout="constrained")
+
+    def target(ax, names):
+        x = names.index("4-7")
+        ax.hlines(dict((t[0], t[3]) for t in TARGETS)["recall_4_7px"], x - 0.3, x + 0.3, colors="k", lw=2,
+                  label="target at 4-7 px")
+        if all(st["recall_by_px"] is None for st in stats.values()):
+            ax.text(0.5, 0.5, "no person_px in these view caches", transform=ax.transAxes, ha="center", color="0.4")
+
+    _recall_panel(a, stats, target)
     name, pooled = list(stats.items())[-1]
     hist = pooled["fa_hist"]
     b.bar(np.arange(len(hist)), hist / max(hist.sum(), 1), color="C3")
@@ -313,18 +325,7 @@ def family_figure(stats: dict[str, dict]):
     """Left: recall vs visible person pixels per altitude and net; right: false alarms per cell-view against
     the family target."""
     fig, (a, b) = pyplot().subplots(1, 2, figsize=(11, 4), layout="constrained")
-    names = [bin_name(lo, hi) for lo, hi in PX_BINS]
-    for c, st in stats.items():
-        if st["recall_by_px"] is not None:
-            a.plot(range(len(names)), [st["recall_by_px"][n][0] for n in names], "o-" if "reference" not in c else "o--",
-                   label=c)
-    a.set_xticks(range(len(names)), names)
-    a.set_ylim(0, 1.05)
-    a.set_xlabel("visible person pixels in the cell")
-    a.set_ylabel("recall of occupied cells (p > 0.5)")
-    a.set_title("recall vs visible person pixels")
-    a.grid(alpha=0.3)
-    a.legend(fontsize=8)
+    _recall_panel(a, stats)
     cols = list(stats)
     b.bar(range(len(cols)), [stats[c]["fa_per_cell_view"] for c in cols], color=["C0", "C1", "C2", "C3"][: len(cols)])
     target = dict((t[0], t[3]) for t in FAMILY_TARGETS)["fa_per_cell_view"]
