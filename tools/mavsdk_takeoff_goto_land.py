@@ -14,7 +14,8 @@ from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
 M_PER_DEG_LAT = 111_200.0
 
 
-async def run(url: str, north_m: float, up_m: float) -> None:
+async def run(url: str, north_m: float, up_m: float, print=print) -> None:
+    """The whole flight on the vehicle at `url`; `print` says each stage (tools/mavsdk_team.py prefixes it)."""
     mavsdk = Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION))
     try:
         await mavsdk.add_any_connection(url)
@@ -22,7 +23,7 @@ async def run(url: str, north_m: float, up_m: float) -> None:
         if drone is None:
             raise SystemExit(f"no autopilot on {url}: is `uavsearch sitl` running?")
         action, telemetry = ActionAsync(drone), TelemetryAsync(drone)
-        print("waiting for a healthy vehicle (sensors, GPS, home) ...")
+        print(f"system id {await drone.get_system_id()}: waiting for a healthy vehicle (sensors, GPS, home) ...")
         async for ok in telemetry.subscribe_health_all_ok():
             if ok:
                 break

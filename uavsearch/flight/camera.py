@@ -309,10 +309,13 @@ SCENE_FILE = "scene.json"  # the vehicle's ground truth, beside its images (eval
 
 
 def background_scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntrinsics, run_dir: Path,
-                              seed: int = 0, spec=None):
+                              seed: int = 0, spec=None, seeds=None):
     """scene_renderer's (render, close), built in a thread: the scene is generated (or `spec` taken), written
     to run_dir/scene.json, and its world built in the render worker while the vehicle starts up and takes
-    off; the first capture waits for it. The images are the same as scene_renderer's."""
+    off; the first capture waits for it. The images are the same as scene_renderer's.
+
+    `seeds` (one noise seed per camera): a list of renders instead of one, all drawing the one scene (one
+    world, one worker: a team of vehicles does not build the city once per vehicle)."""
     from concurrent.futures import ThreadPoolExecutor
 
     def build():
@@ -326,7 +329,8 @@ def background_scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: 
         tmp = Path(run_dir) / f".{SCENE_FILE}.tmp"
         save_scene(spec, tmp)
         tmp.replace(Path(run_dir) / SCENE_FILE)  # whole or not at all: a client may be waiting for it
-        return scene_renderer(scene_seed, occupied_cells, intrinsics, seed=seed, spec=spec)
+        return scene_renderer(scene_seed, occupied_cells, intrinsics, seed=seed, spec=spec,
+                              seeds=[seed] if seeds is None else seeds)
 
     pool = ThreadPoolExecutor(1, thread_name_prefix="scene-world")
     world = pool.submit(build)
@@ -340,23 +344,30 @@ def background_scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: 
         except Exception as e:  # noqa: BLE001 - one line from the sitl, not a thread's traceback
             raise UavsearchError(f"the camera's scene could not be built: {type(e).__name__}: {e}") from None
 
-    def render(pose: CameraPose) -> np.ndarray:
-        return ready()[0](pose)
+    def camera(i: int):
+        def render(pose: CameraPose) -> np.ndarray:
+            return ready()[0][i](pose)
+
+        return render
 
     def close() -> None:
         if world.exception() is None:
             world.result()[1]()
 
-    return render, close
+    renders = [camera(i) for i in range(1 if seeds is None else len(seeds))]
+    return (renders[0] if seeds is None else renders), close
 
 
 def scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntrinsics, options=None, seed: int = 0,
-                   spec=None):
+                   spec=None, seeds=None):
     """The foundation's renderer for a generated scene as (render(pose) -> RGB, close()).
 
     Sensor randomisation (if the options enable it) draws from a generator seeded by (seed, shot
-    number), so the same flight gives the same pixels.
+    number), so the same flight gives the same pixels. `seeds`: a list of renders sharing the scene's one
+    renderer (one per camera, each with its own noise seed and shot count; calls take turns).
     """
+    import threading
+
     # lazy: PyBullet and the scene generator cost ~0.4 s, and `uavsearch` (any command) imports this module
     from ..world.render import RenderOptions, SceneRenderer
     from ..world.scene import generate_scene
@@ -364,11 +375,19 @@ def scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntri
     if spec is None:  # a saved spec (uavsearch scene save) is rendered as it is
         spec = generate_scene(scene_seed, occupied_cells)
     renderer = SceneRenderer(spec, intrinsics, options if options is not None else RenderOptions())
-    shots = [0]
+    lock = threading.Lock()  # one worker pipe: cameras of a team render in turn
 
-    def render(pose: CameraPose) -> np.ndarray:
-        rng = np.random.default_rng([seed, scene_seed, shots[0]])
-        shots[0] += 1
-        return np.asarray(renderer.render(pose, rng).rgb)
+    def camera(cam_seed: int):
+        shots = [0]
 
-    return render, renderer.close
+        def render(pose: CameraPose) -> np.ndarray:
+            rng = np.random.default_rng([cam_seed, scene_seed, shots[0]])
+            shots[0] += 1
+            with lock:
+                return np.asarray(renderer.render(pose, rng).rgb)
+
+        return render
+
+    if seeds is None:
+        return camera(seed), renderer.close
+    return [camera(s) for s in seeds], renderer.close

@@ -158,6 +158,7 @@ class Commander:
         self.local_position = None  # the estimate read at the last tick
         self._tick = 0
         self._failsafe_div = max(1, int(round(autopilot_hz / FAILSAFE_HZ)))
+        self.separation = None  # callable(target_ned) -> why a goto is too close to another vehicle, or None
 
     # ------------------------------------------------------------------ state for telemetry
     @property
@@ -476,6 +477,10 @@ class Commander:
             return Result.DENIED
         if not self.inside_fence(tgt):
             self.text(SEV_CRITICAL, "Reposition denied: outside geofence")
+            return Result.DENIED
+        crowded = None if self.separation is None else self.separation(tgt)
+        if crowded is not None:
+            self.text(SEV_CRITICAL, f"Reposition denied: {crowded}")
             return Result.DENIED
         speed = cmd.param1 if math.isfinite(cmd.param1) and cmd.param1 > 0 else None
         yaw = float(wrap_pi(cmd.param4)) if math.isfinite(cmd.param4) else math.nan

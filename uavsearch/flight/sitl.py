@@ -8,12 +8,21 @@ faster, `--speed max` never waits. While waiting, the loop sleeps in select() on
 answers packets at once, so a real-time vehicle still acknowledges commands within a millisecond.
 `--lockstep` hands the clock to one client (see lockstep.py): the simulation runs only as far as that
 client has granted, which makes a flight commanded from another process reproducible.
+
+`--vehicles N` simulates a team on the one clock, with PX4 SITL's conventions per instance I (0-based):
+system id I + 1, the API link to UDP 14540 + I from 14580 + I, the GCS link to 14550 from 18570 + I,
+noise seed + I, home HOME_SPACING_M * I east of the first. Every vehicle steps, ticks and (in lockstep)
+waits together: one grant, sent to any of them, runs them all. A goto (DO_REPOSITION) whose target lies
+within SIM_SEP_DIST of another vehicle's position or goal is refused. `--instance I` runs instance I alone
+(PX4's `px4 -i I`): its own process and clock, no separation check.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
+import select
 import signal
 import sys
 import time
@@ -22,7 +31,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from ..errors import UavsearchError, run_command
-from ..geometry import CameraIntrinsics, GeodeticOrigin
+from ..geometry import CameraIntrinsics, GeodeticOrigin, ned_to_enu
 from ..paths import RUNS_DIR
 from .camera import CAPTURE_MIN_FREE_MB, Camera, background_scene_renderer
 from .commander import Commander, autopilot_params
@@ -57,6 +66,27 @@ class SitlConfig:
     start_enu: tuple = (0.0, 0.0, 0.0)
     start_yaw_rad: float = 0.0
     intrinsics: CameraIntrinsics = field(default_factory=CameraIntrinsics)
+    setting: str | None = None  # a scene family ("wide") for scene_seed instead of the paper's generator
+    vehicles: int = 1  # simulated in this process on one clock
+    instance: int = 0  # the first vehicle's instance number I (sysid, ports, seed and home follow it)
+
+
+HOME_SPACING_M = 10.0  # instance I's home lies this far east of instance 0's (PX4's multi-vehicle SITL spaces them)
+MAX_VEHICLES = 16
+SEPARATION_M = 10.0  # SIM_SEP_DIST's default
+
+
+def instance_config(cfg: SitlConfig, i: int) -> SitlConfig:
+    """The config of vehicle I = cfg.instance + i, by PX4 SITL's conventions (a port of 0 stays off / any)."""
+    inst = cfg.instance + i
+    start = tuple(cfg.start_enu)
+    return dataclasses.replace(
+        cfg, vehicles=1, instance=inst, seed=cfg.seed + inst,
+        api_port=cfg.api_port + inst if cfg.api_port else 0,
+        api_local_port=cfg.api_local_port + inst if cfg.api_local_port else 0,
+        gcs_local_port=cfg.gcs_local_port + inst if cfg.gcs_local_port else 0,
+        start_enu=(start[0] + HOME_SPACING_M * inst, start[1], start[2]),
+        params={**cfg.params, "MAV_SYS_ID": inst + 1} if (cfg.vehicles > 1 or inst) else cfg.params)
 
 
 # What the vehicle simulates, readable by any MAVLink client with PARAM_REQUEST_READ (a standard protocol every
@@ -71,6 +101,9 @@ SITL_PARAMS = [
              description="CRC-32 (31 bits) of the scene spec file it was given (0: generated from seed and cells)"),
     ParamDef("SIM_CAM_FREE_MB", CAPTURE_MIN_FREE_MB, 0.0, 1e7, unit="MB",
              description="interval capture stops (and does not start) below this much free disk in the run directory"),
+    ParamDef("SIM_SEP_DIST", SEPARATION_M, 0.0, 1000.0, unit="m",
+             description="a goto within this distance of another simulated vehicle's position or goal is refused "
+                         "(0: off)"),
 ]
 
 
@@ -103,35 +136,24 @@ def _next_tick(due_us: int, period_us: int, now_us: int) -> int:
     return due_us
 
 
-class Sitl:
-    """Vehicle + autopilot + camera + MAVLink endpoint, advanced one physics step at a time."""
+class SimVehicle:
+    """One simulated vehicle: physics + autopilot + camera + MAVLink endpoint, and when each of them is due.
 
-    def __init__(self, cfg: SitlConfig, vehicle_factory=None, vehicle_params=None, render=None):
+    `cfg` is this vehicle's own config (instance_config); the runner owns the clock and the pacing."""
+
+    def __init__(self, cfg: SitlConfig, run_dir: Path, render, vehicle_factory=None, vehicle_params=None,
+                 scene_params: dict | None = None):
         self.cfg = cfg
         mc_params = list(vehicle_params if vehicle_params is not None else _vehicle_params())
         self.params = ParamStore(mc_params, autopilot_params(mc_params), SITL_PARAMS)
         for name, value in cfg.params.items():
             self.params.set(name, value)
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
-        self.run_dir = Path(cfg.run_dir) if cfg.run_dir else RUNS_DIR / f"sitl__{cfg.seed}__{stamp}"
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        self._close_render = None
-        if render is None and cfg.scene_seed is not None:
-            spec = None
-            if cfg.scene_file is not None:
-                from ..world.scene import load_scene  # lazy: ~0.4 s, only for --scene-file
-
-                spec = load_scene(cfg.scene_file)
-                cfg.scene_seed = spec.seed
-            render, self._close_render = background_scene_renderer(cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics,
-                                                                   self.run_dir, seed=cfg.seed, spec=spec)
-            self.params.set("SIM_SCENE_SEED", cfg.scene_seed, force=True)
-            self.params.set("SIM_SCENE_CELLS", cfg.occupied_cells if spec is None else int(spec.occupancy_array().sum()),
-                            force=True)
-            self.params.set("SIM_SCENE_HASH", 0 if spec is None else scene_hash(spec), force=True)
+        for name, value in (scene_params or {}).items():
+            self.params.set(name, value, force=True)
+        self.run_dir = run_dir
         self.vehicle = (vehicle_factory or _default_vehicle)(self.params, cfg)  # the scene builds meanwhile
         self.commander = Commander(self.params, self.vehicle, cfg.home, autopilot_hz=cfg.autopilot_hz)
-        self.camera = Camera(self.vehicle, cfg.intrinsics, self.run_dir, render,
+        self.camera = Camera(self.vehicle, cfg.intrinsics, run_dir, render,
                              home_alt_amsl_m=lambda: self.commander.home_alt_amsl_m,
                              min_free_mb=lambda: self.params["SIM_CAM_FREE_MB"])
         links = []
@@ -145,44 +167,172 @@ class Sitl:
             self.endpoint = MavlinkEndpoint(self.commander, self.params, links, self.camera,
                                             sysid=int(self.params["MAV_SYS_ID"]))
         except OSError as e:
-            raise UavsearchError(f"cannot open the MAVLink UDP ports ({e}); is another sitl running? "
-                                 "Choose others with --api-local-port / --gcs-local-port") from None
-        if cfg.lockstep:
-            self.endpoint.lockstep = LockstepGate()
-        self._stop = None
+            self.camera.close()
+            raise UavsearchError(f"cannot open the MAVLink UDP ports of vehicle {cfg.instance + 1} ({e}); is another "
+                                 "sitl running? Choose others with --api-local-port / --gcs-local-port") from None
         self._ap_period_us = int(1e6 / cfg.autopilot_hz)
         self._io_period_us = int(1e6 / cfg.io_hz)
-        self._next_ap_us = int(self.vehicle.time_us)
-        self._next_io_us = int(self.vehicle.time_us)
         self._stream_period_us = int(1e6 / cfg.stream_hz)
-        self._next_stream_us = int(self.vehicle.time_us)
+        self._next_ap_us = self._next_io_us = self._next_stream_us = int(self.vehicle.time_us)
+
+    @property
+    def sysid(self) -> int:
+        return int(self.params["MAV_SYS_ID"])
+
+    def position_enu(self):
+        """Where the autopilot believes it is (its estimate: what a fleet would share)."""
+        return ned_to_enu(self.vehicle.local_position.position_ned_m)
+
+    def goal_enu(self):
+        """Where it is flying to (a goto's point, a take-off's or mission item's target), or None."""
+        nav = self.commander.navigator
+        if nav.pending_hold is not None:
+            return ned_to_enu(nav.pending_hold[0])
+        mode = nav.modes[nav.active_name]
+        tgt = getattr(mode, "item_target", None) if nav.active_name == "MISSION" else getattr(mode, "target", None)
+        return None if tgt is None else ned_to_enu(tgt)
+
+    def tick(self, wall_s: float) -> bool:
+        """The autopilot and I/O when due at this instant; True when I/O ran (the runner paces then)."""
+        now = self.vehicle.time_us
+        if now >= self._next_ap_us:
+            self._next_ap_us = _next_tick(self._next_ap_us, self._ap_period_us, now)
+            self.commander.update(wall_s)
+        if now < self._next_io_us:
+            return False
+        self._next_io_us = _next_tick(self._next_io_us, self._io_period_us, now)
+        self.endpoint.poll(time.monotonic())
+        if now >= self._next_stream_us:
+            self._next_stream_us = _next_tick(self._next_stream_us, self._stream_period_us, now)
+            self.endpoint.send_streams()
+        return True
+
+    def close(self) -> None:
+        self.camera.close()  # the images in flight are written before the renderer goes
+        self.endpoint.close()
+
+
+def separation_check(team: list[SimVehicle], me: SimVehicle):
+    """The commander's goto check for `me`: why a target is too close to another vehicle, or None."""
+
+    def check(target_ned) -> str | None:
+        limit = float(me.params["SIM_SEP_DIST"])
+        if limit <= 0:
+            return None
+        tgt = ned_to_enu(target_ned)
+        for other in team:
+            if other is me:
+                continue
+            for what, p in (("position", other.position_enu()), ("goal", other.goal_enu())):
+                if p is not None and float(math.dist(tgt, p)) < limit:
+                    return f"within {limit:g} m of vehicle {other.sysid}'s {what}"
+        return None
+
+    return check
+
+
+class Sitl:
+    """The simulation: one or more SimVehicles advanced one physics step at a time on one clock."""
+
+    def __init__(self, cfg: SitlConfig, vehicle_factory=None, vehicle_params=None, render=None):
+        if not 1 <= cfg.vehicles <= MAX_VEHICLES:
+            raise UavsearchError(f"--vehicles must be 1..{MAX_VEHICLES}, got {cfg.vehicles}")
+        if cfg.vehicles > 1 and "MAV_SYS_ID" in cfg.params:
+            raise UavsearchError("a team's system ids are instance + 1: do not set MAV_SYS_ID with --vehicles")
+        self.cfg = cfg
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M%S")
+        self.run_dir = Path(cfg.run_dir) if cfg.run_dir else RUNS_DIR / f"sitl__{cfg.seed}__{stamp}"
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._close_render = None
+        team = [instance_config(cfg, i) for i in range(cfg.vehicles)]
+        renders = [render] * cfg.vehicles
+        scene_params = {}
+        if render is None and cfg.scene_seed is not None:
+            spec = None
+            if cfg.scene_file is not None:
+                from ..world.scene import load_scene  # lazy: ~0.4 s, only for --scene-file
+
+                spec = load_scene(cfg.scene_file)
+                cfg.scene_seed = spec.seed
+            elif cfg.setting is not None:
+                from ..world.settings import generate_setting_scene  # lazy, as above
+
+                spec = generate_setting_scene(cfg.setting, cfg.scene_seed)
+            renders, self._close_render = background_scene_renderer(
+                cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, self.run_dir, seed=cfg.seed, spec=spec,
+                seeds=[c.seed for c in team])
+            scene_params = {"SIM_SCENE_SEED": cfg.scene_seed,
+                            "SIM_SCENE_CELLS": cfg.occupied_cells if spec is None else int(spec.occupancy_array().sum()),
+                            "SIM_SCENE_HASH": 0 if spec is None else scene_hash(spec)}
+        self.team: list[SimVehicle] = []
+        try:
+            for c, r in zip(team, renders):
+                where = self.run_dir if cfg.vehicles == 1 else self.run_dir / f"vehicle{c.instance + 1}"
+                self.team.append(SimVehicle(c, where, r, vehicle_factory, vehicle_params, scene_params))
+        except BaseException:
+            self.close()
+            raise
+        if cfg.vehicles > 1:
+            for m in self.team:
+                m.commander.separation = separation_check(self.team, m)
+        self.gate = LockstepGate() if cfg.lockstep else None
+        for m in self.team:
+            m.endpoint.lockstep = self.gate
+        self._fds = [fd for m in self.team for fd in m.endpoint.fileno_list()]
+        self._stop = None
         self._wall = time.monotonic()
         self._pace_wall0 = None
         self._pace_sim0 = 0
+
+    # the first vehicle's parts (a one-vehicle simulation is all of it)
+    @property
+    def vehicle(self):
+        return self.team[0].vehicle
+
+    @property
+    def commander(self) -> Commander:
+        return self.team[0].commander
+
+    @property
+    def camera(self) -> Camera:
+        return self.team[0].camera
+
+    @property
+    def endpoint(self) -> MavlinkEndpoint:
+        return self.team[0].endpoint
+
+    @property
+    def params(self) -> ParamStore:
+        return self.team[0].params
 
     @property
     def time_s(self) -> float:
         return self.vehicle.time_us * 1e-6
 
     def step(self) -> None:
-        """One physics step, then the autopilot and I/O when due (simulation time)."""
-        v = self.vehicle
-        gate = self.endpoint.lockstep
-        if gate is not None and v.time_us >= gate.until_us and not self._hold(gate):
+        """One physics step of every vehicle, then the autopilots and I/O when due (simulation time)."""
+        gate = self.gate
+        if gate is not None and self.vehicle.time_us >= gate.until_us and not self._hold(gate):
             return
-        now = v.time_us
-        if now >= self._next_ap_us:
-            self._next_ap_us = _next_tick(self._next_ap_us, self._ap_period_us, now)
-            self.commander.update(self._wall)
-        if now >= self._next_io_us:
-            self._next_io_us = _next_tick(self._next_io_us, self._io_period_us, now)
+        io = False
+        for m in self.team:
+            io = m.tick(self._wall) or io
+        if io:
             self._wall = time.monotonic()
-            self.endpoint.poll(self._wall)
-            if now >= self._next_stream_us:
-                self._next_stream_us = _next_tick(self._next_stream_us, self._stream_period_us, now)
-                self.endpoint.send_streams()
             self._pace()
-        v.step()
+        for m in self.team:
+            m.vehicle.step()
+
+    def _wait_readable(self, timeout_s: float) -> bool:
+        if timeout_s <= 0:
+            return False
+        r, _, _ = select.select(self._fds, [], [], timeout_s)
+        return bool(r)
+
+    def _poll(self) -> None:
+        self._wall = time.monotonic()
+        for m in self.team:
+            m.endpoint.poll(self._wall)
 
     def _hold(self, gate: LockstepGate) -> bool:
         """Stand still, answering packets, until a client grants more time; False when asked to stop."""
@@ -190,10 +340,10 @@ class Sitl:
             if self._stop is not None and self._stop():
                 return False
             self._wall = time.monotonic()
-            self.endpoint.hold(self._wall)
-            if self.endpoint.wait_readable(0.005 if self.camera.busy else 0.2):  # an image may be on its way
-                self._wall = time.monotonic()
-                self.endpoint.poll(self._wall)
+            for m in self.team:
+                m.endpoint.hold(self._wall)
+            if self._wait_readable(0.005 if any(m.camera.busy for m in self.team) else 0.2):  # an image may come
+                self._poll()
         self._pace_wall0 = None  # pacing starts afresh: no burst to catch up the time stood still
         return True
 
@@ -208,9 +358,8 @@ class Sitl:
             remaining = target - time.monotonic()
             if remaining <= 0:
                 break
-            if self.endpoint.wait_readable(remaining):
-                self._wall = time.monotonic()
-                self.endpoint.poll(self._wall)
+            if self._wait_readable(remaining):
+                self._poll()
         if time.monotonic() - target > 0.5:  # far behind (a slow machine): do not try to catch up in a burst
             self._pace_wall0, self._pace_sim0 = time.monotonic(), self.vehicle.time_us
 
@@ -221,8 +370,8 @@ class Sitl:
             self.step()
 
     def close(self) -> None:
-        self.camera.close()  # the images in flight are written before the renderer goes
-        self.endpoint.close()
+        for m in self.team:
+            m.close()
         if self._close_render:
             self._close_render()
             self._close_render = None
@@ -232,17 +381,28 @@ class Sitl:
         speed = "max" if not math.isfinite(c.speed) else f"{c.speed:g}x real time"
         if c.lockstep:
             speed += ", lockstep (runs only as far as a client grants)"
+        ids = ", ".join(str(m.sysid) for m in self.team)
+        team = "" if len(self.team) == 1 else f"{len(self.team)} vehicles (sysid {ids}) on one clock, "
         lines = [
-            f"uavsearch sitl: sysid {int(self.params['MAV_SYS_ID'])}, seed {c.seed}, "
-            f"scene {c.scene_seed if c.scene_seed is not None else 'none'}, speed {speed}",
+            f"uavsearch sitl: {team}sysid {int(self.params['MAV_SYS_ID'])}, seed {c.seed}, "
+            f"scene {c.scene_seed if c.scene_seed is not None else 'none'}"
+            f"{'' if c.setting is None else f' ({c.setting})'}, speed {speed}",
             f"  home      lat {c.home.lat_deg:.7f}  lon {c.home.lon_deg:.7f}  alt {c.home.alt_m:.1f} m AMSL",
         ]
-        for link in self.endpoint.links:
-            hint = "MAVSDK: udpin://0.0.0.0:{p}" if link.cfg.name == "api" else "QGC / MAVProxy: udpin:0.0.0.0:{p}"
-            lines.append(
-                f"  {link.cfg.name.upper()} link  sends to udp {link.cfg.remote_host}:{link.cfg.remote_port} "
-                f"from 127.0.0.1:{link.local_port}   ({hint.format(p=link.cfg.remote_port)})"
-            )
+        for m in self.team:
+            if len(self.team) > 1:
+                e, n, _ = m.cfg.start_enu
+                lines.append(f"  vehicle {m.sysid} (instance {m.cfg.instance}, seed {m.cfg.seed}) starts at "
+                             f"E {e:.1f} N {n:.1f} m; images in {m.run_dir}")
+            for link in m.endpoint.links:
+                hint = "MAVSDK: udpin://0.0.0.0:{p}" if link.cfg.name == "api" else "QGC / MAVProxy: udpin:0.0.0.0:{p}"
+                lines.append(
+                    f"  {link.cfg.name.upper()} link  sends to udp {link.cfg.remote_host}:{link.cfg.remote_port} "
+                    f"from 127.0.0.1:{link.local_port}   ({hint.format(p=link.cfg.remote_port)})"
+                )
+        if len(self.team) > 1:
+            lines.append(f"  separation  a goto within SIM_SEP_DIST ({self.params['SIM_SEP_DIST']:g} m) of another "
+                         "vehicle's position or goal is refused")
         sign = "off" if c.signing_key is None else ("required on all links" if c.sign_api_strict
                                                     else "required on GCS link; API link signs, accepts unsigned")
         lines.append(f"  signing   {sign}")
@@ -323,6 +483,14 @@ def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene-file", type=Path, default=None, metavar="JSON",
                    help="render a saved scene spec (uavsearch scene save) instead of --scene")
     p.add_argument("--cells", type=int, default=5, metavar="K", help="occupied cells in the scene (default 5)")
+    p.add_argument("--setting", default=None, metavar="FAMILY",
+                   help="generate --scene from a scene family (e.g. wide: 150 m area, people in groups) instead of "
+                        "the paper's generator with --cells")
+    p.add_argument("--vehicles", type=int, default=1, metavar="N",
+                   help=f"simulate N vehicles on one clock (1-{MAX_VEHICLES}), PX4 SITL style: instance I has sysid "
+                        "I+1, its API link on 14540+I, all on 14550, home 10 m east per instance")
+    p.add_argument("--instance", type=int, default=0, metavar="I",
+                   help="the (first) vehicle's instance number: sysid I+1, ports +I, home offset I (default 0)")
     cam = CameraIntrinsics()
     p.add_argument("--camera-hfov", type=_parse_hfov, default=cam.hfov_deg, metavar="DEG",
                    help=f"the nadir camera's horizontal field of view (default {cam.hfov_deg:g}, what the models "
@@ -349,9 +517,21 @@ def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args) -> SitlConfig:
+    if not 1 <= args.vehicles <= MAX_VEHICLES:
+        raise UavsearchError(f"--vehicles must be 1..{MAX_VEHICLES}, got {args.vehicles}")
+    if not 0 <= args.instance < 250:
+        raise UavsearchError(f"--instance must be 0..249, got {args.instance}")
+    last = args.instance + args.vehicles - 1
     for port in (args.api_port, args.gcs_port, args.api_local_port, args.gcs_local_port):
-        if not 0 <= port <= 65535:
+        if not 0 <= port <= 65535 or (port and port != args.gcs_port and port + last > 65535):
             raise UavsearchError(f"UDP port {port} out of range")
+    if args.setting is not None and args.scene_file is not None:
+        raise UavsearchError("give --setting (a generated family scene) or --scene-file, not both")
+    if args.setting is not None:
+        from ..world.settings import setting_params
+
+        args.setting = setting_params(args.setting).name  # an unknown family is a one-line error here
+        args.cells = setting_params(args.setting).k
     return SitlConfig(
         seed=args.seed,
         scene_seed=None if args.no_camera_scene else args.scene,
@@ -369,6 +549,9 @@ def config_from_args(args) -> SitlConfig:
         run_dir=args.out,
         params=dict(args.param),
         intrinsics=CameraIntrinsics(*args.camera_size, args.camera_hfov),
+        setting=args.setting,
+        vehicles=args.vehicles,
+        instance=args.instance,
     )
 
 
@@ -404,11 +587,12 @@ def run_sitl_command(args) -> int:
         sitl.close()
         wall = time.monotonic() - wall0
         sim = sitl.time_s - sim0
-        ep = sitl.endpoint
+        links = [l for m in sitl.team for l in m.endpoint.links]
         print(
             f"\nstopped: {sim:.1f} s simulated in {wall:.1f} s wall ({sim / max(wall, 1e-9):.1f}x real time); "
-            f"packets in {sum(l.rx_packets for l in ep.links)}, out {sum(l.tx_packets for l in ep.links)}, "
-            f"dropped {ep.rx_dropped}; images {sitl.camera.image_count}",
+            f"packets in {sum(l.rx_packets for l in links)}, out {sum(l.tx_packets for l in links)}, "
+            f"dropped {sum(m.endpoint.rx_dropped for m in sitl.team)}; "
+            f"images {sum(m.camera.image_count for m in sitl.team)}",
             flush=True,
         )
     return 0

@@ -32,6 +32,28 @@ def free_udp_port() -> int:
     return port
 
 
+def free_udp_ports(n: int, start: int = 20000, stop: int = 60000) -> int:
+    """The first of `n` consecutive free UDP ports on 127.0.0.1 (a team's API links: vehicle I on base + I)."""
+    import random
+
+    rng = random.Random()  # not the caller's seed: which free ports there are says nothing about a flight
+    for _ in range(200):
+        base = rng.randrange(start, stop - n)
+        socks = []
+        try:
+            for i in range(n):
+                sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(sock)
+                sock.bind(("127.0.0.1", base + i))
+            return base
+        except OSError:
+            continue
+        finally:
+            for sock in socks:
+                sock.close()
+    raise UavsearchError(f"no {n} consecutive free UDP ports on 127.0.0.1")
+
+
 def _die_with_parent() -> None:
     """In the child: get SIGTERM when the parent dies (PR_SET_PDEATHSIG)."""
     if sys.platform.startswith("linux"):

@@ -104,7 +104,7 @@ class MaskedRandom:
         return torch.multinomial(w, 1, generator=generator).squeeze(-1), None, None
 
 
-def _argmax_allowed(score: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
+def argmax_allowed(score: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
     """The allowed index of the highest score, ties to the lowest index."""
     return torch.where(allowed, score, torch.full_like(score, -np.inf)).argmax(1)
 
@@ -120,18 +120,21 @@ class DescendRule:
         self.low = torch.as_tensor(alts == alts.min())  # (P,) viewpoints of the lowest layer
 
     def act(self, inp: PolicyInput, generator=None):
-        allowed = candidates(inp)
         if inp.step < len(self.survey):
             return torch.full_like(inp.lattice_idx, self.survey[inp.step]), None, None
+        score, pick = self.descend_scores(inp)
+        return argmax_allowed(score, pick), None, None
+
+    def descend_scores(self, inp: PolicyInput) -> tuple[torch.Tensor, torch.Tensor]:
+        """(score (B, P), the viewpoints to pick among (B, P) bool) of the descent after the survey."""
+        allowed = candidates(inp)
         low_views = self.low[inp.view_positions][..., None] & inp.view_valid  # (B, t+1, N)
         open_ = (~low_views.any(1)).float()  # cells no low view has measured
         p = inp.fused * open_  # (B, N)
         best = (p[:, None, :] * self.foot[None]).amax(-1)  # (B, P)
         mean = (p @ self.foot.T) / self.foot.sum(1).clamp(min=1)
-        score = best + 1e-3 * mean
         low_ok = allowed & self.low[None]
-        pick = torch.where(low_ok.any(1)[:, None], low_ok, allowed)
-        return _argmax_allowed(score, pick), None, None
+        return best + 1e-3 * mean, torch.where(low_ok.any(1)[:, None], low_ok, allowed)
 
 
 def binary_entropy(p: torch.Tensor) -> torch.Tensor:
@@ -150,7 +153,7 @@ class EntropyPerSecond:
     def act(self, inp: PolicyInput, generator=None):
         gain = binary_entropy(inp.fused) @ self.foot.T  # (B, P)
         score = gain / self.cost[inp.lattice_idx].clamp(min=1.0)
-        return _argmax_allowed(score, candidates(inp)), None, None
+        return argmax_allowed(score, candidates(inp)), None, None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -235,6 +238,6 @@ def label_routes(cache, fusion: Fusion, config: SearchConfig, beam: int = 1) -> 
     return torch.tensor([r + [-1] * (L - len(r)) for r in out], dtype=torch.long)
 
 
-__all__ = ["DescendRule", "EntropyPerSecond", "MaskedRandom", "RoutePolicy", "SURVEY_INNER_M", "SURVEY_OUTER_M",
+__all__ = ["argmax_allowed", "DescendRule", "EntropyPerSecond", "MaskedRandom", "RoutePolicy", "SURVEY_INNER_M", "SURVEY_OUTER_M",
            "binary_entropy", "candidates", "footprints", "greedy_view_set", "label_routes", "lawnmower",
            "survey_then_lawnmower", "viewpoints_at"]

@@ -1,0 +1,246 @@
+"""Teams: N vehicles searching one area together, sharing one fused map, on one clock of simulated flight.
+
+`run_team(source, fusion, planner, vehicles, budget_s)` is the team's episode, batched over B episodes like
+`run_search`, and the flying team (fly --vehicles N) asks the same planner. It is event-driven on simulated
+time, because vehicles fly at once and arrive when their flights end, not in turns:
+
+- every vehicle starts above the lattice start (their homes lie a few metres apart at the centre); vehicle 0
+  takes the start view at time 0 (free, as in run_search), the others take theirs where the planner sends them;
+- the next event of an episode is the vehicle that arrives first (ties: the lower vehicle); it takes its view,
+  the view is fused into the episode's one map, and the planner gives that vehicle its next viewpoint from the
+  map, the viewpoints any vehicle has taken or is flying to (never two vehicles on one viewpoint: the
+  separation rule), and the seconds of mission time left;
+- a vehicle whose planner has nothing it can reach before `budget_s` (or says -1) stops; the episode ends
+  when every vehicle has. `max_views` caps the team's views in all.
+
+Planners (`TeamPlanner.choose(inp, vehicle, generator) -> (B,) viewpoint or -1`) read a PolicyInput whose
+`allowed` already excludes taken, claimed and unreachable viewpoints and whose `lattice_idx` is the deciding
+vehicle's viewpoint; its `step` is the team's views so far minus one (the largest over the batch), so a
+planner must not count its own steps from it:
+
+- `TeamRule` (the wide family's rule for a team): while survey viewpoints are free, the nearest of them; then
+  the rule's descent score (wide_policies.DescendRule), optionally per second of flight from here;
+- `Partition`: a fixed split of the lattice, each vehicle flying the lowest layer's lawnmower over its strip
+  of columns;
+- `EachVehicle(policy)`: any one-vehicle wide policy (entropy per second, random), asked for each vehicle.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Protocol
+
+import numpy as np
+import torch
+
+from uavsearch.errors import UavsearchError
+
+from .config import SearchConfig
+from .fusion import Fusion
+from .search_loop import PolicyInput, ViewSource, fusion_view
+from .wide_policies import SURVEY_OUTER_M, DescendRule, argmax_allowed, viewpoints_at
+
+
+class TeamPlanner(Protocol):
+    def reset(self, batch: int, vehicles: int) -> None: ...
+
+    def choose(self, inp: PolicyInput, vehicle: torch.Tensor, generator: torch.Generator | None) -> torch.Tensor:
+        """(B,) the next viewpoint of `vehicle` (B,) in each episode, or -1: it stops."""
+
+
+class TeamEpisode(NamedTuple):
+    """B episodes of E events (an event: a vehicle reached its viewpoint; it took a view where `taken`)."""
+
+    vehicle: torch.Tensor  # (B, E) long
+    lattice_idx: torch.Tensor  # (B, E) viewpoint of the event
+    time_s: torch.Tensor  # (B, E) mission time of the event (simulated seconds since the start view)
+    taken: torch.Tensor  # (B, E) bool: a view was taken (False: no view, or the episode had ended)
+    maps: torch.Tensor  # (B, E, N) fused p after the event
+    labels: torch.Tensor | None  # (B, N)
+    vehicles: int
+
+    def map_at(self, time_s: float) -> torch.Tensor:
+        """(B, N) the fused map of each episode after every view taken by `time_s` (the prior before any)."""
+        ok = self.taken & (self.time_s <= time_s + 1e-9)
+        last = torch.where(ok, torch.arange(ok.shape[1]), -1).amax(1)  # (B,)
+        maps = self.maps[torch.arange(len(last)), last.clamp(min=0)]
+        return torch.where((last >= 0)[:, None], maps, torch.zeros_like(maps))
+
+    def views(self) -> torch.Tensor:
+        """(B,) views taken."""
+        return self.taken.sum(1)
+
+
+def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles: int, budget_s: float,
+             max_views: int | None = None, generator: torch.Generator | None = None, on_event=None) -> TeamEpisode:
+    """B episodes of a team of `vehicles` under a mission time of `budget_s` simulated seconds (module docstring).
+
+    `on_event(b_vehicle, idx, time_s, taken, fused, next_idx)` hears each event once its next viewpoint is
+    chosen (a flight log writes it there). Evaluation only: no gradients are kept."""
+    config: SearchConfig = source.config
+    if vehicles < 1:
+        raise UavsearchError(f"a team needs at least one vehicle, got {vehicles}")
+    lat = config.lattice
+    cost = lat.flight_time_t.to(torch.float64)  # (P, P)
+    B, P, V = source.batch_size, lat.num_positions, int(vehicles)
+    ar = torch.arange(B)
+    pos = torch.full((B, V), lat.start_index, dtype=torch.long)
+    arrive = torch.zeros(B, V, dtype=torch.float64)
+    capture = torch.zeros(B, V, dtype=torch.bool)
+    capture[:, 0] = True  # vehicle 0 takes the start view; the others are sent out from there
+    active = torch.ones(B, V, dtype=torch.bool)
+    taken_vp = torch.zeros(B, P, dtype=torch.bool)
+    n_views = torch.zeros(B, dtype=torch.long)
+    planner.reset(B, V)
+    state = fusion.init_state(B, config.grid.num_cells)
+    fused = torch.full((B, config.grid.num_cells), float("nan"))
+    ev_v, ev_idx, ev_t, ev_taken, ev_maps = [], [], [], [], []
+    positions, probs, valids = [], [], []
+    last_obs = None
+    with torch.no_grad():
+        while bool(active.any()):
+            t_ev = torch.where(active, arrive, torch.full_like(arrive, np.inf))
+            v = t_ev.argmin(1)
+            live = active.any(1)
+            now = torch.where(live, t_ev[ar, v], torch.zeros(B, dtype=torch.float64))
+            idx = pos[ar, v]
+            cap = capture[ar, v] & live
+            if max_views is not None:
+                cap &= n_views < max_views
+            if bool(cap.any()):
+                o = source.observe(idx)
+                o = o._replace(valid=o.valid & cap[:, None])
+                state, new = fusion.update(state, fusion_view(o, idx, source.labels))
+                fused = torch.where(cap[:, None], new, fused) if not torch.isnan(fused).all() else new
+                taken_vp[ar[cap], idx[cap]] = True
+                n_views += cap.long()
+                positions.append(idx)
+                probs.append(o.log_probs[..., 1].exp())
+                valids.append(o.valid)
+                last_obs = o
+            capture[ar, v] = False
+            # the deciding vehicle's choices: nothing taken, claimed by another vehicle, or out of reach
+            claimed = torch.zeros(B, P, dtype=torch.bool)
+            for u in range(V):
+                other = active[:, u] & capture[:, u] & (u != v)
+                claimed[ar[other], pos[other, u]] = True
+            left = budget_s - now
+            allowed = ~taken_vp & ~claimed & (cost[idx] <= left[:, None] + 1e-9)
+            if max_views is not None:
+                pending = (active & capture).sum(1)
+                allowed &= (n_views + pending < max_views)[:, None]
+            vis = taken_vp | claimed
+            have = bool(positions)
+            inp = PolicyInput(
+                last_obs.global_feature if last_obs is not None else None,
+                last_obs.valid.float() if last_obs is not None else torch.zeros(B, config.grid.num_cells),
+                torch.nan_to_num(fused, nan=0.0).float(), idx, vis, max(int(n_views.max()) - 1, 0),
+                int(max_views or P), torch.stack(positions, 1) if have else idx[:, None],
+                torch.stack(probs, 1) if have else None,
+                torch.stack(valids, 1) if have else torch.zeros(B, 1, config.grid.num_cells, dtype=torch.bool),
+                None, left.float(), allowed)
+            nxt = planner.choose(inp, v, generator)
+            ok = (nxt >= 0) & live
+            ok &= allowed[ar, nxt.clamp(min=0)]
+            stop = live & ~ok
+            ev_v.append(v)
+            ev_idx.append(idx)
+            ev_t.append(now)
+            ev_taken.append(cap)
+            ev_maps.append(torch.nan_to_num(fused, nan=0.0).clone())
+            if on_event is not None:
+                on_event(v, idx, now, cap, ev_maps[-1], torch.where(ok, nxt, -1))
+            active[ar[stop], v[stop]] = False
+            go = ok
+            pos[ar[go], v[go]] = nxt[go]
+            arrive[ar[go], v[go]] = now[go] + cost[idx[go], nxt[go]]
+            capture[ar[go], v[go]] = True
+    return TeamEpisode(torch.stack(ev_v, 1), torch.stack(ev_idx, 1), torch.stack(ev_t, 1).float(),
+                       torch.stack(ev_taken, 1), torch.stack(ev_maps, 1), source.labels, V)
+
+
+# --------------------------------------------------------------------------------------------------
+# Planners
+
+
+class TeamRule:
+    """The rule for a team: the survey's free viewpoints first (the nearest), then the descent over the highest
+    fused p (DescendRule's score); `per_second`: that score per second of flight from here."""
+
+    def __init__(self, config: SearchConfig, per_second: bool = False, survey_xy_m=SURVEY_OUTER_M):
+        self.rule = DescendRule(config, survey_xy_m)
+        self.survey = torch.as_tensor(viewpoints_at(config, survey_xy_m, config.layers_m[0]))
+        self.cost = config.lattice.flight_time_t.float()
+        self.per_second = per_second
+
+    def reset(self, batch: int, vehicles: int) -> None:
+        pass
+
+    def choose(self, inp: PolicyInput, vehicle: torch.Tensor, generator=None) -> torch.Tensor:
+        allowed = inp.allowed
+        cost = self.cost[inp.lattice_idx]  # (B, P)
+        in_survey = torch.zeros_like(allowed)
+        in_survey[:, self.survey] = True
+        survey_free = allowed & in_survey
+        nearest = argmax_allowed(-cost, survey_free)
+        score, pick = self.rule.descend_scores(inp)
+        if self.per_second:
+            score = score / cost.clamp(min=1.0)
+        descend = argmax_allowed(score, pick)
+        out = torch.where(survey_free.any(1), nearest, descend)
+        return torch.where(allowed.any(1), out, -1)
+
+
+class Partition:
+    """A fixed split: vehicle v flies the lowest layer's lawnmower over columns [v L / N, (v + 1) L / N)."""
+
+    def __init__(self, config: SearchConfig):
+        self.config = config
+        self.routes: list[list[int]] = []
+        self.done = None
+
+    def reset(self, batch: int, vehicles: int) -> None:
+        lat = self.config.lattice
+        L = lat.size
+        layer = lat.altitudes_m.index(min(lat.altitudes_m))
+        self.routes = []
+        for v in range(vehicles):
+            cols = list(range(v * L // vehicles, (v + 1) * L // vehicles))
+            self.routes.append([layer * L * L + r * L + c for r in range(L)
+                                for c in (cols if r % 2 == 0 else cols[::-1])])
+        width = max(len(r) for r in self.routes)
+        self.table = torch.tensor([r + [-1] * (width - len(r)) for r in self.routes])  # (V, W)
+        self.step = torch.zeros(batch, vehicles, dtype=torch.long)
+
+    def choose(self, inp: PolicyInput, vehicle: torch.Tensor, generator=None) -> torch.Tensor:
+        B = len(vehicle)
+        ar = torch.arange(B)
+        out = torch.full((B,), -1, dtype=torch.long)
+        for _ in range(self.table.shape[1]):  # the next viewpoint of its strip it may still take
+            k = self.step[ar, vehicle]
+            cand = torch.where(k < self.table.shape[1], self.table[vehicle, k.clamp(max=self.table.shape[1] - 1)], -1)
+            ok = (cand >= 0) & inp.allowed[ar, cand.clamp(min=0)]
+            out = torch.where((out < 0) & ok, cand, out)
+            move_on = (out < 0) & (k < self.table.shape[1])
+            if not bool(move_on.any()):
+                break
+            self.step[ar[move_on], vehicle[move_on]] += 1
+        done = out >= 0
+        self.step[ar[done], vehicle[done]] += 1
+        return out
+
+
+class EachVehicle:
+    """Any one-vehicle wide policy, asked for whichever vehicle decides."""
+
+    def __init__(self, policy):
+        self.policy = policy
+
+    def reset(self, batch: int, vehicles: int) -> None:
+        pass
+
+    def choose(self, inp: PolicyInput, vehicle: torch.Tensor, generator=None) -> torch.Tensor:
+        a, _, _ = self.policy.act(inp, generator)
+        return torch.where(inp.allowed.any(1), a, -1)
+
+
+__all__ = ["EachVehicle", "Partition", "TeamEpisode", "TeamPlanner", "TeamRule", "run_team"]
