@@ -122,13 +122,13 @@ def test_a_goto_near_another_vehicle_is_refused(tmp_path):
         ack = _reposition(two, *here)  # onto vehicle 1
         assert ack.result == M.MAV_RESULT_DENIED
         text = two.recv("STATUSTEXT", 3, cond=lambda m: "Reposition denied" in m.text)
-        assert text is not None and "within 10 m of vehicle 1" in text.text
+        assert text is not None and "within 5 m of vehicle 1" in text.text
         north = here[0] + 40.0 / 111_200.0  # 40 m north: clear of both
         assert _reposition(two, north, here[1], here[2]).result == M.MAV_RESULT_ACCEPTED
-        ack = _reposition(one, north + 3.0 / 111_200.0, here[1], here[2])  # next to vehicle 2's goal
+        ack = _reposition(one, north + 2.0 / 111_200.0, here[1], here[2])  # next to vehicle 2's goal
         assert ack.result == M.MAV_RESULT_DENIED
         assert one.system.params.set_float("SIM_SEP_DIST", 0.0)  # the rule is a parameter; 0 turns it off
-        assert _reposition(one, north + 3.0 / 111_200.0, here[1], here[2]).result == M.MAV_RESULT_ACCEPTED
+        assert _reposition(one, north + 2.0 / 111_200.0, here[1], here[2]).result == M.MAV_RESULT_ACCEPTED
     finally:
         one.close()
         two.close()

@@ -102,6 +102,12 @@ def _cmd_fly(args) -> int:
 
     mission = load_mission(args.mission, check_registry=False)
     mission = mission.with_overrides(check_registry=False, **{"scene.seed": args.scene, "flight.speed": args.speed})
+    if args.vehicles is not None or args.mission_time is not None:
+        if mission.family is None:
+            raise UavsearchError(f"--vehicles / --mission-time: {mission.source} searches the paper's setting with one "
+                                 "vehicle; a team flies a scene family's mission (--mission missions/wide.yaml)")
+        team = {"vehicles": args.vehicles, "mission_time_s": args.mission_time}
+        mission = mission.with_team(**{k: v for k, v in team.items() if v is not None})
     try:
         r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
                 progress=lambda line: print(line, flush=True))
@@ -150,6 +156,10 @@ def _add_fly_parser(sub) -> None:
                    help="fly an already running vehicle instead, e.g. udpin:127.0.0.1:14540")
     p.add_argument("--gcs-port", type=int, default=14550,
                    help="the started vehicle's ground-station link sends here (QGroundControl; 0: off)")
+    p.add_argument("--vehicles", type=int, default=None, metavar="N",
+                   help="(a scene family's mission, e.g. missions/wide.yaml) fly a team of N vehicles on one map")
+    p.add_argument("--mission-time", type=float, default=None, metavar="S",
+                   help="(a scene family's mission) simulated seconds of flight the team searches for")
     p.set_defaults(func=_cmd_fly, exit_at_once=True)
 
 
@@ -219,7 +229,7 @@ def _add_replay_parser(sub) -> None:
 
 TRAIN_HELP = "train in teleport mode: perception (stage 1), then fusion + policy (stage 2)"
 EVAL_HELP = ("evaluate: single-view perception (Table I, Fig. 4), search methods (Table II, Fig. 6), "
-             "perception against its targets")
+             "perception against its targets, teams of vehicles")
 
 
 def _add_train_parser(sub) -> None:
@@ -240,12 +250,14 @@ def _add_eval_parser(sub) -> None:
     from .search.evaluate.perception import add_eval_perception_parser
     from .search.evaluate.search import add_eval_search_parser
     from .search.evaluate.single_view import add_eval_single_view_parser
+    from .search.evaluate.team import add_eval_team_parser
 
     ev = sub.add_parser("eval", help=EVAL_HELP)
-    esub = ev.add_subparsers(dest="eval_cmd", required=True, metavar="{single-view,search,perception}")
+    esub = ev.add_subparsers(dest="eval_cmd", required=True, metavar="{single-view,search,perception,team}")
     add_eval_single_view_parser(esub)
     add_eval_search_parser(esub)
     add_eval_perception_parser(esub)
+    add_eval_team_parser(esub)
     _add_vehicle_option(esub.choices["search"])
 
 

@@ -69,11 +69,12 @@ class SitlConfig:
     setting: str | None = None  # a scene family ("wide") for scene_seed instead of the paper's generator
     vehicles: int = 1  # simulated in this process on one clock
     instance: int = 0  # the first vehicle's instance number I (sysid, ports, seed and home follow it)
+    one_api_port: bool = False  # every vehicle's API link sends to api_port itself (one client for the team)
 
 
 HOME_SPACING_M = 10.0  # instance I's home lies this far east of instance 0's (PX4's multi-vehicle SITL spaces them)
 MAX_VEHICLES = 16
-SEPARATION_M = 10.0  # SIM_SEP_DIST's default
+SEPARATION_M = 5.0  # SIM_SEP_DIST's default: half the homes' spacing
 
 
 def instance_config(cfg: SitlConfig, i: int) -> SitlConfig:
@@ -82,7 +83,7 @@ def instance_config(cfg: SitlConfig, i: int) -> SitlConfig:
     start = tuple(cfg.start_enu)
     return dataclasses.replace(
         cfg, vehicles=1, instance=inst, seed=cfg.seed + inst,
-        api_port=cfg.api_port + inst if cfg.api_port else 0,
+        api_port=cfg.api_port + inst if cfg.api_port and not cfg.one_api_port else cfg.api_port,
         api_local_port=cfg.api_local_port + inst if cfg.api_local_port else 0,
         gcs_local_port=cfg.gcs_local_port + inst if cfg.gcs_local_port else 0,
         start_enu=(start[0] + HOME_SPACING_M * inst, start[1], start[2]),
@@ -489,6 +490,9 @@ def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vehicles", type=int, default=1, metavar="N",
                    help=f"simulate N vehicles on one clock (1-{MAX_VEHICLES}), PX4 SITL style: instance I has sysid "
                         "I+1, its API link on 14540+I, all on 14550, home 10 m east per instance")
+    p.add_argument("--one-api-port", action="store_true",
+                   help="every vehicle's API link sends to --api-port itself instead of --api-port + I (one client "
+                        "socket for the team, demultiplexed by system id, as `uavsearch fly --vehicles N` uses)")
     p.add_argument("--instance", type=int, default=0, metavar="I",
                    help="the (first) vehicle's instance number: sysid I+1, ports +I, home offset I (default 0)")
     cam = CameraIntrinsics()
@@ -552,6 +556,7 @@ def config_from_args(args) -> SitlConfig:
         setting=args.setting,
         vehicles=args.vehicles,
         instance=args.instance,
+        one_api_port=args.one_api_port,
     )
 
 

@@ -82,13 +82,42 @@ class SceneRef(_Strict):
     """Which world: a generated scene (seed + setting or occupied_cells) or a saved spec file."""
 
     seed: int | None = Field(3, ge=0)
-    setting: int | None = Field(2, ge=1, le=3)
+    setting: int | str | None = 2  # the paper's 1 | 2 | 3, or a scene family ("wide": a team's wide-area search)
     occupied_cells: int | None = Field(None, ge=0, le=100)
     spec: str | None = None  # path to a scene JSON (uavsearch scene save), relative to the mission file
 
+    @field_validator("setting")
+    @classmethod
+    def _setting(cls, v):
+        if v is None:
+            return v
+        if isinstance(v, str) and v.strip().isdigit():
+            v = int(v)
+        if isinstance(v, int) and not isinstance(v, bool):
+            if v not in SETTINGS:
+                raise ValueError(f"setting {v}: the paper's settings are {', '.join(map(str, SETTINGS))}")
+            return v
+        from ..world.settings import setting_params
+
+        try:
+            return setting_params(v).name
+        except UavsearchError as e:
+            raise ValueError(str(e)) from None
+
+    @property
+    def family(self) -> str | None:
+        """The scene family a wide-area mission searches ("wide"), None for the paper's settings."""
+        return self.setting if isinstance(self.setting, str) else None
+
     @property
     def k(self) -> int:
-        return int(self.occupied_cells) if self.occupied_cells is not None else SETTINGS[int(self.setting or 2)]
+        if self.occupied_cells is not None:
+            return int(self.occupied_cells)
+        if self.family is not None:
+            from ..world.settings import setting_params
+
+            return setting_params(self.family).k
+        return SETTINGS[int(self.setting or 2)]
 
 
 class SearchSection(_Strict):
@@ -171,6 +200,13 @@ class FlightSection(_Strict):
         return v
 
 
+class TeamSection(_Strict):
+    """A scene family's mission: how many vehicles search it together, for how long."""
+
+    vehicles: int = Field(1, ge=1, le=16)  # `uavsearch fly --vehicles N` overrides it
+    mission_time_s: float = Field(240.0, gt=0, le=3600)  # simulated seconds of flight, by the lattice's flight times
+
+
 class Mission(_Strict):
     name: str = "mission"
     description: str = ""
@@ -186,12 +222,27 @@ class Mission(_Strict):
     camera: CameraSection = CameraSection()
     flight: FlightSection = FlightSection()
     plan: str | None = None  # a QGroundControl .plan (relative to this file): `uavsearch mission upload` flies it
+    team: TeamSection | None = None  # a scene family's mission (scene.setting: wide): the team and its time
     source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
 
     @field_validator("fusion", "policy")
     @classmethod
     def _registered(cls, v, info: ValidationInfo):
         if not _checks_registry(info):
+            return v
+        scene = info.data.get("scene")
+        if scene is not None and scene.family is not None:  # a team's fusion spec and planner (search/team.py)
+            from ..search.config import setting_config
+            from ..search.evaluate.team import make_planner
+            from ..search.evaluate.wide import make_fusion
+
+            try:
+                if info.field_name == "fusion":
+                    make_fusion(v)
+                else:
+                    make_planner(v, setting_config(scene.family))
+            except UavsearchError as e:
+                raise ValueError(str(e).replace("--wide-fusion", "a wide-area mission's fusion")) from None
             return v
         agents = _registry()
         known = {"fusion": agents.FUSIONS, "policy": agents.POLICIES}[info.field_name]
@@ -207,6 +258,14 @@ class Mission(_Strict):
             raise ValueError("scene: give a seed or a spec file")
         if s.occupied_cells is not None and s.setting is not None and "setting" in s.model_fields_set:
             raise ValueError("scene: give setting OR occupied_cells, not both")
+        if s.family is not None:
+            if s.spec is not None:
+                raise ValueError("scene: a scene family's mission names a seed, not a spec file")
+            if self.checkpoint is not None:
+                raise ValueError("checkpoint: a wide-area mission's planner has no checkpoint")
+            return self
+        if self.team is not None:
+            raise ValueError("team: only a scene family's mission (scene.setting: wide) flies a team")
         if _checks_registry(info) and _registry().trained_fusion(self.fusion) and \
                 not _registry().loads_checkpoint(self.policy) and self.checkpoint is None and s.setting is None:
             raise ValueError(f"{self.fusion} fusion needs a checkpoint (no setting to pick a shipped one)")
@@ -250,6 +309,14 @@ class Mission(_Strict):
         return base / path
 
     @property
+    def family(self) -> str | None:
+        return self.scene.family
+
+    @property
+    def vehicles(self) -> int:
+        return 1 if self.team is None else int(self.team.vehicles)
+
+    @property
     def setting_for_models(self) -> int:
         if self.scene.setting is not None:
             return int(self.scene.setting)
@@ -268,7 +335,13 @@ class Mission(_Strict):
 
     @property
     def perception_path(self) -> Path:
-        return self._resolve(self.perception) if self.perception else MODELS_DIR / "perception.pt"
+        if self.perception:
+            return self._resolve(self.perception)
+        if self.family is not None:
+            from ..search.perception import shipped_perception  # lazy: torch
+
+            return shipped_perception(self.family)
+        return MODELS_DIR / "perception.pt"
 
     @property
     def plan_path(self) -> Path | None:
@@ -280,6 +353,15 @@ class Mission(_Strict):
 
     def search_config(self) -> SearchConfig:
         s = self.search
+        if self.family is not None:  # the family's lattice and camera; views until the mission time is flown
+            import dataclasses
+
+            from ..search.config import setting_config
+
+            cfg = setting_config(self.family)
+            t = self.team.mission_time_s if self.team is not None else TeamSection().mission_time_s
+            return dataclasses.replace(cfg, budget_T=cfg.lattice.num_positions, budget_s=float(t),
+                                       intrinsics=self.camera.intrinsics())
         try:
             return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions),
                                 altitudes_m=tuple(float(a) for a in s.altitudes_m), intrinsics=self.camera.intrinsics())
@@ -299,6 +381,10 @@ class Mission(_Strict):
         """The ground-truth scene (generated from the seed, or loaded from the spec file)."""
         if self.spec_path is not None:
             return load_scene(self.spec_path)
+        if self.family is not None:
+            from ..world.settings import generate_setting_scene
+
+            return generate_setting_scene(self.family, int(self.scene.seed))
         return generate_scene(int(self.scene.seed), self.scene.k)
 
     def agent(self, config: SearchConfig | None = None) -> LoadedAgent:
@@ -330,6 +416,12 @@ class Mission(_Strict):
             d[leaf] = value
             if key == "scene.seed":
                 data["scene"]["spec"] = None
+        return mission_from_dict(data, self.source, check_registry)
+
+    def with_team(self, check_registry: bool = False, **team) -> "Mission":
+        """A copy with the team section's fields changed ({'vehicles': 3}), re-validated."""
+        data = self.model_dump(mode="json")
+        data["team"] = {**(data.get("team") or {}), **team}
         return mission_from_dict(data, self.source, check_registry)
 
 

@@ -111,16 +111,20 @@ class MavlinkVehicle:
     def __init__(self, url: str, config: SearchConfig | None = None, origin: GeodeticOrigin | None = None,
                  settings: FlightSettings | None = None, tlog=None, source_system: int = 245,
                  source_component: int = 190, image_dir: Path | None = None, progress=None,
-                 system_id: int | None = None):
+                 system_id: int | None = None, connection: MavlinkConnection | None = None):
+        """`connection`: fly one System of a connection someone else owns (a team's vehicles share one; closing
+        the vehicle leaves it open)."""
         self.config = config or SearchConfig()
         self.origin = origin or GeodeticOrigin()
         self.settings = settings or FlightSettings()
-        self.url = url
+        self.url = url if connection is None else connection.url
         self.tlog = tlog
         self.image_dir = Path(image_dir) if image_dir else None
         self.progress = progress  # callable(str) for status lines, or None
         self.system_id = system_id  # None: the first autopilot that heartbeats
-        self.connection = MavlinkConnection(url, source_system, source_component, tlog=tlog)
+        self.owns_connection = connection is None
+        self.connection = connection if connection is not None else \
+            MavlinkConnection(url, source_system, source_component, tlog=tlog)
         self.system = None  # the System this vehicle flies, once its heartbeat came
         self.watchdog = None  # callable() raising VehicleLost when the vehicle process is known dead
         self.last_capture: CaptureInfo | None = None
@@ -129,6 +133,7 @@ class MavlinkVehicle:
         self.closed = False
         self.connected_sim_s: float | None = None  # vehicle clock when the link came up healthy
         self._settle: _Settle | None = None
+        self._goto_t0 = 0.0
 
     @property
     def conn(self) -> MavlinkConnection:
@@ -290,8 +295,19 @@ class MavlinkVehicle:
 
     def take_off(self) -> None:
         """Arm (retrying while the estimator converges), take off to the mission altitude, go to the centre."""
+        st = self.settings
+        self.begin_take_off()
+        self._wait(self.took_off, st.wall_timeout_s, "takeoff", sim_timeout_s=st.takeoff_timeout_s,
+                   status=lambda el: f"take-off  {self._where(el)}  (to {self.config.altitude_m:.0f} m)")
+
+    def _takeoff_alt_amsl(self) -> float:
+        return self.origin.alt_m + self.config.altitude_m
+
+    def begin_take_off(self) -> None:
+        """Arm and command the take-off to the mission altitude; `took_off()` says when it is there (a team
+        takes off together: every vehicle begins, then one wait for all)."""
         st, s = self.settings, self.system
-        alt_amsl = self.origin.alt_m + self.config.altitude_m
+        alt_amsl = self._takeoff_alt_amsl()
         self.arm()
         r = s.commands.long(M.MAV_CMD_NAV_TAKEOFF, math.nan, 0, 0, math.nan, math.nan, math.nan, alt_amsl)
         if r != M.MAV_RESULT_ACCEPTED:
@@ -299,33 +315,54 @@ class MavlinkVehicle:
         self.in_air = True
         self._say(f"taking off to {self.config.altitude_m:.0f} m")
         self._wait(lambda: self.mode() == MODE_TAKEOFF or self._at_alt(alt_amsl), st.wall_timeout_s, "takeoff start")
-        self._wait(lambda: self.mode() == MODE_HOLD and self._at_alt(alt_amsl), st.wall_timeout_s, "takeoff",
-                   sim_timeout_s=st.takeoff_timeout_s,
-                   status=lambda el: f"take-off  {self._where(el)}  (to {self.config.altitude_m:.0f} m)")
+
+    def took_off(self) -> bool:
+        return self.mode() == MODE_HOLD and self._at_alt(self._takeoff_alt_amsl())
 
     def goto(self, position_enu) -> float:
         """DO_REPOSITION to the waypoint; returns the simulation time it took to arrive and settle."""
+        try:
+            self.begin_goto(position_enu)
+            return self.wait_arrived()
+        finally:
+            self._settle = None
+
+    def begin_goto(self, position_enu) -> None:
+        """DO_REPOSITION to the waypoint, not waiting for the flight (`arrived()`, `wait_arrived()`): a team's
+        vehicles fly at once."""
         st, s = self.settings, self.system
         target = np.asarray(position_enu, dtype=float)
         lat, lon, alt = self.origin.enu_to_geodetic(target)
         # Track every position report from before the command on, so no report is judged late or skipped.
         self._settle = _Settle(target, st.arrive_radius_m, st.settle_speed_m_s, st.settle_time_s)
-        try:
-            r = s.commands.int(M.MAV_CMD_DO_REPOSITION, M.MAV_FRAME_GLOBAL_INT, -1,
-                               M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.radians(st.yaw_deg),
-                               wire.deg_to_e7(lat), wire.deg_to_e7(lon), float(alt))
-            if r != M.MAV_RESULT_ACCEPTED:
-                raise StepFailed(f"goto {np.round(target, 1).tolist()} refused "
-                                 f"({s.last_texts(1) or f'MAV_RESULT {r}'})")
-            t0 = getattr(s.commands.last_ack, "sim_s", None) or self.sim_time_s or 0.0
-            self._settle.reset_before(t0)
-            self._wait(lambda: self._settle.done_at, st.wall_timeout_s, f"goto {np.round(target, 1).tolist()}",
-                       sim_timeout_s=st.step_timeout_s,
-                       status=lambda el: f"flying    {self._where(el)}  (to E {target[0]:.1f} N {target[1]:.1f}, "
-                                         f"{self._distance_to(target):.1f} m to go)")
-            return self._settle.done_at - t0
-        finally:
+        r = s.commands.int(M.MAV_CMD_DO_REPOSITION, M.MAV_FRAME_GLOBAL_INT, -1,
+                           M.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0, math.radians(st.yaw_deg),
+                           wire.deg_to_e7(lat), wire.deg_to_e7(lon), float(alt))
+        if r != M.MAV_RESULT_ACCEPTED:
             self._settle = None
+            raise StepFailed(f"goto {np.round(target, 1).tolist()} refused "
+                             f"({s.last_texts(1) or f'MAV_RESULT {r}'})")
+        self._goto_t0 = getattr(s.commands.last_ack, "sim_s", None) or self.sim_time_s or 0.0
+        self._settle.reset_before(self._goto_t0)
+
+    @property
+    def goal_enu(self) -> np.ndarray | None:
+        """Where the last begin_goto sends it, until it has arrived there (wait_arrived)."""
+        return None if self._settle is None else self._settle.target
+
+    def arrived(self) -> bool:
+        return self._settle is not None and self._settle.done_at is not None
+
+    def wait_arrived(self) -> float:
+        """Until the goto of begin_goto has arrived and settled; the simulation seconds it took."""
+        st, target = self.settings, self._settle.target
+        self._wait(self.arrived, st.wall_timeout_s, f"goto {np.round(target, 1).tolist()}",
+                   sim_timeout_s=st.step_timeout_s,
+                   status=lambda el: f"flying    {self._where(el)}  (to E {target[0]:.1f} N {target[1]:.1f}, "
+                                     f"{self._distance_to(target):.1f} m to go)")
+        took = self._settle.done_at - self._goto_t0
+        self._settle = None
+        return took
 
     def take_picture(self):
         """IMAGE_START_CAPTURE -> CAMERA_IMAGE_CAPTURED; returns the message."""
@@ -367,18 +404,34 @@ class MavlinkVehicle:
             self.connect()
             self.take_off()
         flight = self.goto(position_enu)
+        return self.capture_here(position_enu, flight, wall0)
+
+    def capture_here(self, position_enu, flight_s: float, wall0: float) -> View:
+        """Take a picture where it stands (arrived at `position_enu` after `flight_s` of flight); the View."""
         msg = self.take_picture()
         view, path, pos, rpy = self.view_from_capture(msg)
         self.last_capture = CaptureInfo(
             index=int(msg.image_index), waypoint_enu=[float(x) for x in position_enu],
             reported_position_enu=[float(x) for x in pos], reported_rpy_rad=[float(x) for x in rpy],
             image_path=str(path), camera_dir=str(self.image_path(msg).parent.parent),
-            time_boot_s=wire.seconds(msg.time_boot_ms), flight_time_s=float(flight),
+            time_boot_s=wire.seconds(msg.time_boot_ms), flight_time_s=float(flight_s),
             wall_s=time.monotonic() - wall0)
         return view
 
     def finish(self) -> str:
         """The mission's end action (land / RTL / none); waits until landed and disarmed. Returns what happened."""
+        st = self.settings
+        done = self.begin_finish()
+        if done is not None:
+            return done
+        what = "landing" if st.end_action == "land" else "returning"
+        self._wait(lambda: not self.armed, st.wall_timeout_s, f"{st.end_action} until disarmed",
+                   sim_timeout_s=300.0, tick_s=st.land_tick_s,
+                   status=lambda el: f"{what:<9} {self._where(el)}  (until landed and disarmed)")
+        return self.end_text()
+
+    def begin_finish(self) -> str | None:
+        """Command the end action without waiting for it; what happened when there is nothing to wait for."""
         st = self.settings
         if not self.in_air or st.end_action == "none":
             return "left in the air" if self.in_air else "not flown"
@@ -387,19 +440,20 @@ class MavlinkVehicle:
         if r != M.MAV_RESULT_ACCEPTED:
             raise CommandError(f"{st.end_action} refused (MAV_RESULT {r})", cmd, r)
         self._say("landing" if st.end_action == "land" else "returning to launch")
-        what = "landing" if st.end_action == "land" else "returning"
-        self._wait(lambda: not self.armed, st.wall_timeout_s, f"{st.end_action} until disarmed",
-                   sim_timeout_s=300.0, tick_s=st.land_tick_s,
-                   status=lambda el: f"{what:<9} {self._where(el)}  (until landed and disarmed)")
+        return None
+
+    def end_text(self) -> str:
+        """Once disarmed after begin_finish: what the end action did."""
         self.in_air = False
-        return "landed" if st.end_action == "land" else "returned and landed"
+        return "landed" if self.settings.end_action == "land" else "returned and landed"
 
     def close(self) -> None:
         if self.closed:
             return
         self.closed = True
         try:
-            self.connection.close()
+            if self.owns_connection:
+                self.connection.close()
         finally:
             if self.tlog is not None:
                 self.tlog.flush()

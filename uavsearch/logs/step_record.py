@@ -127,10 +127,12 @@ class StepRecord:
     reward: float | None = None  # this view's share of R_cls + R_re (search_loop.step_rewards)
     acc: float | None = None  # of the fused map against the ground truth
     f1: float | None = None
+    vehicle: int | None = None  # a team's flight: the system id that took the view (written only then)
 
     def to_json(self) -> str:
         """The search.jsonl line (without the newline)."""
-        return dumps_line({"type": "step", **{f.name: getattr(self, f.name) for f in fields(self)}})
+        return dumps_line({"type": "step", **{f.name: getattr(self, f.name) for f in fields(self)
+                                              if f.name not in OPTIONAL or getattr(self, f.name) is not None}})
 
     @classmethod
     def from_json(cls, line: str | dict) -> StepRecord:
@@ -139,13 +141,15 @@ class StepRecord:
             rec = json.loads(line) if isinstance(line, (str, bytes)) else line
             if not isinstance(rec, dict) or rec.get("type") != "step":
                 raise LogError("not a step record")
-            missing = [f.name for f in fields(cls) if f.name not in rec]
+            missing = [f.name for f in fields(cls) if f.name not in rec and f.name not in OPTIONAL]
             if missing:
                 raise LogError(f"step record lacks {', '.join(missing)}")
         except ValueError as e:
             raise LogError(f"not a JSON line ({str(e).splitlines()[0][:80]})") from None
         values = {}
         for f in fields(cls):
+            if f.name in OPTIONAL and f.name not in rec:
+                continue
             try:
                 values[f.name] = _READ[f.name](rec[f.name])
             except (ValueError, TypeError) as e:
@@ -160,7 +164,8 @@ _READ = dict(
     true_pose=_opt(_true_pose), image_index=_opt(_int), image=_str, p_occ=_cells(_num, float),
     scores=_opt(_cells(_num, float)), valid=_cells(_bool, bool), cell_area_px=_cells(_num, float),
     fused=_cells(_num, float), action=_opt(_int), action_name=_opt(_str), revisit=_bool, reward=_opt(_num),
-    acc=_opt(_num), f1=_opt(_num),
+    acc=_opt(_num), f1=_opt(_num), vehicle=_opt(_int),
 )
+OPTIONAL = ("vehicle",)  # fields a line may lack (older logs, one-vehicle flights): absent, not null
 
 __all__ = ["StepRecord", "TruePose", "dumps_line", "jsonable"]

@@ -63,8 +63,9 @@ class Telemetry:
     messages: int = 0
 
 
-def read_telemetry(path) -> Telemetry:
-    """The vehicle's (sysid of the first autopilot heartbeat) position, attitude, GPS, modes and events."""
+def read_telemetry(path, system_id: int | None = None) -> Telemetry:
+    """The vehicle's (`system_id`, default the first autopilot that heartbeats) position, attitude, GPS, modes
+    and events."""
     from pymavlink import mavutil
 
     path = Path(path)
@@ -75,7 +76,7 @@ def read_telemetry(path) -> Telemetry:
     except Exception as e:  # noqa: BLE001 - an unreadable file is one line
         raise LogError(f"cannot read {path}: {e}") from None
     tel = Telemetry()
-    sysid, t_ms, last_mode = None, 0, None
+    sysid, t_ms, last_mode = system_id, 0, None
     seen_caps = set()
     M = mavutil.mavlink
     try:
@@ -161,7 +162,9 @@ def _mode_bands(tel: Telemetry, t_end: float):
     return out
 
 
-def track_figure(tel: Telemetry, origin: GeodeticOrigin, views_enu=None, area_m: float | None = None):
+def track_figure(tel: Telemetry, origin: GeodeticOrigin, views_enu=None, area_m: float | None = None,
+                 team: dict | None = None):
+    """`team` ({system id: Telemetry} of the other vehicles of a team): their tracks too, one colour each."""
     import plotly.graph_objects as go
     from plotly.subplots import make_subplots
 
@@ -176,6 +179,14 @@ def track_figure(tel: Telemetry, origin: GeodeticOrigin, views_enu=None, area_m:
     fig.add_trace(go.Scatter(x=p[:, 0], y=p[:, 1], mode="lines", line=dict(color="#444", width=2), name="track (top)",
                              customdata=t, hovertemplate="t %{customdata:.1f} s<br>E %{x:.1f} N %{y:.1f}<extra></extra>"),
                   1, 2)
+    for sid, other in (team or {}).items():
+        q = _enu(origin, other.pos["lat"], other.pos["lon"], other.pos["alt"])
+        colour = ("#d62728", "#2ca02c", "#9467bd", "#8c564b", "#e377c2")[(sid - 2) % 5]
+        fig.add_trace(go.Scatter3d(x=q[:, 0], y=q[:, 1], z=q[:, 2], mode="lines", line=dict(color=colour, width=4),
+                                   name=f"vehicle {sid}"), 1, 1)
+        fig.add_trace(go.Scatter(x=q[:, 0], y=q[:, 1], mode="lines", line=dict(color=colour, width=2),
+                                 name=f"vehicle {sid} (top)"), 1, 2)
+        p = np.vstack([p, q])
     if views_enu is not None and len(views_enu):
         v = np.asarray(views_enu, float)
         labels = [str(i + 1) for i in range(len(v))]
@@ -378,7 +389,8 @@ def write_flight_review(log, out=None, mission_file=None) -> Path:
     else:
         tlog = log
         out = Path(out) if out else log.with_suffix(".html")
-    tel = read_telemetry(tlog)
+    first = ((run.header.get("team") or {}).get("system_ids") or [None])[0] if run else None
+    tel = read_telemetry(tlog, first)
     home = run.header.get("home") if run else None
     if home is None and mission_file:
         from ..fly.missions import load_mission
@@ -406,7 +418,12 @@ def write_flight_review(log, out=None, mission_file=None) -> Path:
         rows.append(("flight", f"{tel.pos['t'][0]:.1f} - {tel.pos['t'][-1]:.1f} s since boot, max altitude "
                                f"{max(tel.pos['alt']) - origin.alt_m:.1f} m above home"))
     rows.append(("modes", " -> ".join(dict.fromkeys(m[1] for m in tel.modes)) or "none logged"))
-    figs.append(("Track", track_figure(tel, origin, views_enu, area_m)))
+    ids = (run.header.get("team") or {}).get("system_ids", []) if run else []
+    team = {sid: read_telemetry(tlog, sid) for sid in ids[1:]}
+    if team:
+        notes.append(f"a team of {len(ids)}: the track shows every vehicle; the time series are vehicle "
+                     f"{ids[0]}'s")
+    figs.append(("Track", track_figure(tel, origin, views_enu, area_m, team)))
     figs.append(("Flight: altitude, velocity, attitude, estimator error, modes and events",
                  timeseries_figure(tel, origin, view_truth)))
     if d is not None:

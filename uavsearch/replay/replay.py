@@ -62,6 +62,7 @@ class TlogTrack:
     home: tuple | None  # (lat, lon, alt) from HOME_POSITION
     messages: int
     warning: str | None = None
+    sys: np.ndarray | None = None  # (K,) system id of each position (a team's log holds every vehicle's track)
 
     def rpy(self, t_s: float) -> tuple[float, float, float]:
         if not self.rpy_at:
@@ -81,7 +82,7 @@ def read_tlog(path) -> TlogTrack:
         raise LogError(f"cannot read {path}: {e.strerror or e}") from None
     mav = mavlink.MAVLink(None)
     mav.robust_parsing = False
-    t_pos, lla, rpy_at, caps = [], [], [], []
+    t_pos, lla, rpy_at, caps, sys = [], [], [], [], []
     home, n, off, warning = None, 0, 0, None
     while off < len(data):
         if off + 9 > len(data):
@@ -121,12 +122,13 @@ def read_tlog(path) -> TlogTrack:
         if typ == "GLOBAL_POSITION_INT" and m.get_srcComponent() in (1, 0):
             t_pos.append(t)
             lla.append(wire.lla(m))
+            sys.append(m.get_srcSystem())
         elif typ == "ATTITUDE":
             rpy_at.append((t, (float(m.roll), float(m.pitch), float(m.yaw))))
         elif typ == "CAMERA_IMAGE_CAPTURED":
             url = m.file_url if isinstance(m.file_url, str) else bytes(m.file_url).decode(errors="replace")
             lat, lon, alt = wire.lla(m)
-            caps.append(dict(t_s=t, lat=lat, lon=lon, alt=alt, q=list(m.q),
+            caps.append(dict(t_s=t, lat=lat, lon=lon, alt=alt, q=list(m.q), sysid=m.get_srcSystem(),
                              index=int(m.image_index), url=url.rstrip("\x00"), ok=int(m.capture_result)))
         elif typ == "HOME_POSITION" and home is None:
             home = wire.home_lla(m)
@@ -134,13 +136,14 @@ def read_tlog(path) -> TlogTrack:
         raise LogError(f"{path}: no MAVLink messages (empty, or not a telemetry log)")
     if n == 0:
         raise LogError(warning.replace("; read 0 messages before it", "") + " (nothing readable)")
-    # the same capture is broadcast on every link the log may have recorded: keep the first of each index
+    # the same capture is broadcast on every link the log may have recorded: keep the first of each (camera, index)
     seen, unique = set(), []
     for c in caps:
-        if c["index"] not in seen and c["ok"] == 1:
-            seen.add(c["index"])
+        if (c["sysid"], c["index"]) not in seen and c["ok"] == 1:
+            seen.add((c["sysid"], c["index"]))
             unique.append(c)
-    return TlogTrack(np.array(t_pos), np.array(lla).reshape(-1, 3), rpy_at, unique, home, n, warning)
+    return TlogTrack(np.array(t_pos), np.array(lla).reshape(-1, 3), rpy_at, unique, home, n, warning,
+                     np.array(sys, dtype=int))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -165,6 +168,8 @@ class ReplayData:
     logged_maps: np.ndarray | None = None  # the maps the flight itself fused (run dirs)
     track_t: np.ndarray | None = None  # (K,) log time of each track point
     view_t: np.ndarray | None = None  # (T,) log time of each view (to cut the track "so far")
+    track_sys: np.ndarray | None = None  # (K,) system id of each track point (a team: one track per vehicle)
+    view_sys: np.ndarray | None = None  # (T,) system id that took each view (a team's log; None: one vehicle)
     warnings: list = field(default_factory=list)
     intrinsics: CameraIntrinsics | None = None  # the flight's camera (the mission's), for the grid overlay
 
@@ -190,8 +195,9 @@ def _fuse_all(method: str, p, valid, area=None, scores=None, labels=None) -> np.
 
 
 def _track_from_tlog(path: Path, origin: GeodeticOrigin):
-    """(track ENU (K, 3), track times (K,), {image index: capture time}) from a run directory's tlog."""
-    empty = (np.zeros((0, 3)), np.zeros(0), {})
+    """(track ENU (K, 3), track times (K,), system ids (K,), {(system id, image index): capture time}) from a
+    run directory's tlog."""
+    empty = (np.zeros((0, 3)), np.zeros(0), np.zeros(0, dtype=int), {})
     if not path.is_file():
         return empty
     try:
@@ -200,7 +206,8 @@ def _track_from_tlog(path: Path, origin: GeodeticOrigin):
         return empty
     if not len(tr.lla):
         return empty
-    return origin.geodetic_to_enu(tr.lla), tr.t_s, {c["index"]: c["t_s"] for c in tr.captures}
+    return (origin.geodetic_to_enu(tr.lla), tr.t_s, tr.sys,
+            {(c["sysid"], c["index"]): c["t_s"] for c in tr.captures})
 
 
 def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
@@ -233,13 +240,17 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
     except UavsearchError:
         origin = GeodeticOrigin()
     true_pos = [s.true_pose.position_enu if s.true_pose else None for s in log.steps]
-    track, track_t, cap_t = _track_from_tlog(run_dir / "telemetry.tlog", origin)
-    view_t = [cap_t.get(s.image_index) for s in log.steps]
+    track, track_t, track_sys, cap_t = _track_from_tlog(run_dir / "telemetry.tlog", origin)
+    team = any(s.vehicle is not None for s in log.steps)
+    one = {i: t for (_, i), t in cap_t.items()}  # one camera: by image index
+    view_t = [cap_t.get((s.vehicle, s.image_index)) if team else one.get(s.image_index) for s in log.steps]
     data = ReplayData(
         title=f"{run_dir.name}: {h.get('agent', '')}" + (f", re-fused with {method}" if fusion else ""),
         grid=grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,
         positions_enu=log.array("reported_position_enu"), track_enu=track, track_t=track_t,
         view_t=None if any(t is None for t in view_t) else np.asarray(view_t, float),
+        track_sys=track_sys if team else None,
+        view_sys=np.asarray([s.vehicle for s in log.steps], dtype=int) if team else None,
         images=images, poses=poses, spec=spec,
         true_positions_enu=None if any(t is None for t in true_pos) else np.asarray(true_pos, float),
         logged_maps=log.array("fused"), intrinsics=intrinsics,
@@ -338,6 +349,13 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
 # Figures and video
 
 
+def _vehicle_color(sysid: int | None) -> str:
+    """One colour per vehicle of a team (system id), the one-vehicle track's blue otherwise."""
+    if sysid is None:
+        return "tab:blue"
+    return ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")[(int(sysid) - 1) % 6]
+
+
 def _draw_track(ax, d: ReplayData, upto: int | None = None) -> None:
     if d.spec is not None:
         draw_topdown(d.spec, ax=ax)
@@ -347,14 +365,25 @@ def _draw_track(ax, d: ReplayData, upto: int | None = None) -> None:
         ax.set_ylim(-h - 20, h + 20)
         ax.set_aspect("equal")
     n = len(d.positions_enu) if upto is None else upto + 1
+    team = d.view_sys is not None
     if len(d.track_enu):
-        tr = d.track_enu
+        tr, sys = d.track_enu, d.track_sys
         if upto is not None and d.view_t is not None and d.track_t is not None and len(d.track_t) == len(tr):
-            tr = tr[d.track_t <= d.view_t[upto]]  # the track up to the moment of that view
-        ax.plot(tr[:, 0], tr[:, 1], "-", color="white", lw=3.5, alpha=0.9, zorder=3)
-        ax.plot(tr[:, 0], tr[:, 1], "-", color="tab:blue", lw=2.0, label="flown track (telemetry)", zorder=4)
+            keep = d.track_t <= d.view_t[upto]  # the track up to the moment of that view
+            tr, sys = tr[keep], None if sys is None else sys[keep]
+        for sid in (sorted(set(d.view_sys.tolist())) if team and sys is not None else [None]):
+            part = tr if sid is None else tr[sys == sid]
+            ax.plot(part[:, 0], part[:, 1], "-", color="white", lw=3.5, alpha=0.9, zorder=3)
+            ax.plot(part[:, 0], part[:, 1], "-", color=_vehicle_color(sid), lw=2.0, zorder=4,
+                    label="flown track (telemetry)" if sid is None else f"vehicle {sid}: track and views")
     pos = d.positions_enu[:n]
-    ax.plot(pos[:, 0], pos[:, 1], "o", color="tab:red", ms=7, mec="white", label="views (reported pose)", zorder=5)
+    if team:
+        for sid in sorted(set(d.view_sys.tolist())):
+            mine = d.view_sys[:n] == sid
+            ax.plot(pos[mine, 0], pos[mine, 1], "o", color=_vehicle_color(sid), ms=7, mec="white", zorder=5)
+    else:
+        ax.plot(pos[:, 0], pos[:, 1], "o", color="tab:red", ms=7, mec="white", label="views (reported pose)",
+                zorder=5)
     for i, q in enumerate(pos):
         ax.annotate(str(i + 1), (q[0], q[1]), textcoords="offset points", xytext=(5, 5), color="white",
                     fontsize=9, weight="bold", zorder=7)

@@ -169,10 +169,16 @@ class LiveViews:
     def observe(self, lattice_idx: torch.Tensor) -> Observation:
         view = self.vehicle.capture(self._lattice[int(lattice_idx.reshape(-1)[0])])
         self.views.append(view)
-        o = self.perception.forward_all(view.image[None], view.cell_label[None], altitude_m=view.position_enu[2])
-        valid = torch.as_tensor(view.cells_in_view).reshape(1, -1) & (o.cell_pixels > 0)
-        return Observation(o.log_probs, o.cell_features, o.global_feature,
-                           torch.as_tensor(view.cell_area_px, dtype=torch.float32).reshape(1, -1), valid)
+        return observe_view(self.perception, view)
+
+
+@torch.no_grad()
+def observe_view(perception, view) -> Observation:
+    """Perception on one captured View (B = 1), against the cell labels of the pose it REPORTS."""
+    o = perception.forward_all(view.image[None], view.cell_label[None], altitude_m=view.position_enu[2])
+    valid = torch.as_tensor(view.cells_in_view).reshape(1, -1) & (o.cell_pixels > 0)
+    return Observation(o.log_probs, o.cell_features, o.global_feature,
+                       torch.as_tensor(view.cell_area_px, dtype=torch.float32).reshape(1, -1), valid)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -372,4 +378,4 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
 
 __all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
            "R_FP", "R_RE", "R_TP", "classification_reward", "fusion_view", "run_search", "sample_actions"]
-__all__ += ["StepInfo", "affordable", "step_rewards"]
+__all__ += ["StepInfo", "affordable", "observe_view", "step_rewards"]

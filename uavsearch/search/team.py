@@ -13,6 +13,10 @@ time, because vehicles fly at once and arrive when their flights end, not in tur
 - a vehicle whose planner has nothing it can reach before `budget_s` (or says -1) stops; the episode ends
   when every vehicle has. `max_views` caps the team's views in all.
 
+A flying team's source (fly/team_controller.py) has `per_vehicle = True`: `observe(idx, vehicle)` waits for
+that vehicle to arrive and captures, and `dispatch(vehicle, next_idx)` sends it on as soon as it is chosen,
+so the vehicles fly at once while events are taken in the order of their predicted arrivals.
+
 Planners (`TeamPlanner.choose(inp, vehicle, generator) -> (B,) viewpoint or -1`) read a PolicyInput whose
 `allowed` already excludes taken, claimed and unreachable viewpoints and whose `lattice_idx` is the deciding
 vehicle's viewpoint; its `step` is the team's views so far minus one (the largest over the batch), so a
@@ -22,6 +26,7 @@ planner must not count its own steps from it:
   the rule's descent score (wide_policies.DescendRule), optionally per second of flight from here;
 - `Partition`: a fixed split of the lattice, each vehicle flying the lowest layer's lawnmower over its strip
   of columns;
+- `TeamEntropy`: entropy per second of flight, where the cells another vehicle is about to see count less;
 - `EachVehicle(policy)`: any one-vehicle wide policy (entropy per second, random), asked for each vehicle.
 """
 
@@ -107,7 +112,7 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
             if max_views is not None:
                 cap &= n_views < max_views
             if bool(cap.any()):
-                o = source.observe(idx)
+                o = source.observe(idx, v) if getattr(source, "per_vehicle", False) else source.observe(idx)
                 o = o._replace(valid=o.valid & cap[:, None])
                 state, new = fusion.update(state, fusion_view(o, idx, source.labels))
                 fused = torch.where(cap[:, None], new, fused) if not torch.isnan(fused).all() else new
@@ -149,6 +154,8 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
             ev_maps.append(torch.nan_to_num(fused, nan=0.0).clone())
             if on_event is not None:
                 on_event(v, idx, now, cap, ev_maps[-1], torch.where(ok, nxt, -1))
+            if hasattr(source, "dispatch"):  # a flying team: the vehicle sets off now, the others fly on
+                source.dispatch(v, torch.where(ok, nxt, -1))
             active[ar[stop], v[stop]] = False
             go = ok
             pos[ar[go], v[go]] = nxt[go]
@@ -229,6 +236,33 @@ class Partition:
         return out
 
 
+class TeamEntropy:
+    """Entropy per second of flight for a team: each vehicle takes the viewpoint with the most fused-map entropy
+    in its footprint per second of flight from here, where a cell inside the footprint of a viewpoint another
+    vehicle is flying to counts `1 - shared` as much (it is about to be seen). With one vehicle it is
+    wide_policies.EntropyPerSecond."""
+
+    def __init__(self, config: SearchConfig, shared: float = 0.8):
+        from .wide_policies import binary_entropy, footprints
+
+        self.entropy = binary_entropy
+        self.foot = footprints(config).float()  # (P, N)
+        self.cost = torch.as_tensor(config.lattice.flight_time_s, dtype=torch.float32)
+        self.shared = float(shared)
+
+    def reset(self, batch: int, vehicles: int) -> None:
+        pass
+
+    def choose(self, inp: PolicyInput, vehicle: torch.Tensor, generator=None) -> torch.Tensor:
+        taken = torch.zeros_like(inp.visited)
+        taken.scatter_(1, inp.view_positions, inp.view_valid.any(-1))  # viewpoints a view measured from
+        claimed = inp.visited & ~taken  # where the other vehicles are flying
+        soon = (claimed.float() @ self.foot).clamp(max=1.0)  # (B, N) cells about to be seen
+        gain = (self.entropy(inp.fused) * (1.0 - self.shared * soon)) @ self.foot.T  # (B, P)
+        score = gain / self.cost[inp.lattice_idx].clamp(min=1.0)
+        return torch.where(inp.allowed.any(1), argmax_allowed(score, inp.allowed), -1)
+
+
 class EachVehicle:
     """Any one-vehicle wide policy, asked for whichever vehicle decides."""
 
@@ -243,4 +277,4 @@ class EachVehicle:
         return torch.where(inp.allowed.any(1), a, -1)
 
 
-__all__ = ["EachVehicle", "Partition", "TeamEpisode", "TeamPlanner", "TeamRule", "run_team"]
+__all__ = ["EachVehicle", "Partition", "TeamEntropy", "TeamEpisode", "TeamPlanner", "TeamRule", "run_team"]

@@ -1,0 +1,75 @@
+"""`uavsearch fly --vehicles 3` on the wide mission: three simulated vehicles (one `uavsearch sitl --vehicles 3`
+process, real UDP on 127.0.0.1, lockstep) search one map with the team planner, land, and score the map; the
+flight log holds every vehicle and replay draws every track."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from uavsearch.errors import UavsearchError
+from uavsearch.fly.missions import load_mission, mission_from_dict
+from uavsearch.logs.flight_log import read_flight_log
+from uavsearch.paths import MISSIONS_DIR
+from uavsearch.replay.replay import replay_run_dir, trajectory_figure
+from uavsearch.testing.clean_env import clean_env
+
+WIDE = MISSIONS_DIR / "wide.yaml"
+
+
+@pytest.fixture(scope="module")
+def flown(tmp_path_factory):
+    run = tmp_path_factory.mktemp("team") / "run"
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(WIDE), "--vehicles", "3",
+                        "--mission-time", "30", "--out", str(run), "--gcs-port", "0"],
+                       capture_output=True, text=True, timeout=300, env=clean_env())
+    return r, run
+
+
+def test_three_vehicles_search_one_map_and_all_land(flown):
+    r, run = flown
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "vehicle 1: landed; vehicle 2: landed; vehicle 3: landed" in r.stdout
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["status"] == "completed" and summary["vehicles"] == 3
+    assert all(n >= 1 for n in summary["views_per_vehicle"].values())
+    log = read_flight_log(run)
+    who = [s.vehicle for s in log.steps]
+    assert set(who) == {1, 2, 3} and who[0] == 1  # vehicle 1 takes the start view
+    views = [s.lattice_idx for s in log.steps]
+    assert len(views) == len(set(views))  # no viewpoint twice: the team never shares one
+    # the map it scored is the team's one map after its last view
+    assert summary["f1"] == pytest.approx(log.steps[-1].f1, abs=1e-6)
+    assert log.header["team"]["system_ids"] == [1, 2, 3]
+    for s in log.steps:  # each view's image is the camera of the vehicle that took it
+        assert s.image.startswith(f"vehicle{s.vehicle}/") and (run / s.image).is_file()
+        assert np.linalg.norm(np.subtract(s.reported_position_enu, s.waypoint_enu)) < 1.5
+
+
+def test_replay_draws_every_vehicle(flown, tmp_path):
+    r, run = flown
+    assert r.returncode == 0
+    d = replay_run_dir(run)
+    assert set(d.view_sys.tolist()) == {1, 2, 3} and {1, 2, 3} <= set(d.track_sys.tolist())
+    assert np.allclose(d.maps[-1], d.logged_maps[-1], atol=1e-5)  # re-fused from the log: the same map
+    fig = trajectory_figure(d)
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert [f"vehicle {i}: track and views" for i in (1, 2, 3)] == labels[:3]
+
+
+def test_team_flags_and_mission_errors_are_one_line(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--vehicles", "3"],
+                       capture_output=True, text=True, timeout=120, env=clean_env())
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert "a team flies a scene family's mission" in r.stderr
+    base = load_mission(WIDE).model_dump(mode="json")
+    for change, words in (({"policy": "learned"}, "unknown team planner"), ({"fusion": "learned"}, "fusion"),
+                          ({"team": {"vehicles": 0}}, "vehicles"), ({"scene": {"seed": 1, "setting": "nowhere"}},
+                                                                    "unknown setting")):
+        with pytest.raises(UavsearchError, match=words):
+            mission_from_dict({**base, **change}, "x.yaml")
+    paper = load_mission()
+    with pytest.raises(UavsearchError, match="team"):
+        mission_from_dict({**paper.model_dump(mode="json"), "team": {"vehicles": 2}}, "x.yaml")
