@@ -15,6 +15,7 @@ from uavsearch.flight.lockstep import MAV_CMD_SIM_ADVANCE
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port, free_udp_ports
 from uavsearch.testing.clean_env import clean_env
 from uavsearch.testing.mavlink_client import Client
+from uavsearch.testing.mavproxy_session import MavProxy, Observer, needs_mavproxy
 
 M = mavutil.mavlink
 ROOT = Path(__file__).resolve().parents[1]
@@ -151,3 +152,34 @@ def test_three_mavsdk_clients_fly_their_own_vehicle(tmp_path):
         assert f"system id {i + 1}:" in said and "arrived" in said and "landed and disarmed" in said, said
     assert f"all {N} vehicles landed and disarmed" in run.stdout
     assert code == 0, log
+
+
+@needs_mavproxy
+def test_mavproxy_addresses_each_vehicle_of_the_team(tmp_path):
+    """MAVProxy on the one ground-station port sees the team; `vehicle 2` then `arm throttle` arms vehicle 2 only."""
+    p, base, gcs = _team(tmp_path, speed="2")
+    mp, observers = None, []
+    try:
+        observers = [Observer(base + i) for i in range(N)]
+        pump = lambda: [o.pump() for o in observers]  # noqa: E731
+        mp = MavProxy(gcs, tmp_path)
+        mp.expect(r"online system 1", timeout_s=30, pump=pump)
+        for sysid in (1, 2, 3):  # each autopilot and its camera, as MAVProxy's `vehicle` command lists them
+            for compid in (1, 100):
+                mp.expect(rf"Detected vehicle {sysid}:{compid} on link 0", timeout_s=30, pump=pump)
+        k = mp.send("vehicle 2")
+        mp.expect(r"[Ss]et vehicle 2|vehicle 2", k, pump=pump)
+        mp.send("arm throttle")
+        observers[1].wait(lambda: observers[1].armed, "vehicle 2 armed")
+        time.sleep(0.5)
+        pump()
+        assert not observers[0].armed and not observers[2].armed  # the others stay disarmed
+        mp.send("disarm")
+        observers[1].wait(lambda: not observers[1].armed, "vehicle 2 disarmed")
+    finally:
+        if mp is not None:
+            mp.stop()
+        for o in observers:
+            o.c.close()
+        code, out = p.stop()
+        assert code == 0, out
