@@ -113,6 +113,7 @@ def test_a_set_of_an_older_format_is_rendered_again_in_place(tiny_root, tmp_path
         assert np.array_equal(z["images"], ref["images"]) and "person_frac" in z.files
 
 
+@pytest.mark.slow  # trains (about 25 s): `make test-all` runs it
 def test_stage1_smoke_trains_resumes_and_writes_a_run(tmp_path):
     from uavsearch.search.perception import load_perception
     from uavsearch.search.train.perception import Args, train

@@ -351,6 +351,7 @@ def test_tlog_stamps_follow_simulated_time(flown):
     assert armed_stamps[-1] - armed_stamps[0] > 0.5 * summary["sim_time_s"]  # in the air for what was flown
 
 
+@pytest.mark.slow  # renders every view again from the tlog (about 30 s): `make test-all` runs it
 def test_replay_from_tlog_agrees_with_the_run_directory(flown, tmp_path):
     r1 = _uavsearch("replay", flown, "--out", tmp_path / "dir", timeout=300)
     r2 = _uavsearch("replay", flown / "telemetry.tlog", "--out", tmp_path / "tlog", "--scene", "3", "--setting", "2",

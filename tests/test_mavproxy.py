@@ -15,6 +15,7 @@ import time
 
 from uavsearch.flight.sitl_process import SitlProcess, free_udp_port
 from uavsearch.testing.clean_env import clean_env
+from uavsearch.testing.mavlink_client import Client
 from uavsearch.testing.mavproxy_session import MavProxy, Observer, needs_mavproxy
 
 

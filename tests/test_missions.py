@@ -43,7 +43,7 @@ BAD = [
     ({"flight": {"speed": "fast"}}, "flight.speed", ""),
     ({"flight": {"end_action": "crash"}}, "flight.end_action", "'land'"),
     ({"home": {"lat_deg": 123}}, "home.lat_deg", "less than or equal to 90"),
-    ({"scene": {"seed": 1, "setting": 7}}, "scene.setting", "less than or equal to 3"),
+    ({"scene": {"seed": 1, "setting": 7}}, "scene.setting", "the paper's settings are 1, 2, 3"),
     ({"scene": {"seed": 1, "setting": 2, "occupied_cells": 4}}, "setting OR occupied_cells", ""),
     ({"budget_T": 5}, "budget_T", "unknown field"),
     ({"search": {"budgetT": 5}}, "search.budgetT", "unknown field"),

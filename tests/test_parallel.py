@@ -157,6 +157,7 @@ def ray_cluster():
             cluster.shutdown()
 
 
+@pytest.mark.slow  # a 2-node Ray cluster (the ray extra): `make test-all` runs it
 @pytest.mark.timeout(300)
 def test_a_ray_cluster_and_the_local_pool_build_the_same_view_cache_and_table2(tmp_path, ray_cluster):
     import ray

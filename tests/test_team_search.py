@@ -111,7 +111,8 @@ def test_bad_planners_are_one_line_errors():
 
 def test_team_table_on_a_tiny_synthetic_family(tmp_path):
     caches = {"test": wide_cache(3, 5), "val": wide_cache(2, 6), "train": wide_cache(1, 7)}
-    args = TeamEvalArgs(out=str(tmp_path), vehicles="1,3", times="30,90", bootstrap=200, progress=False)
+    args = TeamEvalArgs(out=str(tmp_path), vehicles="1,3", times="30,90", bootstrap=200, progress=False,
+                        fusions="average,bayes:0.3")
     res = eval_team(args, caches)
     text = (tmp_path / "team.md").read_text()
     assert "| 3 | 30 s |" in text and "Δ vs 1 vehicle at 90 s" in text

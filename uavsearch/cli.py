@@ -108,6 +108,10 @@ def _cmd_fly(args) -> int:
                                  "vehicle; a team flies a scene family's mission (--mission missions/wide.yaml)")
         team = {"vehicles": args.vehicles, "mission_time_s": args.mission_time}
         mission = mission.with_team(**{k: v for k, v in team.items() if v is not None})
+    if mission.family is not None:  # a scene family's mission: its team flies it
+        if args.connect is not None:
+            raise UavsearchError("--connect: a scene family's mission starts its own vehicles, one per team member")
+        from .fly.team_controller import fly_team as fly  # noqa: F811 - the team's flight, the same result
     try:
         r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
                 progress=lambda line: print(line, flush=True))

@@ -289,12 +289,9 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
     `torch_threads`: perception on one 224 px image gains nothing from more, and on a 2-core machine two
     threads fight the vehicle process for the cores.
     """
-    if mission.family is not None:  # a scene family's mission: its team flies (team_controller.py)
-        if connect is not None:
-            raise MissionError("a wide-area mission starts its own vehicles (one per team member): no --connect")
-        from .team_controller import fly_team
-
-        return fly_team(mission, out=out, progress=progress, gcs_port=gcs_port, torch_threads=torch_threads)
+    if mission.family is not None:
+        raise MissionError("a scene family's mission is flown by its team: team_controller.fly_team "
+                           "(`uavsearch fly` chooses it)")
     wall0 = time.monotonic()
     phases = {"start_unix": time.time()}  # then: wall seconds since the start at which each stage ended
     config = mission.search_config()

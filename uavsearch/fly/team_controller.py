@@ -125,13 +125,16 @@ def _all(vehicles: list[MavlinkVehicle], cond, what: str, sim_timeout_s: float, 
                                   tick_s=tick_s, status=status, say=lead._say)
 
 
-def fly_team(mission, out=None, progress=print, gcs_port: int = 14550, torch_threads: int = 1) -> MissionResult:
+def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_port: int = 14550,
+             torch_threads: int = 1) -> MissionResult:
     """Fly a scene family's mission with `mission.vehicles` vehicles (module docstring); the result scores the
     team's one map. The vehicle process starts first; torch and the perception load while it starts."""
     wall0 = time.monotonic()
     phases = {"start_unix": time.time()}
     if mission.family is None:
         raise MissionError("a team flies a scene family's mission (scene.setting: wide)")
+    if connect is not None:
+        raise MissionError("a scene family's mission starts its own vehicles, one per team member: no --connect")
     n = mission.vehicles
     run_dir = Path(out) if out else default_run_dir(mission)
     made_run_dir = not run_dir.exists()

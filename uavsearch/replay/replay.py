@@ -38,7 +38,7 @@ from ..fly.missions import load_mission, mission_from_dict
 from ..geometry import CameraIntrinsics, GeodeticOrigin, Grid, camera_pose_from_vehicle
 from ..logs.flight_log import read_flight_log
 from ..search.agents import FUSIONS, check_names
-from ..search.fusion import FusionViews
+from ..search.fusion import FusionViews, fusion_from_spec
 from ..search.metrics import map_accuracy, map_f1
 from ..search.views import make_view
 from ..viz import draw_grid_overlay, pyplot, save_figure, settle_tight_layout
@@ -184,14 +184,18 @@ class ReplayData:
 
 def _fuse_all(method: str, p, valid, area=None, scores=None, labels=None) -> np.ndarray:
     """The fused map after each view, with the inputs the log holds (the method takes what it needs)."""
-    check_names(fusion=method)
-    if "scores" in FUSIONS[method].needs and scores is None:
+    if ":" in method:  # a spec with its prior (a wide-area mission's fusion, e.g. bayes:0.5)
+        fusion = fusion_from_spec(method)
+    else:
+        check_names(fusion=method)
+        fusion = FUSIONS[method]()
+    if "scores" in fusion.needs and scores is None:
         raise LogError(f"{method} fusion needs confidence scores, which this log does not hold "
                        "(it was flown without a learned confidence network)")
     def t(x):
         return None if x is None else torch.as_tensor(np.asarray(x))
     views = FusionViews(t(np.asarray(p, float)), t(np.asarray(valid, bool)), t(area), scores=t(scores), labels=labels)
-    return np.asarray(FUSIONS[method]().prefixes(views), dtype=float)
+    return np.asarray(fusion.prefixes(views), dtype=float)
 
 
 def _track_from_tlog(path: Path, origin: GeodeticOrigin):

@@ -330,6 +330,25 @@ def fusion_class(name: str) -> type[Fusion]:
     return FUSIONS[name]
 
 
+def fusion_from_spec(spec: str, what: str = "fusion") -> Fusion:
+    """A fusion without weights or labels from "name" or "name:prior" (e.g. bayes:0.02: Bayes' rule with
+    that prior, which is also the p of a cell no view has measured); `what` names the option in errors."""
+    name, _, prior = str(spec).partition(":")
+    plain = [n for n, f in FUSIONS.items() if not f.trainable and "labels" not in f.needs]
+    if name not in plain:
+        raise UavsearchError(f"{what} must be a fusion without weights or labels ({', '.join(plain)}), "
+                             f"optionally with :prior, not {spec!r}")
+    if not prior:
+        return FUSIONS[name]()
+    try:
+        value = float(prior)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value < 1.0:
+        raise UavsearchError(f"{what} {spec}: the prior must be a number in (0, 1)")
+    return FUSIONS[name](value)
+
+
 def load_fusion(d: dict) -> Fusion:
     """The fusion object of a `save_dict()` (weights cast to float32, in eval mode)."""
     fusion = fusion_class(d["name"]).from_config(d["config"])

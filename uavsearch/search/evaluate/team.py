@@ -90,7 +90,7 @@ def choose_fusion(val: ViewCache, planner: str, vehicles: int, budget_s: float,
 
 
 def evaluate_teams(caches: dict[str, ViewCache], sizes, times, resamples: int = RESAMPLES, seed: int = 0,
-                   progress=print) -> dict:
+                   progress=print, fusions=FUSION_CANDIDATES) -> dict:
     """{(size, time): {planner: {...per-scene test scores, "fusion", "val_af1"}, "chosen": planner}} and the
     paired rows against one vehicle's chosen planner at the longest time."""
     out: dict = {}
@@ -99,7 +99,7 @@ def evaluate_teams(caches: dict[str, ViewCache], sizes, times, resamples: int = 
         for t in times:
             cond = {}
             for key in PLANNERS:
-                spec, fusion, val_af1 = choose_fusion(caches["val"], key, v, t)
+                spec, fusion, val_af1 = choose_fusion(caches["val"], key, v, t, tuple(fusions))
                 cond[key] = {**team_scores(caches["test"], spec, fusion, v, t), "fusion": fusion, "spec": spec,
                              "val_af1": val_af1}
             cond["chosen"] = max(CHOSEN, key=lambda k: (cond[k]["val_af1"], -CHOSEN.index(k)))
@@ -186,6 +186,8 @@ class TeamEvalArgs(ScaleOutArgs):
     wide_test_scenes: int | None = opt(None, "test scenes (the first N; default all 100)")
     wide_val_scenes: int | None = opt(None, "validation scenes choosing fusions and the team planner (first N; all)")
     wide_train_scenes: int = opt(1, "training scenes (unused by these planners; the cache of the first N is made)")
+    fusions: str = opt(",".join(FUSION_CANDIDATES), "fusions each planner's is chosen among on validation "
+                                                     "(comma-separated name or name:prior)")
     bootstrap: int = opt(RESAMPLES, "bootstrap resamples over scenes")
     bootstrap_seed: int = opt(0, "seed of the bootstrap resamples")
     progress: bool = opt(True, "progress bars")
@@ -209,7 +211,10 @@ def eval_team(args: TeamEvalArgs, caches: dict | None = None) -> dict:
         raise UavsearchError("--vehicles: at most 16")
     t0 = time.perf_counter()
     caches = caches if caches is not None else family_caches(args, args.setting)
-    res = evaluate_teams(caches, sizes, times, args.bootstrap, args.bootstrap_seed)
+    fusions = [f.strip() for f in args.fusions.split(",") if f.strip()]
+    for f in fusions:
+        make_fusion(f)  # a bad name is a one-line error before any work
+    res = evaluate_teams(caches, sizes, times, args.bootstrap, args.bootstrap_seed, fusions=fusions)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = [{"vehicles": v, "time_s": t, "planner": c[k]["spec"], "team_planner": c["chosen"] == k,

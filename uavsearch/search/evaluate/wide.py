@@ -38,7 +38,7 @@ from uavsearch.world.settings import setting_params
 from ..agents import build_agent
 from ..config import SearchConfig
 from ..data.view_cache import ViewCache, get_view_cache
-from ..fusion import FUSIONS, Fusion
+from ..fusion import Fusion, fusion_from_spec
 from ..perception import load_perception, shipped_perception
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
@@ -112,22 +112,8 @@ def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarra
 
 
 def make_fusion(spec: str) -> Fusion:
-    """A fusion without weights or labels from "name" or "name:prior" (e.g. bayes:0.02: Bayes' rule with
-    that prior, which is also the p of a cell no view has measured)."""
-    name, _, prior = str(spec).partition(":")
-    plain = [n for n, f in FUSIONS.items() if not f.trainable and "labels" not in f.needs]
-    if name not in plain:
-        raise UavsearchError(f"--wide-fusion must be a fusion without weights or labels ({', '.join(plain)}), "
-                             f"optionally with :prior, not {spec!r}")
-    if not prior:
-        return FUSIONS[name]()
-    try:
-        value = float(prior)
-    except ValueError:
-        value = float("nan")
-    if not 0.0 < value < 1.0:
-        raise UavsearchError(f"--wide-fusion {spec}: the prior must be a number in (0, 1)")
-    return FUSIONS[name](value)
+    """--wide-fusion's fusion: fusion.fusion_from_spec ("name" or "name:prior")."""
+    return fusion_from_spec(spec, "--wide-fusion")
 
 
 def fusion_name(fusion: Fusion) -> str:
