@@ -183,3 +183,34 @@ def test_mavproxy_addresses_each_vehicle_of_the_team(tmp_path):
             o.c.close()
         code, out = p.stop()
         assert code == 0, out
+
+
+def test_instance_conventions_follow_px4_sitl():
+    """--instance I (PX4's `px4 -i I`): system id I + 1, ports + I, noise seed + I, home 10 m east per instance;
+    --one-api-port keeps every API link on the one port."""
+    from uavsearch.flight.sitl import HOME_SPACING_M, SitlConfig, instance_config
+
+    cfg = SitlConfig(seed=7, vehicles=3)
+    for i in range(3):
+        c = instance_config(cfg, i)
+        assert (c.instance, c.params["MAV_SYS_ID"], c.seed) == (i, i + 1, 7 + i)
+        assert (c.api_port, c.api_local_port, c.gcs_port, c.gcs_local_port) == (14540 + i, 14580 + i, 14550, 18570 + i)
+        assert c.start_enu == (HOME_SPACING_M * i, 0.0, 0.0) and c.vehicles == 1
+    alone = instance_config(SitlConfig(instance=2), 0)  # `uavsearch sitl --instance 2`
+    assert (alone.params["MAV_SYS_ID"], alone.api_port, alone.start_enu[0]) == (3, 14542, 2 * HOME_SPACING_M)
+    shared = instance_config(SitlConfig(vehicles=3, one_api_port=True, api_port=30000), 2)
+    assert shared.api_port == 30000 and shared.api_local_port == 14582
+    off = instance_config(SitlConfig(vehicles=2, api_port=0, api_local_port=0), 1)
+    assert (off.api_port, off.api_local_port) == (0, 0)  # a link that is off stays off; "any port" stays any
+
+
+@pytest.mark.parametrize("args, words", [(["--vehicles", "0"], "--vehicles must be 1..16"),
+                                         (["--vehicles", "2", "--param", "MAV_SYS_ID=5"], "do not set MAV_SYS_ID"),
+                                         (["--setting", "nowhere"], "unknown setting")])
+def test_bad_team_options_are_one_line(tmp_path, args, words):
+    r = subprocess.run([sys.executable, "-m", "uavsearch.flight.sitl", "--no-camera-scene", "--duration", "0.1",
+                        "--out", str(tmp_path / "run"), "--api-local-port", "0", "--gcs-local-port", "0",
+                        "--api-port", "0", "--gcs-port", "0", *args],
+                       capture_output=True, text=True, timeout=60, env=clean_env())
+    assert r.returncode != 0 and "Traceback" not in r.stderr and words in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
