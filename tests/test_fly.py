@@ -158,6 +158,8 @@ def _without_wall_clock(run: Path) -> list[str]:
     return out
 
 
+# a second flight beside a CPU hog (about 14 s); the flight --connect test shows the same determinism by default
+@pytest.mark.slow
 def test_the_same_mission_flies_the_same_flight_on_a_busy_machine(flown, tmp_path):
     """Lockstep: the seeds fix the flight, whatever else the machine is doing (here: a CPU hog)."""
     r, run, _ = flown

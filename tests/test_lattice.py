@@ -70,6 +70,7 @@ def test_config_round_trips_through_a_record():
     assert config_from_dict({"altitude_m": 70.0}) == SearchConfig()  # an old record: today's defaults
 
 
+@pytest.mark.slow  # renders and trains on a two-altitude lattice (about 20 s): `make test-all` runs it
 def test_two_altitude_search_end_to_end_in_teleport_mode(tmp_path):
     """Render a two-altitude view cache, train stage 2 a few iterations on it, evaluate, and load the agent
     back from the checkpoint, which records its lattice (a paper-lattice search refuses it)."""

@@ -69,6 +69,7 @@ def test_store_writes_whole_files_and_lists_keys(tmp_path):
         Executor("dask")
 
 
+@pytest.mark.slow  # renders scenes in a pool and in one process (about 24 s): `make test-all` runs it
 def test_local_pool_and_one_process_write_the_same_bytes_and_resume_skips_finished_shards(tmp_path):
     a, b = tmp_path / "one", tmp_path / "pool"
     generate_views(SPEC, a, executor=Executor("local", 1), progress=False)

@@ -67,6 +67,7 @@ def test_clustered_scene_exact_and_grouped(wide):
     assert np.median(near) < 3 * wide.placement.sigma_m
 
 
+@pytest.mark.slow  # a statistic over many generated scenes (about 13 s): `make test-all` runs it
 def test_clustered_cells_are_closer_together_than_uniform():
     def spread(setting):
         out = []

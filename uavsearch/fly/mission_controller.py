@@ -389,24 +389,34 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         else vehicle.sim_time_s - vehicle.connected_sim_s, wall_s=time.monotonic() - wall0,
         flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end, phases=phases,
         photos_asked=vehicle.photos_asked, photos_received=vehicle.photos_received)
-    try:
-        log.summary(dict(status=status, end=end, steps=result.steps, budget_T=config.budget_T, acc=acc, f1=f1,
-                         fused=fused, labels=labels.astype(int), positions=result.positions,
-                         sim_time_s=result.sim_time_s, first_view_sim_time_s=t_first, wall_s=result.wall_s,
-                         flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
-                         agent=loaded.description, scene_seed=spec.seed,
-                         occupied_cells=int(labels.sum()), speed=mission.flight.speed,
-                         photos_asked=result.photos_asked, photos_received=result.photos_received))
-        log.close()
-        from .plan_files import write_flown_plan
+    from .plan_files import write_flown_plan
 
-        write_flown_plan(run_dir)  # the flown search as a QGroundControl plan
+    summary = dict(status=status, end=end, steps=result.steps, budget_T=config.budget_T, acc=acc, f1=f1,
+                   fused=fused, labels=labels.astype(int), positions=result.positions,
+                   sim_time_s=result.sim_time_s, first_view_sim_time_s=t_first, wall_s=result.wall_s,
+                   flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
+                   agent=loaded.description, scene_seed=spec.seed,
+                   occupied_cells=int(labels.sum()), speed=mission.flight.speed,
+                   photos_asked=result.photos_asked, photos_received=result.photos_received)
+    # the flown search, once the log is closed, as a QGroundControl plan
+    return finish_log(log, run_dir, result, summary, after=lambda: write_flown_plan(run_dir))
+
+
+def finish_log(log: FlightLogWriter, run_dir: Path, result: MissionResult, summary: dict, after=None) -> MissionResult:
+    """Write the summary and close the log (then `after()`); a full disk becomes the result's status, not an
+    error, and what was recorded stays."""
+    try:
+        log.summary(summary)
+        log.close()
+        if after is not None:
+            after()
     except OSError as e:
         full = disk_full(run_dir, e)
         if full is None:
             raise
         log.close()
-        result.status = status if status.startswith("failed: no space") else f"failed: {full}"
+        if not result.status.startswith("failed: no space"):
+            result.status = f"failed: {full}"
     return result
 
 

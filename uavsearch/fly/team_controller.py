@@ -32,7 +32,7 @@ from ..world.scene import load_scene
 from .connection import MavlinkConnection
 from .errors import FlightError, StepFailed, VehicleLost
 from .mission_controller import (VEHICLE_LOST, MissionResult, _discard, _log_failure, _true_pose, _watch,
-                                  default_run_dir, disk_full)
+                                  default_run_dir, disk_full, finish_log)
 from .vehicle import MavlinkVehicle
 
 
@@ -232,22 +232,14 @@ def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_
                            flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end, phases=phases,
                            photos_asked=sum(v.photos_asked for v in vehicles),
                            photos_received=sum(v.photos_received for v in vehicles))
-    try:
-        log.summary(dict(status=status, end=end, steps=result.steps, acc=acc, f1=f1, fused=fused,
-                         labels=lab.astype(int), positions=result.positions, sim_time_s=result.sim_time_s,
-                         wall_s=result.wall_s, flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
-                         vehicles=n, views_per_vehicle={str(i + 1): sum(r.vehicle == i + 1 for r in records)
-                                                        for i in range(n)},
-                         scene_seed=mission.scene.seed, occupied_cells=int(lab.sum()), speed=mission.flight.speed,
-                         photos_asked=result.photos_asked, photos_received=result.photos_received))
-        log.close()
-    except OSError as e:
-        full = disk_full(run_dir, e)
-        if full is None:
-            raise
-        log.close()
-        result.status = status if status.startswith("failed: no space") else f"failed: {full}"
-    return result
+    summary = dict(status=status, end=end, steps=result.steps, acc=acc, f1=f1, fused=fused,
+                   labels=lab.astype(int), positions=result.positions, sim_time_s=result.sim_time_s,
+                   wall_s=result.wall_s, flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
+                   vehicles=n, views_per_vehicle={str(i + 1): sum(r.vehicle == i + 1 for r in records)
+                                                  for i in range(n)},
+                   scene_seed=mission.scene.seed, occupied_cells=int(lab.sum()), speed=mission.flight.speed,
+                   photos_asked=result.photos_asked, photos_received=result.photos_received)
+    return finish_log(log, run_dir, result, summary)
 
 
 def _land_all(vehicles: list[MavlinkVehicle], progress) -> list[str]:
