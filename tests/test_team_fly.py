@@ -13,6 +13,7 @@ from uavsearch.errors import UavsearchError
 from uavsearch.fly.missions import load_mission, mission_from_dict
 from uavsearch.logs.flight_log import read_flight_log
 from uavsearch.paths import MISSIONS_DIR
+from uavsearch.replay.flight_review import write_flight_review
 from uavsearch.replay.replay import replay_run_dir, trajectory_figure
 from uavsearch.testing.clean_env import clean_env
 
@@ -57,6 +58,8 @@ def test_replay_draws_every_vehicle(flown, tmp_path):
     fig = trajectory_figure(d)
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert [f"vehicle {i}: track and views" for i in (1, 2, 3)] == labels[:3]
+    page = write_flight_review(run, tmp_path / "review.html").read_text()  # every track on the review page
+    assert '"name":"vehicle 2"' in page and '"name":"vehicle 3"' in page and "a team of 3" in page
 
 
 def test_team_flags_and_mission_errors_are_one_line(tmp_path):
