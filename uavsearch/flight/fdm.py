@@ -8,8 +8,6 @@ cheap, name lookups per step are not.
 from __future__ import annotations
 
 import math
-import os
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,17 +24,10 @@ LBFFT = 1.3558179483314  # N*m per lbf*ft
 N_ROTORS = 4
 
 
-@contextmanager
-def _quiet_jsbsim():
-    """JSBSIM_DEBUG=0 while an FGFDMExec is made (JSBSim reads it there: no banner on stdout), then the
-    environment as it was, so no process started later inherits a setting it never asked for."""
-    before = os.environ.get("JSBSIM_DEBUG")
-    os.environ["JSBSIM_DEBUG"] = "0" if before is None else before
-    try:
-        yield
-    finally:
-        if before is None:
-            os.environ.pop("JSBSIM_DEBUG", None)
+def _quiet_jsbsim() -> None:
+    """No banner on stdout when an FGFDMExec is made: JSBSim's own (process-wide, static) debug level, which a
+    JSBSIM_DEBUG the user exported still overrides; the environment is never touched."""
+    jsbsim.FGJSBBase().debug_lvl = 0
 
 
 @dataclass(frozen=True)
@@ -74,8 +65,8 @@ class QuadFdm:
         self.airframe = airframe
         self.home = home
         self.dt = 1.0 / physics_hz
-        with _quiet_jsbsim():
-            fdm = jsbsim.FGFDMExec(root)
+        _quiet_jsbsim()
+        fdm = jsbsim.FGFDMExec(root)
         fdm.set_debug_level(0)
         fdm.set_aircraft_path(root)
         if not fdm.load_model(model):

@@ -260,8 +260,7 @@ class Sitl:
 
                 spec = generate_setting_scene(cfg.setting, cfg.scene_seed)
             renders, self._close_render = background_scene_renderer(
-                cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, self.run_dir, seed=cfg.seed, spec=spec,
-                seeds=[c.seed for c in team])
+                cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, self.run_dir, spec=spec, seeds=[c.seed for c in team])
             scene_params = {"SIM_SCENE_SEED": cfg.scene_seed,
                             "SIM_SCENE_CELLS": cfg.occupied_cells if spec is None else int(spec.occupancy_array().sum()),
                             "SIM_SCENE_HASH": 0 if spec is None else scene_hash(spec)}
@@ -295,16 +294,8 @@ class Sitl:
         return self.team[0].commander
 
     @property
-    def camera(self) -> Camera:
-        return self.team[0].camera
-
-    @property
     def endpoint(self) -> MavlinkEndpoint:
         return self.team[0].endpoint
-
-    @property
-    def params(self) -> ParamStore:
-        return self.team[0].params
 
     @property
     def time_s(self) -> float:
@@ -385,7 +376,7 @@ class Sitl:
         ids = ", ".join(str(m.sysid) for m in self.team)
         team = "" if len(self.team) == 1 else f"{len(self.team)} vehicles (sysid {ids}) on one clock, "
         lines = [
-            f"uavsearch sitl: {team}sysid {int(self.params['MAV_SYS_ID'])}, seed {c.seed}, "
+            f"uavsearch sitl: {team}sysid {self.team[0].sysid}, seed {c.seed}, "
             f"scene {c.scene_seed if c.scene_seed is not None else 'none'}"
             f"{'' if c.setting is None else f' ({c.setting})'}, speed {speed}",
             f"  home      lat {c.home.lat_deg:.7f}  lon {c.home.lon_deg:.7f}  alt {c.home.alt_m:.1f} m AMSL",
@@ -402,7 +393,7 @@ class Sitl:
                     f"from 127.0.0.1:{link.local_port}   ({hint.format(p=link.cfg.remote_port)})"
                 )
         if len(self.team) > 1:
-            lines.append(f"  separation  a goto within SIM_SEP_DIST ({self.params['SIM_SEP_DIST']:g} m) of another "
+            lines.append(f"  separation  a goto within SIM_SEP_DIST ({self.team[0].params['SIM_SEP_DIST']:g} m) of another "
                          "vehicle's position or goal is refused")
         sign = "off" if c.signing_key is None else ("required on all links" if c.sign_api_strict
                                                     else "required on GCS link; API link signs, accepts unsigned")

@@ -62,6 +62,15 @@ def _true_pose(camera_dir: Path, index: int) -> TruePose | None:
     return None
 
 
+def capture_fields(cap, run_dir: Path) -> dict:
+    """The StepRecord fields a capture (CaptureInfo) gives: times, waypoint, reported and true pose, image."""
+    image = os.path.relpath(cap.image_path, run_dir) if Path(cap.image_path).is_absolute() else cap.image_path
+    return dict(sim_time_s=cap.time_boot_s, wall_s=cap.wall_s, flight_time_s=cap.flight_time_s,
+                waypoint_enu=cap.waypoint_enu, reported_position_enu=cap.reported_position_enu,
+                reported_rpy_rad=cap.reported_rpy_rad, true_pose=_true_pose(cap.camera_dir, cap.index),
+                image_index=cap.index, image=image)
+
+
 @dataclass
 class MissionResult:
     run_dir: Path
@@ -102,12 +111,7 @@ class SearchRecorder:
         f1 = float(map_f1(fused, self.labels))
         action = None if info.action is None else int(info.action[0])
         rec = StepRecord(
-            t=t, sim_time_s=cap.time_boot_s, wall_s=cap.wall_s, flight_time_s=cap.flight_time_s,
-            lattice_idx=int(info.viewpoint[0]), waypoint_enu=cap.waypoint_enu,
-            reported_position_enu=cap.reported_position_enu, reported_rpy_rad=cap.reported_rpy_rad,
-            true_pose=_true_pose(cap.camera_dir, cap.index), image_index=cap.index,
-            image=os.path.relpath(cap.image_path, self.run_dir) if Path(cap.image_path).is_absolute() else cap.image_path,
-            p_occ=info.p[0].numpy(), scores=None if scores is None else scores.reshape(-1).numpy(),
+            t=t, lattice_idx=int(info.viewpoint[0]), **capture_fields(cap, self.run_dir), p_occ=info.p[0].numpy(), scores=None if scores is None else scores.reshape(-1).numpy(),
             valid=info.valid[0].numpy(), cell_area_px=info.observation.cell_area_px[0].numpy(),
             fused=fused, action=action, action_name=self.config.actions[action] if action is not None else None,
             revisit=bool(info.revisit[0]), reward=None if info.reward is None else float(info.reward[0]),

@@ -31,7 +31,7 @@ from ..search.metrics import map_accuracy, map_f1
 from ..world.scene import load_scene
 from .connection import MavlinkConnection
 from .errors import FlightError, StepFailed, VehicleLost
-from .mission_controller import (VEHICLE_LOST, MissionResult, _discard, _log_failure, _true_pose, _watch,
+from .mission_controller import (VEHICLE_LOST, MissionResult, _discard, _log_failure, _watch, capture_fields,
                                   default_run_dir, disk_full, finish_log)
 from .vehicle import MavlinkVehicle
 
@@ -48,7 +48,7 @@ class LiveTeamViews:
 
         self.labels = torch.as_tensor(np.asarray(labels)).bool().reshape(1, -1)
         self._lattice = config.lattice.positions_enu
-        self.last = None  # (vehicle index, View, Observation) of the last capture
+        self.last = None  # (vehicle index, Observation) of the last capture
 
     def observe(self, lattice_idx, vehicle):
         from ..search.search_loop import observe_view
@@ -61,7 +61,7 @@ class LiveTeamViews:
         flight = veh.wait_arrived()
         view = veh.capture_here(target, flight, wall0)
         o = observe_view(self.perception, view)
-        self.last = (v, view, o)
+        self.last = (v, o)
         return o
 
     def dispatch(self, vehicle, next_idx) -> None:
@@ -81,21 +81,15 @@ class TeamRecorder:
     def event(self, vehicle, idx, time_s, taken, fused, next_idx) -> None:
         if not bool(taken[0]):
             return
-        v, view, o = self.views.last
+        v, o = self.views.last
         veh = self.views.vehicles[v]
         cap = veh.last_capture
         f = np.asarray(fused[0].float(), dtype=float)
         nxt = int(next_idx[0])
         acc, f1 = float(map_accuracy(f, self.labels)), float(map_f1(f, self.labels))
-        image = Path(cap.image_path)
         rec = StepRecord(
-            t=len(self.records), sim_time_s=cap.time_boot_s, wall_s=cap.wall_s, flight_time_s=cap.flight_time_s,
-            lattice_idx=int(idx[0]), waypoint_enu=cap.waypoint_enu, reported_position_enu=cap.reported_position_enu,
-            reported_rpy_rad=cap.reported_rpy_rad, true_pose=_true_pose(cap.camera_dir, cap.index),
-            image_index=cap.index,
-            image=str(image.relative_to(self.run_dir)) if image.is_relative_to(self.run_dir) else str(image),
-            p_occ=o.log_probs[0, :, 1].exp().numpy(), valid=o.valid[0].numpy(),
-            cell_area_px=o.cell_area_px[0].numpy(), fused=f, action=nxt if nxt >= 0 else None,
+            t=len(self.records), lattice_idx=int(idx[0]), **capture_fields(cap, self.run_dir),
+            p_occ=o.log_probs[0, :, 1].exp().numpy(), valid=o.valid[0].numpy(), cell_area_px=o.cell_area_px[0].numpy(), fused=f, action=nxt if nxt >= 0 else None,
             action_name=None if nxt < 0 else f"viewpoint {nxt}", acc=acc, f1=f1, vehicle=veh.target_system)
         self.log.step(rec)
         self.records.append(rec)

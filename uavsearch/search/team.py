@@ -79,7 +79,7 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
              max_views: int | None = None, generator: torch.Generator | None = None, on_event=None) -> TeamEpisode:
     """B episodes of a team of `vehicles` under a mission time of `budget_s` simulated seconds (module docstring).
 
-    `on_event(b_vehicle, idx, time_s, taken, fused, next_idx)` hears each event once its next viewpoint is
+    `on_event(vehicle, idx, time_s, taken, fused, next_idx)` hears each event once its next viewpoint is
     chosen (a flight log writes it there). Evaluation only: no gradients are kept."""
     config: SearchConfig = source.config
     if vehicles < 1:
@@ -97,7 +97,7 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
     n_views = torch.zeros(B, dtype=torch.long)
     planner.reset(B, V)
     state = fusion.init_state(B, config.grid.num_cells)
-    fused = torch.full((B, config.grid.num_cells), float("nan"))
+    fused = torch.zeros(B, config.grid.num_cells)  # the map before any view (every event 0 takes one)
     ev_v, ev_idx, ev_t, ev_taken, ev_maps = [], [], [], [], []
     positions, probs, valids = [], [], []
     last_obs = None
@@ -115,7 +115,7 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
                 o = source.observe(idx, v) if getattr(source, "per_vehicle", False) else source.observe(idx)
                 o = o._replace(valid=o.valid & cap[:, None])
                 state, new = fusion.update(state, fusion_view(o, idx, source.labels))
-                fused = torch.where(cap[:, None], new, fused) if not torch.isnan(fused).all() else new
+                fused = torch.where(cap[:, None], new, fused)
                 taken_vp[ar[cap], idx[cap]] = True
                 n_views += cap.long()
                 positions.append(idx)
@@ -138,7 +138,7 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
             inp = PolicyInput(
                 last_obs.global_feature if last_obs is not None else None,
                 last_obs.valid.float() if last_obs is not None else torch.zeros(B, config.grid.num_cells),
-                torch.nan_to_num(fused, nan=0.0).float(), idx, vis, max(int(n_views.max()) - 1, 0),
+                fused.float(), idx, vis, max(int(n_views.max()) - 1, 0),
                 int(max_views or P), torch.stack(positions, 1) if have else idx[:, None],
                 torch.stack(probs, 1) if have else None,
                 torch.stack(valids, 1) if have else torch.zeros(B, 1, config.grid.num_cells, dtype=torch.bool),
@@ -151,16 +151,15 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
             ev_idx.append(idx)
             ev_t.append(now)
             ev_taken.append(cap)
-            ev_maps.append(torch.nan_to_num(fused, nan=0.0).clone())
+            ev_maps.append(fused.clone())
             if on_event is not None:
                 on_event(v, idx, now, cap, ev_maps[-1], torch.where(ok, nxt, -1))
             if hasattr(source, "dispatch"):  # a flying team: the vehicle sets off now, the others fly on
                 source.dispatch(v, torch.where(ok, nxt, -1))
             active[ar[stop], v[stop]] = False
-            go = ok
-            pos[ar[go], v[go]] = nxt[go]
-            arrive[ar[go], v[go]] = now[go] + cost[idx[go], nxt[go]]
-            capture[ar[go], v[go]] = True
+            pos[ar[ok], v[ok]] = nxt[ok]
+            arrive[ar[ok], v[ok]] = now[ok] + cost[idx[ok], nxt[ok]]
+            capture[ar[ok], v[ok]] = True
     return TeamEpisode(torch.stack(ev_v, 1), torch.stack(ev_idx, 1), torch.stack(ev_t, 1).float(),
                        torch.stack(ev_taken, 1), torch.stack(ev_maps, 1), source.labels, V)
 

@@ -2,7 +2,7 @@
 
 Every team searches one shared map (search/team.py: `run_team`, the same planner `fly --vehicles N` flies).
 A condition is (team size, mission time); for each, every planner row gets its fusion chosen on the validation
-scenes (FUSION_CANDIDATES, by mean AF1), and "the team planner" is the planner row with the best validation AF1
+scenes (TEAM_FUSIONS, by mean AF1), and "the team planner" is the planner row with the best validation AF1
 (the rule, the rule per second of flight, the fixed partition, entropy per second, or entropy per second with
 the cells other vehicles are about to see discounted, its discount chosen with the fusion). Test
 AF1 is the final map's, per scene; differences are paired per scene with a 95% scene-bootstrap interval against
