@@ -24,7 +24,7 @@ WIDE = MISSIONS_DIR / "wide.yaml"
 def flown(tmp_path_factory):
     run = tmp_path_factory.mktemp("team") / "run"
     r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(WIDE), "--vehicles", "3",
-                        "--mission-time", "30", "--out", str(run), "--gcs-port", "0"],
+                        "--mission-time", "20", "--out", str(run), "--gcs-port", "0"],
                        capture_output=True, text=True, timeout=300, env=clean_env())
     return r, run
 

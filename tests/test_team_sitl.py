@@ -157,7 +157,7 @@ def test_three_mavsdk_clients_fly_their_own_vehicle(tmp_path):
 @needs_mavproxy
 def test_mavproxy_addresses_each_vehicle_of_the_team(tmp_path):
     """MAVProxy on the one ground-station port sees the team; `vehicle 2` then `arm throttle` arms vehicle 2 only."""
-    p, base, gcs = _team(tmp_path, speed="2")
+    p, base, gcs = _team(tmp_path, speed="4")
     mp, observers = None, []
     try:
         observers = [Observer(base + i) for i in range(N)]
