@@ -42,6 +42,7 @@ def test_lattice_is_the_paper_one():
     assert cfg.lattice.index((-2, 2)) == 0  # NW corner first, like the cell grid
 
 
+@pytest.mark.slow  # gymnasium's full check_env (about 20 s): `make test-all` runs it
 def test_check_env_passes():
     e = gym.make("uavsearch.envs:uavsearch/ActiveSearch-v0", setting=1, views="live")
     check_env(e.unwrapped, skip_render_check=True)

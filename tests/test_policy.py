@@ -215,6 +215,7 @@ def test_search_model_round_trip(tmp_path):
         load_search_model(tmp_path / "missing.pt")
 
 
+@pytest.mark.slow  # renders live views (about 12 s): `make test-all` runs it
 def test_view_cache_matches_live_perception_on_the_teleport_vehicle(tmp_path):
     """The cached outputs of a scene equal running perception on a fresh capture (the flight path)."""
     from uavsearch.search.perception import PerceptionNet
