@@ -204,3 +204,43 @@ def test_shipped_checkpoints_in_the_old_layout_still_load():
     c = ck["confidence"]
     assert all(torch.equal(fusion.net.state_dict()[k], v.float()) for k, v in c["state_dict"].items())
     assert load_search_model(MODELS_DIR / "search_s2_bayes.pt").fusion.name == "bayes"
+
+
+def test_calibrated_fusion_fits_an_overconfident_net_and_discounts_repeated_views():
+    """Views of a net that says 0.8 for clutter as often as for people: after fitting, one such view leaves a
+    cell below 0.5, a 0.99 view claims it, an unseen cell keeps the occupied share, and n equal views add
+    n^(1 - gamma) times one view's evidence."""
+    from uavsearch.search.fusion import CalibratedFusion, fusion_from_spec, load_fusion
+
+    gen = torch.Generator().manual_seed(0)
+    S, T, N = 40, 4, 200
+    labels = torch.rand(S, N, generator=gen) < 0.05
+    y = labels[:, None].expand(S, T, N)
+    clutter = torch.rand(S, T, N, generator=gen) < 0.1
+    p = torch.where(y, torch.full((S, T, N), 0.99), torch.where(clutter, 0.8, 0.05))
+    p = torch.where(y & (torch.rand(S, T, N, generator=gen) < 0.5), torch.full_like(p, 0.8), p)
+    area = torch.full((S, T, N), 100.0)
+    valid = torch.ones(S, T, N, dtype=torch.bool)
+    fit = CalibratedFusion.fit(FusionViews(p, valid, area, labels=labels))
+    assert fit.prior == pytest.approx(labels.float().mean().item())
+
+    def one(pv, n=1, gamma=0.0):
+        f = CalibratedFusion(fit.coef, fit.prior, gamma)
+        return f.fuse(FusionViews(torch.full((1, n, 1), pv), torch.ones(1, n, 1, dtype=torch.bool),
+                                  torch.full((1, n, 1), 100.0))).item()
+
+    assert one(0.8) < 0.5 < one(0.99)
+    assert CalibratedFusion(fit.coef, fit.prior).fuse(FusionViews(
+        torch.rand(1, 2, 3), torch.zeros(1, 2, 3, dtype=torch.bool), torch.ones(1, 2, 3)))[0].tolist() == \
+        pytest.approx([fit.prior] * 3)
+    l0, z = logit(fit.prior), logit(one(0.8))
+    for gamma in (0.0, 0.5, 1.0):
+        assert logit(one(0.8, 4, gamma)) == pytest.approx(l0 + 4 ** (1 - gamma) * (z - l0), rel=1e-4)
+    back = load_fusion(CalibratedFusion(fit.coef, fit.prior, 0.25).save_dict())
+    assert (back.coef, back.prior, back.gamma, back.spec) == (fit.coef, fit.prior, 0.25, "calibrated:0.25")
+    with pytest.raises(UavsearchError, match="fusion must be"):
+        fusion_from_spec("calibrated", "fusion")  # its coefficients come from fitting, not from a name
+    with pytest.raises(UavsearchError, match="gamma"):
+        CalibratedFusion(fit.coef, fit.prior, 2.0)
+    with pytest.raises(UavsearchError, match="both occupied and empty"):
+        CalibratedFusion.fit(FusionViews(p, valid, area, labels=torch.zeros(S, N, dtype=torch.bool)))

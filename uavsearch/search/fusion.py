@@ -1,4 +1,4 @@
-"""Multi-view fusion of per-cell occupancy estimates (paper Sec. IV-E and VII-D): one interface, five methods.
+"""Multi-view fusion of per-cell occupancy estimates (paper Sec. IV-E and VII-D): one interface, six methods.
 
 Every method maps a sequence of T per-view estimates of p(y_i = 1) to one fused map:
 
@@ -19,6 +19,9 @@ time (what the search loop calls); `fuse(method, ...)` below is the functional f
 - "learned": Eq. 5-7, softmax over the valid views' confidence scores s_t (needs scores), then the
              weighted mean of p_t. Differentiable in torch w.r.t. scores and p_occ (stage 2 trains the
              confidence network through it).
+- "calibrated": Platt scaling of each view's p by the cell's pixel area, fitted on training views
+             (`CalibratedFusion.fit`), then log-odds evidence summed over views and divided by n^gamma: gamma 0
+             is Bayes' rule on calibrated views, larger gamma discounts views that repeat one another.
 - "oracle":  the evaluation bound (needs labels): correct iff any valid view was correct. It returns
              max_t p_t for occupied cells and min_t p_t for empty ones, which is on the correct side of 0.5
              exactly when some view was.
@@ -59,8 +62,9 @@ def fuse(
     return _run(fusion_class(method), FusionViews(p_occ, valid, area_px=area_px, scores=scores, labels=labels), prior)
 
 
-def _run(cls: type["Fusion"], views: "FusionViews", prior: float):
-    """cls's kernel on the views, after checking shapes and that every input it needs is there."""
+def _run(cls: type["Fusion"], views: "FusionViews", prior: float, kernel: Callable | None = None):
+    """cls's kernel (or `kernel`, one with its fitted parameters bound) on the views, after checking shapes and
+    that every input it needs is there."""
     p_occ, valid = views.p, views.valid
     if not 0.0 < prior < 1.0:
         raise UavsearchError(f"fusion prior must lie in (0, 1), got {prior}")
@@ -82,7 +86,7 @@ def _run(cls: type["Fusion"], views: "FusionViews", prior: float):
             shape = "p_occ's shape without T, (..., N)" if name == "labels" else f"match p_occ {tuple(p.shape)}"
             raise UavsearchError(f"{name} {tuple(inputs[name].shape)} must " + (
                 f"be {shape}" if name == "labels" else shape))
-    out = cls.kernel(p, v, prior, **inputs)
+    out = (kernel or cls.kernel)(p, v, prior, **inputs)
     return out.numpy() if as_numpy else out
 
 
@@ -124,6 +128,26 @@ def _learned(p, v, prior, scores):
     w = torch.where(v, w, torch.zeros_like(w))
     fused = (w * p).sum(dim=-2)  # Eq. 6 on p(y=1); p(y=0) = 1 - fused since the weights sum to 1
     return torch.where(_no_view(v), torch.full_like(fused, prior), fused)
+
+
+def calibrated_logit(p, area_px, coef):
+    """One view's log-odds of occupancy after Platt scaling with the cell's pixel area: coef (4,) =
+    (slope, slope per log px, offset, offset per log px). A net trained to find tiny people says 0.8 for
+    clutter far more often than for a person, and how often depends on how many pixels the cell covers."""
+    lp = torch.logit(p.clamp(EPS, 1.0 - EPS))
+    la = area_px.clamp(min=1.0).log()
+    c = torch.as_tensor(coef, dtype=p.dtype, device=p.device)
+    return (c[0] + c[1] * la) * lp + c[2] + c[3] * la
+
+
+UNCALIBRATED = (1.0, 0.0, 0.0, 0.0)  # p as the net says it: the calibrated kernel is then Bayes' rule
+
+
+def _calibrated(p, v, prior, area_px, coef=UNCALIBRATED, gamma=0.0):
+    l0 = float(np.log(prior / (1.0 - prior)))
+    ev = torch.where(v, calibrated_logit(p, area_px, coef) - l0, torch.zeros_like(p)).sum(dim=-2)
+    n = v.sum(dim=-2).clamp(min=1).to(p.dtype)
+    return torch.sigmoid(l0 + ev / n**gamma)
 
 
 def _oracle(p, v, prior, labels):
@@ -171,6 +195,7 @@ class Fusion:
     name: ClassVar[str]
     needs: ClassVar[tuple[str, ...]] = ()  # of "area_px", "scores", "labels" (beyond p and valid)
     trainable: ClassVar[bool] = False  # has weights that stage 2 trains (and a checkpoint holds)
+    fitted: ClassVar[bool] = False  # has parameters fitted on training views (its fit() builds it; no spec names it)
     kernel: ClassVar[Callable]  # (p, valid, prior, **needs) -> fused, all torch
 
     def __init__(self, prior: float = DEFAULT_PRIOR):
@@ -253,6 +278,54 @@ class SizeFusion(Fusion):
     name, needs, kernel = "size", ("area_px",), staticmethod(_by_size)
 
 
+class CalibratedFusion(Fusion):
+    """Bayes' rule over views whose p is first calibrated (Platt scaling by pixel area), with repeated views
+    discounted by n^gamma. The prior is the training views' occupied share, so a cell no view measured keeps
+    the base rate and each view adds its evidence against it."""
+
+    name, needs, fitted, kernel = "calibrated", ("area_px",), True, staticmethod(_calibrated)
+
+    def __init__(self, coef=UNCALIBRATED, prior: float = DEFAULT_PRIOR, gamma: float = 0.0):
+        super().__init__(prior)
+        self.coef, self.gamma = [float(c) for c in coef], float(gamma)
+        if len(self.coef) != 4 or not np.isfinite(self.coef).all() or not 0.0 <= self.gamma <= 1.0:
+            raise UavsearchError(f"calibrated fusion needs 4 finite coefficients and gamma in [0, 1], got "
+                                 f"{self.coef} and {gamma}")
+
+    def fuse(self, views: FusionViews):
+        return _run(type(self), self.inputs(views), self.prior,
+                    kernel=lambda p, v, prior, area_px: _calibrated(p, v, prior, area_px, self.coef, self.gamma))
+
+    @property
+    def spec(self) -> str:
+        return f"calibrated:{self.gamma:g}"
+
+    def config(self) -> dict:
+        return {"coef": self.coef, "prior": self.prior, "gamma": self.gamma}
+
+    @classmethod
+    def fit(cls, views: FusionViews, gamma: float = 0.0) -> "CalibratedFusion":
+        """Platt coefficients by logistic regression (L-BFGS) on every valid cell-view of `views` (p, valid,
+        area_px and labels (..., N)); the prior is their occupied share."""
+        v = torch.as_tensor(views.valid).bool()
+        y = torch.as_tensor(views.labels).bool().unsqueeze(-2).expand(v.shape)[v].double()
+        if y.numel() == 0 or y.sum() == 0 or y.sum() == y.numel():
+            raise UavsearchError("calibrating a fusion needs views of both occupied and empty cells")
+        p = torch.as_tensor(views.p)[v].double()
+        a = torch.as_tensor(views.area_px)[v].double()
+        w = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.double, requires_grad=True)
+        opt = torch.optim.LBFGS([w], max_iter=200, line_search_fn="strong_wolfe")
+
+        def loss():
+            opt.zero_grad()
+            out = nn.functional.binary_cross_entropy_with_logits(calibrated_logit(p, a, w), y)
+            out.backward()
+            return out
+
+        opt.step(loss)
+        return cls(w.detach().tolist(), prior=float(y.mean()), gamma=gamma)
+
+
 class OracleFusion(Fusion):
     name, needs, kernel = "oracle", ("labels",), staticmethod(_oracle)
 
@@ -321,7 +394,7 @@ class LearnedFusion(nn.Module, Fusion):
 # THE registry of fusion methods: name -> class (search/agents.py builds agents from it; a new method is one
 # class and one entry here)
 FUSIONS: dict[str, type[Fusion]] = {cls.name: cls for cls in (BayesFusion, AverageFusion, SizeFusion, LearnedFusion,
-                                                               OracleFusion)}
+                                                               CalibratedFusion, OracleFusion)}
 
 
 def fusion_class(name: str) -> type[Fusion]:
@@ -334,7 +407,7 @@ def fusion_from_spec(spec: str, what: str = "fusion") -> Fusion:
     """A fusion without weights or labels from "name" or "name:prior" (e.g. bayes:0.02: Bayes' rule with
     that prior, which is also the p of a cell no view has measured); `what` names the option in errors."""
     name, _, prior = str(spec).partition(":")
-    plain = [n for n, f in FUSIONS.items() if not f.trainable and "labels" not in f.needs]
+    plain = [n for n, f in FUSIONS.items() if not f.trainable and not f.fitted and "labels" not in f.needs]
     if name not in plain:
         raise UavsearchError(f"{what} must be a fusion without weights or labels ({', '.join(plain)}), "
                              f"optionally with :prior, not {spec!r}")

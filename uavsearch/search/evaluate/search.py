@@ -151,8 +151,9 @@ class EvalArgs(ScaleOutArgs):
     bounds: bool = opt(True, "the hindsight-best route and label-peeking greedy bounds (every route on every scene)")
     progress: bool = opt(True, "progress bars")
     wide_fusion: str = opt("auto", "Table III: the fusion of every row but the oracle ones, as name or name:prior "
-                                   "(e.g. bayes:0.05; the prior is also the p of a cell no view measured), or auto: "
-                                   "chosen on the validation scenes per family and budget (evaluate/wide.py)")
+                                   "(e.g. bayes:0.05; the prior is also the p of a cell no view measured), "
+                                   "calibrated:GAMMA (fitted on the training scenes), or auto: chosen on the "
+                                   "validation scenes per family and budget (evaluate/wide.py)")
     wide_train_scenes: int = opt(500, "Table III: training scenes the fixed view sets are searched on (the first N)")
     wide_val_scenes: int | None = opt(None, "Table III: validation scenes choosing the best fixed route (first N; all)")
     wide_test_scenes: int | None = opt(None, "Table III: test scenes (the first N; default all 100)")

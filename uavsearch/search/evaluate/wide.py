@@ -3,8 +3,9 @@
 Two budgets, each its own table: T = 8 views (no time limit) and 240 s of simulated flight (views until
 no unvisited viewpoint is affordable; search_loop's time budget). Every row fuses with one non-learned
 fusion over the view cache of the family's shipped perception (models/perception_wide.pt), except the
-oracle rows: `--wide-fusion NAME[:PRIOR]`, or `auto` (the default): per family and budget, the candidate of
-FUSION_CANDIDATES with the best mean validation AF1 over the hand-made fixed routes and the rule. The rows:
+oracle rows: `--wide-fusion NAME[:PRIOR]`, `calibrated:GAMMA`, or `auto` (the default): per family and budget,
+the candidate of FUSION_CANDIDATES and the calibrated fusions (fitted on the training scenes, one per
+CALIBRATED_GAMMAS) with the best mean validation AF1 over the hand-made fixed routes and the rule. The rows:
 
     fixed routes       lawnmower at 70 m / at 40 m; survey (4 inner or 4 covering 70 m views) then the 40 m
                        lawnmower; the view set chosen greedily on training scenes (AF1 gain, or AF1 gain per
@@ -38,7 +39,7 @@ from uavsearch.world.settings import setting_params
 from ..agents import build_agent
 from ..config import SearchConfig
 from ..data.view_cache import ViewCache, get_view_cache
-from ..fusion import Fusion, fusion_from_spec
+from ..fusion import CalibratedFusion, Fusion, FusionViews, fusion_from_spec
 from ..perception import load_perception, shipped_perception
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
@@ -111,35 +112,57 @@ def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarra
     return t[idx[:, :-1], idx[:, 1:]].sum(1) if idx.shape[1] > 1 else np.zeros(len(idx))
 
 
-def make_fusion(spec: str) -> Fusion:
-    """--wide-fusion's fusion: fusion.fusion_from_spec ("name" or "name:prior")."""
+def make_fusion(spec: str, train: ViewCache | None = None) -> Fusion:
+    """--wide-fusion's fusion: fusion.fusion_from_spec ("name" or "name:prior"), or "calibrated[:GAMMA]" fitted
+    on the training cache `train`."""
+    name, _, gamma = str(spec).partition(":")
+    if name == "calibrated" and train is not None:
+        try:
+            g = float(gamma or 0.0)
+        except ValueError:
+            g = float("nan")
+        if not 0.0 <= g <= 1.0:
+            raise UavsearchError(f"--wide-fusion {spec}: the calibrated fusion's discount must be a number in [0, 1]")
+        return calibrated_candidates(train, (g,))[0]
     return fusion_from_spec(spec, "--wide-fusion")
 
 
 def fusion_name(fusion: Fusion) -> str:
-    return f"{fusion.name}:{fusion.prior:g}"
+    return getattr(fusion, "spec", None) or f"{fusion.name}:{fusion.prior:g}"
 
 
 # What `--wide-fusion auto` chooses among on the validation scenes. Bayes' prior is the p a view must exceed to
 # count as evidence for a person, so it decides how fast a cell's mild false alarms pile up over many views.
 FUSION_CANDIDATES = ("bayes:0.05", "bayes:0.1", "bayes:0.2", "bayes:0.3", "bayes:0.5", "average")
+# The calibrated fusion's discount of repeated views: 0 is Bayes' rule (every view independent evidence); a
+# 70 m lawnmower sees a cell ten times, and clutter that fools the net once fools it from the next viewpoint too.
+CALIBRATED_GAMMAS = (0.0, 0.25, 0.5)
+
+
+def calibrated_candidates(train: ViewCache, gammas=CALIBRATED_GAMMAS) -> list[Fusion]:
+    """Calibrated fusions fitted on every view of the training cache, one per discount."""
+    views = FusionViews(train.log_probs[..., 1].exp(), train.valid, train.cell_area_px, labels=train.occupancy)
+    fitted = CalibratedFusion.fit(views)
+    return [CalibratedFusion(fitted.coef, fitted.prior, g) for g in gammas]
 
 
 def choose_fusion(val: ViewCache, config: SearchConfig, candidates=FUSION_CANDIDATES) -> tuple[Fusion, dict[str, float]]:
-    """The candidate with the best mean validation AF1 over the hand-made fixed routes and the rule (the rows
-    that need no training scenes), and every candidate's score: chosen on validation, the same for every row."""
+    """The candidate (a spec or a Fusion) with the best mean validation AF1 over the hand-made fixed routes and
+    the rule (the rows that need no training scenes), and every candidate's score: chosen on validation, the
+    same for every row."""
+    fusions = [c if isinstance(c, Fusion) else make_fusion(c) for c in candidates]
     scores = {}
-    for spec in candidates:
-        fusion = make_fusion(spec)
+    for fusion in fusions:
         agents = {k: (_agent(fusion, k, config), 1) for k in (*FIXED[:4], RULE)}
         res = run_rows(val, config, agents)
-        scores[spec] = float(np.mean([r["f1"][:, :, -1].mean() for r in res.values()]))
-    best = max(candidates, key=lambda s: (scores[s], -candidates.index(s)))
-    return make_fusion(best), scores
+        scores[fusion_name(fusion)] = float(np.mean([r["f1"][:, :, -1].mean() for r in res.values()]))
+    names = list(scores)
+    best = max(range(len(fusions)), key=lambda i: (scores[names[i]], -i))
+    return fusions[best], scores
 
 
 def _agent(fusion: Fusion, policy: str, config: SearchConfig) -> Agent:
-    return build_agent(fusion.name, policy, config).agent._replace(fusion=fusion)
+    return build_agent("average", policy, config).agent._replace(fusion=fusion)
 
 
 def _route_agent(fusion: Fusion, routes) -> Agent:
@@ -270,7 +293,8 @@ def family_caches(args, family: str) -> dict[str, ViewCache]:
 def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
     """Table III for the families into args.out; `caches` ({family: {part: ViewCache}}) skips building them."""
     auto = args.wide_fusion == "auto"
-    fusion = None if auto else make_fusion(args.wide_fusion)
+    if not auto and not str(args.wide_fusion).startswith("calibrated"):
+        make_fusion(args.wide_fusion)  # a bad spec fails before any cache is built
     t0 = time.perf_counter()
     rows, paired, lines, conds = [], [], [], {}
     tag = ""
@@ -279,7 +303,11 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
         tag = cs["test"].perception_tag
         config = cs["test"].config
         for name, cfg in conditions(config).items():
-            chosen, scores = choose_fusion(cs["val"], cfg) if auto else (fusion, {})
+            if auto:
+                candidates = (*FUSION_CANDIDATES, *calibrated_candidates(cs["train"]))
+                chosen, scores = choose_fusion(cs["val"], cfg, candidates)
+            else:
+                chosen, scores = make_fusion(args.wide_fusion, cs["train"]), {}
             cond = evaluate_condition(cs, cfg, chosen, args.episodes, args.seeds, args.bootstrap,
                                       args.bootstrap_seed)
             cond.update(fusion=fusion_name(chosen), fusion_scores=scores)
@@ -293,7 +321,7 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
     altitudes = ("trained across altitudes" if load_perception(net_path)[0].cfg.altitude_feature
                  else "trained at 70 m only")
     meta = {"altitudes": altitudes, "fusion": "chosen on validation per family and budget" if auto
-            else fusion_name(fusion), "perception": display_path(perception_of(args, families[0])), "tag": tag,
+            else args.wide_fusion, "perception": display_path(perception_of(args, families[0])), "tag": tag,
             "episodes": args.episodes, "seeds": args.seeds, "seconds": time.perf_counter() - t0}
     md = write_table3(Path(args.out), rows, paired, lines, meta)
     print(md.read_text())
