@@ -213,8 +213,8 @@ def test_table3_chooses_its_fusion_on_validation(tmp_path):
 
     val = wide_cache(2, 5)
     fusion, scores = choose_fusion(val, dataclasses.replace(WIDE, budget_s=None), ("bayes:0.1", "average"))
-    assert set(scores) == {"bayes:0.1", "average"} and all(0.0 <= v <= 1.0 for v in scores.values())
-    assert f"{fusion.name}:{fusion.prior:g}" == max(scores, key=scores.get).replace("average", "average:0.1")
+    assert set(scores) == {"bayes:0.1", "average:0.1"} and all(0.0 <= v <= 1.0 for v in scores.values())
+    assert f"{fusion.name}:{fusion.prior:g}" == max(scores, key=scores.get)
     caches = {"wide": {"test": wide_cache(2, 1), "val": val, "train": wide_cache(2, 3)}}
     args = SimpleNamespace(out=str(tmp_path), wide_fusion="auto", episodes=1, seeds=1, bootstrap=100,
                            bootstrap_seed=0, perception="models/perception.pt", progress=False)
@@ -222,4 +222,19 @@ def test_table3_chooses_its_fusion_on_validation(tmp_path):
     text = (tmp_path / "table3.md").read_text()
     assert text.count("chosen on the validation scenes by the mean AF1") == 2
     assert {r["fusion"] for r in res["rows"]} <= {"bayes:0.05", "bayes:0.1", "bayes:0.2", "bayes:0.3", "bayes:0.5",
-                                                  "average:0.1"}
+                                                  "average:0.1", "calibrated:0", "calibrated:0.25", "calibrated:0.5"}
+    assert "calibrated:0.25" in text  # fitted on the training cache, scored on validation beside the others
+
+
+def test_table3_calibrated_fusion_is_fitted_on_the_training_scenes():
+    from uavsearch.search.evaluate.wide import calibrated_candidates, make_fusion
+
+    train = wide_cache(2, 3)
+    fits = calibrated_candidates(train)
+    assert [f.gamma for f in fits] == [0.0, 0.25, 0.5] and len({tuple(f.coef) for f in fits}) == 1
+    assert fits[0].prior == pytest.approx(train.occupancy.float().mean().item(), rel=0.05)
+    one = make_fusion("calibrated:0.25", train)
+    assert (one.spec, one.coef) == ("calibrated:0.25", fits[0].coef)
+    for bad in ("calibrated:2", "calibrated:x"):
+        with pytest.raises(UavsearchError, match="discount"):
+            make_fusion(bad, train)
