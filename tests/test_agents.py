@@ -16,7 +16,7 @@ from uavsearch.search import fusion
 from uavsearch.search.agents import POLICIES, build_agent, checkpoint_path, new_agent, trained_fusion
 from uavsearch.search.config import SearchConfig, config_to_dict, setting_config
 from uavsearch.search.external_policy import ExternalPolicyNet
-from uavsearch.search.fusion import FUSIONS, Fusion
+from uavsearch.search.fusion import BY_NAME, FUSIONS, Fusion
 from uavsearch.search.policy import save_search_model
 from uavsearch.search.reactive import ReactivePolicyNet
 from uavsearch.search.search_loop import CachedViews, run_search
@@ -24,7 +24,7 @@ from uavsearch.search.search_loop import CachedViews, run_search
 
 def _ship(models, setting=2, cell_dim=6, global_dim=16):
     torch.manual_seed(0)
-    for f in FUSIONS:
+    for f in BY_NAME:
         a = new_agent(f, SearchConfig(), global_dim, cell_dim)
         save_search_model(checkpoint_path(setting, f, models), a.fusion, a.policy)
         save_search_model(checkpoint_path(setting, f, models, policy="reactive"), a.fusion, ReactivePolicyNet())
@@ -33,7 +33,7 @@ def _ship(models, setting=2, cell_dim=6, global_dim=16):
 
 
 @pytest.mark.parametrize("policy", list(POLICIES))
-@pytest.mark.parametrize("fusion", list(FUSIONS))
+@pytest.mark.parametrize("fusion", BY_NAME)
 def test_every_registered_pair_builds_and_runs(tmp_path, fusion, policy):
     _ship(tmp_path)
     config = setting_config("wide") if POLICIES[policy].move_set == "any" else SearchConfig()

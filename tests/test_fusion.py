@@ -240,6 +240,10 @@ def test_calibrated_fusion_fits_an_overconfident_net_and_discounts_repeated_view
     assert (back.coef, back.prior, back.gamma, back.spec) == (fit.coef, fit.prior, 0.25, "calibrated:0.25")
     with pytest.raises(UavsearchError, match="fusion must be"):
         fusion_from_spec("calibrated", "fusion")  # its coefficients come from fitting, not from a name
+    from uavsearch.search.agents import check_names
+
+    with pytest.raises(UavsearchError, match="fitted on training views"):
+        check_names("calibrated")  # a mission or env naming it would get Bayes' rule on raw p without a word
     with pytest.raises(UavsearchError, match="gamma"):
         CalibratedFusion(fit.coef, fit.prior, 2.0)
     with pytest.raises(UavsearchError, match="both occupied and empty"):

@@ -25,7 +25,7 @@ from uavsearch.errors import UavsearchError
 from uavsearch.paths import MODELS_DIR
 
 from .config import SearchConfig, config_from_dict
-from .fusion import FUSIONS, Fusion
+from .fusion import FUSIONS, Fusion, check_buildable
 from .perception import load_perception
 from .policy import (ArgmaxPolicy, CoverageRoute, GreedyUncertainty, PolicyConfig, PolicyNet, RandomPolicy,
                      load_search_model)
@@ -76,8 +76,8 @@ def trained_fusion(fusion: str) -> bool:
 
 def check_names(fusion: str | None = None, policy: str | None = None) -> None:
     """A one-line error for a fusion method or policy the registry does not know."""
-    if fusion is not None and fusion not in FUSIONS:
-        raise UavsearchError(f"unknown fusion method {fusion!r}; choose one of {', '.join(FUSIONS)}")
+    if fusion is not None:
+        check_buildable(fusion)
     if policy is not None and policy not in POLICIES:
         raise UavsearchError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
 

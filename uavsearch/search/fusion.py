@@ -395,12 +395,23 @@ class LearnedFusion(nn.Module, Fusion):
 # class and one entry here)
 FUSIONS: dict[str, type[Fusion]] = {cls.name: cls for cls in (BayesFusion, AverageFusion, SizeFusion, LearnedFusion,
                                                                CalibratedFusion, OracleFusion)}
+# the methods a name alone builds (a fitted one needs its training views)
+BY_NAME: tuple[str, ...] = tuple(n for n, cls in FUSIONS.items() if not cls.fitted)
 
 
 def fusion_class(name: str) -> type[Fusion]:
     if name not in FUSIONS:
         raise UavsearchError(f"unknown fusion method {name!r}; choose one of {', '.join(FUSIONS)}")
     return FUSIONS[name]
+
+
+def check_buildable(name: str) -> None:
+    """A one-line error for a name that cannot build a fusion by itself: unknown, or fitted on training views
+    (its coefficients come from fit(), which Table III runs on the family's training scenes)."""
+    fusion_class(name)
+    if FUSIONS[name].fitted:
+        raise UavsearchError(f"the {name} fusion is fitted on training views, not built from its name: Table III "
+                             f"fits it (uavsearch eval search --wide-fusion {name}:GAMMA)")
 
 
 def fusion_from_spec(spec: str, what: str = "fusion") -> Fusion:

@@ -28,7 +28,7 @@ from ...world import settings
 from ...world.scene import SceneSpec, scene_from_json, scene_to_json
 from ..cells import REWARD_MODES, SearchBatch, TableSource, ViewCells, cell_tables, observation_keys
 from ..config import SearchConfig, setting_config
-from ..fusion import FUSIONS, Fusion
+from ..fusion import FUSIONS, Fusion, check_buildable
 from ..search_loop import R_FP, R_RE, R_TP
 from ..views import TeleportVehicle, View
 
@@ -57,8 +57,7 @@ def make_fusion(name: str, setting, models_dir=None) -> Fusion:
     from ..agents import checkpoint_path
     from ..policy import load_search_model
 
-    if name not in FUSIONS:
-        raise UavsearchError(f"unknown fusion method {name!r}; choose one of {', '.join(FUSIONS)}")
+    check_buildable(name)
     if not FUSIONS[name].trainable:
         return FUSIONS[name]()
     sid = settings.setting_params(setting).name

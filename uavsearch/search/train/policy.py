@@ -43,9 +43,9 @@ from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot
 
-from ..agents import FUSIONS, check_names, checkpoint_path, new_agent
+from ..agents import check_names, checkpoint_path, new_agent
 from ..config import config_to_dict
-from ..fusion import Fusion
+from ..fusion import BY_NAME, Fusion
 from ..metrics import map_f1
 from ..policy import save_search_model
 from ..scoring import evaluate_agent
@@ -57,7 +57,7 @@ from .runs import RunArgs, copy_checkpoint, load_caches, seed_everything, start_
 class Args(RunArgs):
     setting: int = opt(2, "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)")
     fusion: str = opt("learned", "fusion the policy is trained with and rewarded through",
-                      choices=tuple(FUSIONS))
+                      choices=BY_NAME)
     # scene split: train on its train part, select on its val part. "large" (500 + 50 scenes per setting)
     # for the shipped models: on the paper's 20 training scenes the confidence net and policy overfit
     # within 50-150 iterations (train AF1 0.7, validation falling).
