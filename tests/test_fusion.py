@@ -236,6 +236,12 @@ def test_calibrated_fusion_fits_an_overconfident_net_and_discounts_repeated_view
     l0, z = logit(fit.prior), logit(one(0.8))
     for gamma in (0.0, 0.5, 1.0):
         assert logit(one(0.8, 4, gamma)) == pytest.approx(l0 + 4 ** (1 - gamma) * (z - l0), rel=1e-4)
+    # four far views (100 px) and one close look (400 px): only the far ones repeat one another
+    mixed = CalibratedFusion(fit.coef, fit.prior, 0.5).fuse(FusionViews(
+        torch.full((1, 5, 1), 0.8), torch.ones(1, 5, 1, dtype=torch.bool), torch.tensor([100.0] * 4 + [400.0])[None, :, None]))
+    z_close = logit(CalibratedFusion(fit.coef, fit.prior).fuse(FusionViews(
+        torch.full((1, 1, 1), 0.8), torch.ones(1, 1, 1, dtype=torch.bool), torch.full((1, 1, 1), 400.0))).item())
+    assert logit(mixed.item()) == pytest.approx(l0 + 2 * (z - l0) + (z_close - l0), rel=1e-4)
     back = load_fusion(CalibratedFusion(fit.coef, fit.prior, 0.25).save_dict())
     assert (back.coef, back.prior, back.gamma, back.spec) == (fit.coef, fit.prior, 0.25, "calibrated:0.25")
     with pytest.raises(UavsearchError, match="fusion must be"):

@@ -222,7 +222,7 @@ def test_table3_chooses_its_fusion_on_validation(tmp_path):
     text = (tmp_path / "table3.md").read_text()
     assert text.count("chosen on the validation scenes by the mean AF1") == 2
     assert {r["fusion"] for r in res["rows"]} <= {"bayes:0.05", "bayes:0.1", "bayes:0.2", "bayes:0.3", "bayes:0.5",
-                                                  "average:0.1", "calibrated:0", "calibrated:0.25", "calibrated:0.5"}
+                                                  "average:0.1", *(f"calibrated:{g:g}" for g in (0, 0.25, 0.5, 0.75, 1))}
     assert "calibrated:0.25" in text  # fitted on the training cache, scored on validation beside the others
 
 
@@ -231,7 +231,7 @@ def test_table3_calibrated_fusion_is_fitted_on_the_training_scenes():
 
     train = wide_cache(2, 3)
     fits = calibrated_candidates(train)
-    assert [f.gamma for f in fits] == [0.0, 0.25, 0.5] and len({tuple(f.coef) for f in fits}) == 1
+    assert [f.gamma for f in fits] == [0.0, 0.25, 0.5, 0.75, 1.0] and len({tuple(f.coef) for f in fits}) == 1
     assert fits[0].prior == pytest.approx(train.occupancy.float().mean().item(), rel=0.05)
     one = make_fusion("calibrated:0.25", train)
     assert (one.spec, one.coef) == ("calibrated:0.25", fits[0].coef)

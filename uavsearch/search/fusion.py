@@ -20,8 +20,10 @@ time (what the search loop calls); `fuse(method, ...)` below is the functional f
              weighted mean of p_t. Differentiable in torch w.r.t. scores and p_occ (stage 2 trains the
              confidence network through it).
 - "calibrated": Platt scaling of each view's p by the cell's pixel area, fitted on training views
-             (`CalibratedFusion.fit`), then log-odds evidence summed over views and divided by n^gamma: gamma 0
-             is Bayes' rule on calibrated views, larger gamma discounts views that repeat one another.
+             (`CalibratedFusion.fit`), then Bayes' rule on the calibrated views with each view's log-odds
+             evidence divided by n^gamma, n the views of the cell at about the same scale: gamma 0 is plain
+             Bayes, larger gamma discounts views that repeat one another (n far views count n^(1-gamma)
+             times one; a closer look counts in full).
 - "oracle":  the evaluation bound (needs labels): correct iff any valid view was correct. It returns
              max_t p_t for occupied cells and min_t p_t for empty ones, which is on the correct side of 0.5
              exactly when some view was.
@@ -143,11 +145,24 @@ def calibrated_logit(p, area_px, coef):
 UNCALIBRATED = (1.0, 0.0, 0.0, 0.0)  # p as the net says it: the calibrated kernel is then Bayes' rule
 
 
+SAME_SCALE = float(np.log(2.0))  # two views whose cell areas differ by less than 2x look from about the same scale
+
+
+def same_scale_views(v, area_px):
+    """(..., T, N): for each valid view of a cell, how many valid views of it (itself included) saw it at about
+    the same scale (pixel area within a factor of 2). Views from one altitude share the clutter that fools the
+    net; a closer look is new evidence."""
+    la = area_px.clamp(min=1.0).log()
+    same = ((la.unsqueeze(-2) - la.unsqueeze(-3)).abs() < SAME_SCALE) & v.unsqueeze(-3)  # [..., t, s, n]
+    return same.sum(dim=-2).clamp(min=1).to(area_px.dtype)
+
+
 def _calibrated(p, v, prior, area_px, coef=UNCALIBRATED, gamma=0.0):
     l0 = float(np.log(prior / (1.0 - prior)))
-    ev = torch.where(v, calibrated_logit(p, area_px, coef) - l0, torch.zeros_like(p)).sum(dim=-2)
-    n = v.sum(dim=-2).clamp(min=1).to(p.dtype)
-    return torch.sigmoid(l0 + ev / n**gamma)
+    ev = torch.where(v, calibrated_logit(p, area_px, coef) - l0, torch.zeros_like(p))
+    if gamma:
+        ev = ev / same_scale_views(v, area_px) ** gamma
+    return torch.sigmoid(l0 + ev.sum(dim=-2))
 
 
 def _oracle(p, v, prior, labels):
@@ -279,9 +294,9 @@ class SizeFusion(Fusion):
 
 
 class CalibratedFusion(Fusion):
-    """Bayes' rule over views whose p is first calibrated (Platt scaling by pixel area), with repeated views
-    discounted by n^gamma. The prior is the training views' occupied share, so a cell no view measured keeps
-    the base rate and each view adds its evidence against it."""
+    """Bayes' rule over views whose p is first calibrated (Platt scaling by pixel area), with views repeated at
+    about the same scale discounted by n^gamma. The prior is the training views' occupied share, so a cell no
+    view measured keeps the base rate and each view adds its evidence against it."""
 
     name, needs, fitted, kernel = "calibrated", ("area_px",), True, staticmethod(_calibrated)
 

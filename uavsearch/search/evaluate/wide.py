@@ -134,9 +134,10 @@ def fusion_name(fusion: Fusion) -> str:
 # What `--wide-fusion auto` chooses among on the validation scenes. Bayes' prior is the p a view must exceed to
 # count as evidence for a person, so it decides how fast a cell's mild false alarms pile up over many views.
 FUSION_CANDIDATES = ("bayes:0.05", "bayes:0.1", "bayes:0.2", "bayes:0.3", "bayes:0.5", "average")
-# The calibrated fusion's discount of repeated views: 0 is Bayes' rule (every view independent evidence); a
-# 70 m lawnmower sees a cell ten times, and clutter that fools the net once fools it from the next viewpoint too.
-CALIBRATED_GAMMAS = (0.0, 0.25, 0.5)
+# The calibrated fusion's discount of views repeated at one scale: 0 is Bayes' rule (every view independent
+# evidence); a 70 m lawnmower sees a cell ten times, and clutter that fools the net once fools it from the next
+# viewpoint too.
+CALIBRATED_GAMMAS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
 def calibrated_candidates(train: ViewCache, gammas=CALIBRATED_GAMMAS) -> list[Fusion]:
