@@ -224,6 +224,9 @@ def test_table3_chooses_its_fusion_on_validation(tmp_path):
     assert {r["fusion"] for r in res["rows"]} <= {"bayes:0.05", "bayes:0.1", "bayes:0.2", "bayes:0.3", "bayes:0.5",
                                                   "average:0.1", *(f"calibrated:{g:g}" for g in (0, 0.25, 0.5, 0.75, 1))}
     assert "calibrated:0.25" in text  # fitted on the training cache, scored on validation beside the others
+    assert text.count("The rule's survey, chosen on the validation scenes") == 2
+    for cond in res["conditions"].values():
+        assert cond["survey"] in cond["survey_af1"] and set(cond["survey_af1"]) == {"4 covering", "4 covering + 4 inner"}
 
 
 def test_table3_calibrated_fusion_is_fitted_on_the_training_scenes():

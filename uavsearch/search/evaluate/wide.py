@@ -10,7 +10,8 @@ CALIBRATED_GAMMAS) with the best mean validation AF1 over the hand-made fixed ro
     fixed routes       lawnmower at 70 m / at 40 m; survey (4 inner or 4 covering 70 m views) then the 40 m
                        lawnmower; the view set chosen greedily on training scenes (AF1 gain, or AF1 gain per
                        second of flight); the best of these on the validation scenes is "the best fixed route"
-    the rule           survey at 70 m, then descend over the highest fused p (wide_policies.DescendRule)
+    the rule           survey at 70 m, then descend over the highest fused p (wide_policies.DescendRule); its
+                       survey (RULE_SURVEYS: 4 covering views, or those and 4 inner ones) chosen on validation
     entropy per second greedy expected information per second of flight
     random             uniform over the allowed viewpoints (`episodes` per scene x `seeds`)
     bounds             the rule with oracle perception (a view detects an occupied cell iff its person shows a
@@ -39,11 +40,12 @@ from uavsearch.world.settings import setting_params
 from ..agents import build_agent
 from ..config import SearchConfig
 from ..data.view_cache import ViewCache, get_view_cache
-from ..fusion import CalibratedFusion, Fusion, FusionViews, fusion_from_spec
+from ..fusion import CalibratedFusion, Fusion, FusionViews, OracleFusion, fusion_from_spec
 from ..perception import load_perception, shipped_perception
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
-from ..wide_policies import RoutePolicy, greedy_view_set, label_routes
+from ..wide_policies import (SURVEY_INNER_M, SURVEY_OUTER_M, DescendRule, RoutePolicy, greedy_view_set,
+                             label_routes)
 from .bounds import paired_differences, scene_af1
 from .tables import write_csv
 
@@ -180,21 +182,39 @@ def fixed_agents(config: SearchConfig, fusion: Fusion, train: ViewCache) -> tupl
     return agents, routes
 
 
+# The rule's survey, chosen on validation per family and budget: the 4 covering 70 m views, or those and the 4
+# inner ones (a time budget affords more survey, and the survey is what finds the groups to descend over).
+RULE_SURVEYS = {"4 covering": SURVEY_OUTER_M, "4 covering + 4 inner": SURVEY_OUTER_M + SURVEY_INNER_M}
+
+
+def rule_agent(fusion: Fusion, config: SearchConfig, survey: str) -> Agent:
+    return Agent(fusion, DescendRule(config, RULE_SURVEYS[survey]))
+
+
+def choose_survey(val: ViewCache, config: SearchConfig, fusion: Fusion) -> tuple[str, dict[str, float]]:
+    """The rule's survey with the best validation AF1 (ties: the first, the shorter), and each one's AF1."""
+    res = run_rows(val, config, {k: (rule_agent(fusion, config, k), 1) for k in RULE_SURVEYS})
+    af1 = {k: float(r["f1"][:, :, -1].mean()) for k, r in res.items()}
+    return max(RULE_SURVEYS, key=lambda k: (af1[k], -list(RULE_SURVEYS).index(k))), af1
+
+
 def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusion: Fusion, episodes: int,
                        seeds: int, resamples: int = 10_000, bootstrap_seed: int = 0) -> dict:
-    """Every row of one budget: routes fixed on train, the best fixed route chosen on val, all scored on test."""
+    """Every row of one budget: routes fixed on train, the best fixed route and the rule's survey chosen on
+    val, all scored on test."""
     fixed, routes = fixed_agents(config, fusion, caches["train"])
     val = run_rows(caches["val"], config, {k: (a, 1) for k, a in fixed.items()})
     val_af1 = {k: float(r["f1"][:, :, -1].mean()) for k, r in val.items()}
     best = max(FIXED, key=lambda k: (val_af1[k], -FIXED.index(k)))
+    survey, survey_af1 = choose_survey(caches["val"], config, fusion)
     test = caches["test"]
     agents = {**{k: (a, 1) for k, a in fixed.items()},
-              RULE: (_agent(fusion, RULE, config), 1),
+              RULE: (rule_agent(fusion, config, survey), 1),
               "entropy_per_s": (_agent(fusion, "entropy_per_s", config), 1),
               "random": (_agent(fusion, "random", config), episodes)}
     res = run_rows(test, config, agents, seeds)
     res.update({"rule_oracle": run_rows(oracle_perception(test), config,
-                                        {"rule_oracle": (build_agent("oracle", RULE, config).agent, 1)})["rule_oracle"]})
+                                        {"rule_oracle": (rule_agent(OracleFusion(), config, survey), 1)})["rule_oracle"]})
     greedy = label_routes(test, fusion, config, beam=1)
     beam = label_routes(test, fusion, config, beam=HINDSIGHT_BEAM)
     both = run_rows(test, config, {"g": (_route_agent(fusion, greedy), 1), "b": (_route_agent(fusion, beam), 1)})
@@ -206,7 +226,7 @@ def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusio
         pick[:, None], pad(beam), pad(greedy))), 1)})["h"]
     paired = paired_differences(res, (best, RULE), LABELS, resamples, bootstrap_seed)
     return {"results": res, "paired": paired, "best_fixed": best, "val_af1": val_af1, "routes": routes,
-            "scenes": {k: c.num_scenes for k, c in caches.items()}}
+            "survey": survey, "survey_af1": survey_af1, "scenes": {k: c.num_scenes for k, c in caches.items()}}
 
 
 def row_order() -> list[str]:
@@ -247,6 +267,9 @@ def table_lines(family: str, name: str, cond: dict, rows: list[dict]) -> list[st
                   + ".")
     elif cond.get("fusion"):
         chosen = f" Fusion {cond['fusion']}."
+    if cond.get("survey_af1"):
+        chosen += (f" The rule's survey, chosen on the validation scenes: **{cond['survey']}** 70 m views ("
+                   + ", ".join(f"{k} {v:.3f}" for k, v in cond["survey_af1"].items()) + ").")
     lines = [f"### {family}, {name}", "",
              f"{sc['test']} test scenes; fixed view sets searched on {sc['train']} training scenes, the best fixed route "
              f"chosen on {sc['val']} validation scenes: **{LABELS[cond['best_fixed']]}**.{chosen}", "",
