@@ -52,8 +52,9 @@
 #     perception_wide the wide net's targets per altitude on the 100 wide test scenes
 #                     (results/perception_wide/), against the paper's net on the same views.
 #     wide            Table III: wide on 100 test scenes (results/search_wide/), wide-uniform on 50
-#                     (results/search_wide_uniform/), fusion chosen on validation, fixed view sets searched on
-#                     20 training scenes. measured: see docs/results.md.
+#                     (results/search_wide_uniform/), fusion (Bayes, average, or the calibrated fusion fitted on
+#                     the training scenes) and the rule's survey chosen on validation, fixed view sets searched
+#                     on 20 training scenes. measured: see docs/results.md.
 #     team            teams of 1, 2, 3 vehicles on the 100 wide test scenes: AF1 against mission time, planners
 #                     and fusions chosen on 50 validation scenes (results/team_wide/), and 3-vehicle flights of
 #                     the wide mission on 5 test scenes against teleport (results/team_wide/flights.md).
