@@ -242,6 +242,17 @@ def test_calibrated_fusion_fits_an_overconfident_net_and_discounts_repeated_view
     z_close = logit(CalibratedFusion(fit.coef, fit.prior).fuse(FusionViews(
         torch.full((1, 1, 1), 0.8), torch.ones(1, 1, 1, dtype=torch.bool), torch.full((1, 1, 1), 400.0))).item())
     assert logit(mixed.item()) == pytest.approx(l0 + 2 * (z - l0) + (z_close - l0), rel=1e-4)
+    # view by view (what the loop does) gives exactly fuse() on the history, at mixed scales
+    gen.manual_seed(1)
+    b, t_max, n = 3, 7, 50
+    views = FusionViews(torch.rand(b, t_max, n, generator=gen), torch.rand(b, t_max, n, generator=gen) < 0.7,
+                        torch.tensor([50.0, 190.0, 600.0])[torch.randint(0, 3, (b, t_max, n), generator=gen)]
+                        * (0.5 + torch.rand(b, t_max, n, generator=gen)))
+    steps = CalibratedFusion(fit.coef, fit.prior, 0.5)
+    state = None
+    for t in range(t_max):
+        state, fused = steps.update(state, FusionViews(*(x[:, t:t + 1] for x in views[:3])))
+        assert torch.equal(fused, steps.fuse(FusionViews(*(x[:, :t + 1] for x in views[:3])))), t
     back = load_fusion(CalibratedFusion(fit.coef, fit.prior, 0.25).save_dict())
     assert (back.coef, back.prior, back.gamma, back.spec) == (fit.coef, fit.prior, 0.25, "calibrated:0.25")
     with pytest.raises(UavsearchError, match="fusion must be"):

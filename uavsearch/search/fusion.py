@@ -152,16 +152,27 @@ def same_scale_views(v, area_px):
     """(..., T, N): for each valid view of a cell, how many valid views of it (itself included) saw it at about
     the same scale (pixel area within a factor of 2). Views from one altitude share the clutter that fools the
     net; a closer look is new evidence."""
-    la = area_px.clamp(min=1.0).log()
-    same = ((la.unsqueeze(-2) - la.unsqueeze(-3)).abs() < SAME_SCALE) & v.unsqueeze(-3)  # [..., t, s, n]
-    return same.sum(dim=-2).clamp(min=1).to(area_px.dtype)
+    return _same_scale(area_px, area_px, v).sum(dim=-2).clamp(min=1).to(area_px.dtype)
 
 
-def _calibrated(p, v, prior, area_px, coef=UNCALIBRATED, gamma=0.0):
+def _same_scale(area_t, area_s, valid_s):
+    """[..., t, s, n]: view s is valid and saw cell n at about the scale view t did."""
+    la_t, la_s = area_t.clamp(min=1.0).log(), area_s.clamp(min=1.0).log()
+    return ((la_t.unsqueeze(-2) - la_s.unsqueeze(-3)).abs() < SAME_SCALE) & valid_s.unsqueeze(-3)
+
+
+class _CalibratedState(NamedTuple):
+    views: "FusionViews"  # p, valid, area_px of the views so far (..., t, N)
+    same: torch.Tensor  # (..., t, N) each view's same-scale count so far (unclamped)
+
+
+def _calibrated(p, v, prior, area_px, coef=UNCALIBRATED, gamma=0.0, same=None):
+    """`same`: same_scale_views(v, area_px) when the caller keeps it up to date (CalibratedFusion.update)."""
     l0 = float(np.log(prior / (1.0 - prior)))
     ev = torch.where(v, calibrated_logit(p, area_px, coef) - l0, torch.zeros_like(p))
     if gamma:
-        ev = ev / same_scale_views(v, area_px) ** gamma
+        n = same_scale_views(v, area_px) if same is None else same.clamp(min=1).to(p.dtype)
+        ev = ev / n**gamma
     return torch.sigmoid(l0 + ev.sum(dim=-2))
 
 
@@ -310,6 +321,25 @@ class CalibratedFusion(Fusion):
     def fuse(self, views: FusionViews):
         return _run(type(self), self.inputs(views), self.prior,
                     kernel=lambda p, v, prior, area_px: _calibrated(p, v, prior, area_px, self.coef, self.gamma))
+
+    def update(self, state, view: FusionViews):
+        """One view more in O(t N): only the new view's same-scale counts are computed, the earlier views' counts
+        grow by one where the new view matches their scale (the same numbers as `fuse` on the history)."""
+        if view.area_px is None:
+            return super().update(state, view)  # fuse() says what is missing
+        view = FusionViews(view.p, torch.as_tensor(view.valid).bool(), view.area_px)
+        if state is None:
+            hist = view
+            same = _same_scale(view.area_px, view.area_px, view.valid).sum(dim=-2).to(view.area_px.dtype)
+        else:
+            hist = FusionViews(*(torch.cat([getattr(state.views, f), getattr(view, f)], dim=-2)
+                                 for f in ("p", "valid", "area_px")))
+            grow = _same_scale(state.views.area_px, view.area_px, view.valid).sum(dim=-2)  # (..., t, N)
+            new = _same_scale(view.area_px, hist.area_px, hist.valid).sum(dim=-2)  # (..., 1, N)
+            same = torch.cat([state.same + grow.to(state.same.dtype), new.to(state.same.dtype)], dim=-2)
+        fused = _run(type(self), hist, self.prior, kernel=lambda p, v, prior, area_px: _calibrated(
+            p, v, prior, area_px, self.coef, self.gamma, same=same))
+        return _CalibratedState(hist, same), fused
 
     @property
     def spec(self) -> str:
