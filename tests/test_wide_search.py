@@ -241,3 +241,5 @@ def test_table3_calibrated_fusion_is_fitted_on_the_training_scenes():
     for bad in ("calibrated:2", "calibrated:x"):
         with pytest.raises(UavsearchError, match="discount"):
             make_fusion(bad, train)
+        with pytest.raises(UavsearchError, match="discount"):  # before any cache is built (none is given here)
+            eval_wide(SimpleNamespace(wide_fusion=bad), ["wide"])

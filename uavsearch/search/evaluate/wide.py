@@ -117,16 +117,21 @@ def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarra
 def make_fusion(spec: str, train: ViewCache | None = None) -> Fusion:
     """--wide-fusion's fusion: fusion.fusion_from_spec ("name" or "name:prior"), or "calibrated[:GAMMA]" fitted
     on the training cache `train`."""
-    name, _, gamma = str(spec).partition(":")
-    if name == "calibrated" and train is not None:
-        try:
-            g = float(gamma or 0.0)
-        except ValueError:
-            g = float("nan")
-        if not 0.0 <= g <= 1.0:
-            raise UavsearchError(f"--wide-fusion {spec}: the calibrated fusion's discount must be a number in [0, 1]")
-        return calibrated_candidates(train, (g,))[0]
+    if str(spec).partition(":")[0] == "calibrated" and train is not None:
+        return calibrated_candidates(train, (calibrated_gamma(spec),))[0]
     return fusion_from_spec(spec, "--wide-fusion")
+
+
+def calibrated_gamma(spec: str) -> float:
+    """The discount of a "calibrated[:GAMMA]" spec (0 without one), or a one-line error."""
+    gamma = str(spec).partition(":")[2]
+    try:
+        g = float(gamma or 0.0)
+    except ValueError:
+        g = float("nan")
+    if not 0.0 <= g <= 1.0:
+        raise UavsearchError(f"--wide-fusion {spec}: the calibrated fusion's discount must be a number in [0, 1]")
+    return g
 
 
 def fusion_name(fusion: Fusion) -> str:
@@ -317,8 +322,9 @@ def family_caches(args, family: str) -> dict[str, ViewCache]:
 def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
     """Table III for the families into args.out; `caches` ({family: {part: ViewCache}}) skips building them."""
     auto = args.wide_fusion == "auto"
-    if not auto and not str(args.wide_fusion).startswith("calibrated"):
-        make_fusion(args.wide_fusion)  # a bad spec fails before any cache is built
+    if not auto:  # a bad spec fails before any cache is built
+        calibrated = str(args.wide_fusion).partition(":")[0] == "calibrated"
+        calibrated_gamma(args.wide_fusion) if calibrated else make_fusion(args.wide_fusion)
     t0 = time.perf_counter()
     rows, paired, lines, conds = [], [], [], {}
     tag = ""
