@@ -115,8 +115,10 @@ def test_a_url_store_holds_the_same_bytes_as_a_folder(tmp_path):
 
 def test_ray_asked_for_without_the_extra_is_a_one_line_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
+    before = dict(os.environ)
     with pytest.raises(UavsearchError, match=r"pip install 'uavsearch\[ray\]'"):
         map_scenes(abs, [1], Executor("ray"), progress=False)
+    assert dict(os.environ) == before  # Ray's settings were set for its import only, not left for what follows
     assert Executor.from_args(type("A", (), {"ray_address": "auto", "workers": 3})()) == Executor("ray", 3, "auto")
 
 

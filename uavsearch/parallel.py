@@ -27,6 +27,7 @@ import os
 import socket
 import uuid
 import zipfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -91,12 +92,29 @@ def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
         raise UavsearchError(f"cannot reach the Ray cluster at {address}: {e.strerror or e}") from None
 
 
+@contextmanager
+def _environ(extra: dict[str, str]):
+    """`extra` in os.environ (where unset) while Ray is imported and starts its processes (it reads them then,
+    and its processes inherit them), and gone afterwards: nothing later in this process sees them."""
+    added = {k: v for k, v in extra.items() if k not in os.environ}
+    os.environ.update(added)
+    try:
+        yield
+    finally:
+        for k in added:
+            os.environ.pop(k, None)
+
+
 def _init_ray(executor: Executor):
     """Import Ray (the optional extra) and connect, once per process."""
-    for k, v in RAY_QUIET_ENV.items():
-        os.environ.setdefault(k, v)
+    env = dict(RAY_QUIET_ENV)
     if not executor.address:  # a Ray of this machine alone listens on loopback only (read at import)
-        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+        env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
+    with _environ(env):
+        return _import_and_connect(executor)
+
+
+def _import_and_connect(executor: Executor):
     try:
         import ray
     except ImportError:
