@@ -50,16 +50,16 @@ def main() -> None:
              "", "| budget | best fixed route (its fusion), test AF1 | the rule (its fusion, survey), test AF1 | "
              "rule − best fixed [95% CI] |", "|---|---|---|---|"]
     for name, cfg in conditions(caches["test"].config).items():
-        best: dict[str, tuple[float, object, object]] = {}  # row -> (val AF1, fusion, agent)
+        best: dict[str, tuple] = {}  # row -> (val AF1, fusion, agent, the rule's survey)
         for fusion in tqdm(fusions, desc=f"{args.family}, {name}", unit="fusion"):
             fixed, _ = fixed_agents(cfg, fusion, caches["train"])
-            survey, _ = choose_survey(caches["val"], cfg, fusion)
-            agents = {**fixed, RULE: rule_agent(fusion, cfg, survey)}
-            val = run_rows(caches["val"], cfg, {k: (a, 1) for k, a in agents.items()})
-            for k, r in val.items():
-                af1 = float(r["f1"][:, :, -1].mean())
+            survey, survey_af1 = choose_survey(caches["val"], cfg, fusion)  # the rule's validation runs
+            val = run_rows(caches["val"], cfg, {k: (a, 1) for k, a in fixed.items()})
+            candidates = {**{k: (float(r["f1"][:, :, -1].mean()), fixed[k]) for k, r in val.items()},
+                          RULE: (survey_af1[survey], rule_agent(fusion, cfg, survey))}
+            for k, (af1, agent) in candidates.items():
                 if k not in best or af1 > best[k][0]:
-                    best[k] = (af1, fusion, agents[k], survey)
+                    best[k] = (af1, fusion, agent, survey)
         top = max(FIXED, key=lambda k: (best[k][0], -FIXED.index(k)))
         test = run_rows(caches["test"], cfg, {k: (best[k][2], 1) for k in (top, RULE)})
         d = scene_af1(test[RULE]) - scene_af1(test[top])

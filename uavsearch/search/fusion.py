@@ -149,10 +149,10 @@ SAME_SCALE = float(np.log(2.0))  # two views whose cell areas differ by less tha
 
 
 def same_scale_views(v, area_px):
-    """(..., T, N): for each valid view of a cell, how many valid views of it (itself included) saw it at about
+    """(..., T, N): for each view of a cell, how many valid views of it (itself included) saw it at about
     the same scale (pixel area within a factor of 2). Views from one altitude share the clutter that fools the
     net; a closer look is new evidence."""
-    return _same_scale(area_px, area_px, v).sum(dim=-2).clamp(min=1).to(area_px.dtype)
+    return _same_scale(area_px, area_px, v).sum(dim=-2).to(area_px.dtype)
 
 
 def _same_scale(area_t, area_s, valid_s):
@@ -163,7 +163,7 @@ def _same_scale(area_t, area_s, valid_s):
 
 class _CalibratedState(NamedTuple):
     views: "FusionViews"  # p, valid, area_px of the views so far (..., t, N)
-    same: torch.Tensor  # (..., t, N) each view's same-scale count so far (unclamped)
+    same: torch.Tensor  # (..., t, N) each view's same-scale count so far
 
 
 def _calibrated(p, v, prior, area_px, coef=UNCALIBRATED, gamma=0.0, same=None):
@@ -171,8 +171,8 @@ def _calibrated(p, v, prior, area_px, coef=UNCALIBRATED, gamma=0.0, same=None):
     l0 = float(np.log(prior / (1.0 - prior)))
     ev = torch.where(v, calibrated_logit(p, area_px, coef) - l0, torch.zeros_like(p))
     if gamma:
-        n = same_scale_views(v, area_px) if same is None else same.clamp(min=1).to(p.dtype)
-        ev = ev / n**gamma
+        n = same_scale_views(v, area_px) if same is None else same
+        ev = ev / n.clamp(min=1).to(p.dtype) ** gamma
     return torch.sigmoid(l0 + ev.sum(dim=-2))
 
 
@@ -318,9 +318,11 @@ class CalibratedFusion(Fusion):
             raise UavsearchError(f"calibrated fusion needs 4 finite coefficients and gamma in [0, 1], got "
                                  f"{self.coef} and {gamma}")
 
+    def _kernel(self, same=None) -> Callable:
+        return lambda p, v, prior, area_px: _calibrated(p, v, prior, area_px, self.coef, self.gamma, same)
+
     def fuse(self, views: FusionViews):
-        return _run(type(self), self.inputs(views), self.prior,
-                    kernel=lambda p, v, prior, area_px: _calibrated(p, v, prior, area_px, self.coef, self.gamma))
+        return _run(type(self), self.inputs(views), self.prior, kernel=self._kernel())
 
     def update(self, state, view: FusionViews):
         """One view more in O(t N): only the new view's same-scale counts are computed, the earlier views' counts
@@ -329,17 +331,14 @@ class CalibratedFusion(Fusion):
             return super().update(state, view)  # fuse() says what is missing
         view = FusionViews(view.p, torch.as_tensor(view.valid).bool(), view.area_px)
         if state is None:
-            hist = view
-            same = _same_scale(view.area_px, view.area_px, view.valid).sum(dim=-2).to(view.area_px.dtype)
+            hist, same = view, same_scale_views(view.valid, view.area_px)
         else:
             hist = FusionViews(*(torch.cat([getattr(state.views, f), getattr(view, f)], dim=-2)
                                  for f in ("p", "valid", "area_px")))
             grow = _same_scale(state.views.area_px, view.area_px, view.valid).sum(dim=-2)  # (..., t, N)
             new = _same_scale(view.area_px, hist.area_px, hist.valid).sum(dim=-2)  # (..., 1, N)
             same = torch.cat([state.same + grow.to(state.same.dtype), new.to(state.same.dtype)], dim=-2)
-        fused = _run(type(self), hist, self.prior, kernel=lambda p, v, prior, area_px: _calibrated(
-            p, v, prior, area_px, self.coef, self.gamma, same=same))
-        return _CalibratedState(hist, same), fused
+        return _CalibratedState(hist, same), _run(type(self), hist, self.prior, kernel=self._kernel(same))
 
     @property
     def spec(self) -> str:

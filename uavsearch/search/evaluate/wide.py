@@ -117,14 +117,18 @@ def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarra
 def make_fusion(spec: str, train: ViewCache | None = None) -> Fusion:
     """--wide-fusion's fusion: fusion.fusion_from_spec ("name" or "name:prior"), or "calibrated[:GAMMA]" fitted
     on the training cache `train`."""
-    if str(spec).partition(":")[0] == "calibrated" and train is not None:
-        return calibrated_candidates(train, (calibrated_gamma(spec),))[0]
+    gamma = calibrated_gamma(spec)
+    if gamma is not None and train is not None:
+        return calibrated_candidates(train, (gamma,))[0]
     return fusion_from_spec(spec, "--wide-fusion")
 
 
-def calibrated_gamma(spec: str) -> float:
-    """The discount of a "calibrated[:GAMMA]" spec (0 without one), or a one-line error."""
-    gamma = str(spec).partition(":")[2]
+def calibrated_gamma(spec: str) -> float | None:
+    """The discount of a "calibrated[:GAMMA]" spec (0 without one), None for any other spec, or a one-line
+    error."""
+    name, _, gamma = str(spec).partition(":")
+    if name != "calibrated":
+        return None
     try:
         g = float(gamma or 0.0)
     except ValueError:
@@ -170,6 +174,7 @@ def choose_fusion(val: ViewCache, config: SearchConfig, candidates=FUSION_CANDID
 
 
 def _agent(fusion: Fusion, policy: str, config: SearchConfig) -> Agent:
+    """`policy` with `fusion` (built under a fusion any name builds: these policies do not depend on it)."""
     return build_agent("average", policy, config).agent._replace(fusion=fusion)
 
 
@@ -322,9 +327,8 @@ def family_caches(args, family: str) -> dict[str, ViewCache]:
 def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
     """Table III for the families into args.out; `caches` ({family: {part: ViewCache}}) skips building them."""
     auto = args.wide_fusion == "auto"
-    if not auto:  # a bad spec fails before any cache is built
-        calibrated = str(args.wide_fusion).partition(":")[0] == "calibrated"
-        calibrated_gamma(args.wide_fusion) if calibrated else make_fusion(args.wide_fusion)
+    if not auto and calibrated_gamma(args.wide_fusion) is None:  # a bad spec fails before any cache is built
+        make_fusion(args.wide_fusion)
     t0 = time.perf_counter()
     rows, paired, lines, conds = [], [], [], {}
     tag = ""
