@@ -13,7 +13,7 @@ from uavsearch.errors import UavsearchError
 from uavsearch.search.agents import build_agent
 from uavsearch.search.config import SearchConfig, config_from_dict, config_to_dict, setting_config
 from uavsearch.search.data.view_cache import CacheKey
-from uavsearch.search.evaluate.wide import conditions, eval_wide, oracle_perception
+from uavsearch.search.evaluate.wide import RULE_VARIANTS, conditions, eval_wide, oracle_perception
 from uavsearch.search.fusion import FUSIONS
 from uavsearch.search.search_loop import Agent, CachedViews, PolicyInput, run_search
 from uavsearch.search.wide_policies import (SURVEY_OUTER_M, DescendRule, EntropyPerSecond, RoutePolicy,
@@ -133,6 +133,16 @@ def test_the_rule_surveys_then_descends_over_the_brightest_unresolved_cell():
     fused2[0] = 0.6  # NW corner cell
     b = rule.act(_inp(fused2, done + [a], done + [a], step=5), None)[0].item()
     assert b != a and footprints(WIDE)[b, 0] and WIDE.lattice.positions_enu[b][2] == 40.0
+    # with a resurvey threshold: nothing open that likely -> the nearest unvisited 70 m viewpoint; else descend
+    keep = DescendRule(WIDE, resurvey_below=0.4)
+    dim = torch.full((900,), 0.05)
+    here = survey[-1]
+    c = keep.act(_inp(dim, done, done, step=4), None)[0].item()
+    pos = WIDE.lattice.positions_enu
+    assert pos[c][2] == 70.0 and c not in done
+    assert np.linalg.norm(pos[c] - pos[here]) == pytest.approx(25.0)  # a neighbour on the 25 m lattice
+    assert keep.act(_inp(fused, done, done, step=4), None)[0].item() == a  # 0.9 >= 0.4: the same descent
+    assert DescendRule(WIDE, resurvey_below=0.95).act(_inp(fused, done, done, step=4), None)[0].item() != a
 
 
 def test_entropy_per_second_prefers_near_uncertainty():
@@ -224,9 +234,10 @@ def test_table3_chooses_its_fusion_on_validation(tmp_path):
     assert {r["fusion"] for r in res["rows"]} <= {"bayes:0.05", "bayes:0.1", "bayes:0.2", "bayes:0.3", "bayes:0.5",
                                                   "average:0.1", *(f"calibrated:{g:g}" for g in (0, 0.25, 0.5, 0.75, 1))}
     assert "calibrated:0.25" in text  # fitted on the training cache, scored on validation beside the others
-    assert text.count("The rule's survey, chosen on the validation scenes") == 2
+    assert text.count("The rule's survey (70 m views) and the fused p below which it keeps surveying") == 2
     for cond in res["conditions"].values():
-        assert cond["survey"] in cond["survey_af1"] and set(cond["survey_af1"]) == {"4 covering", "4 covering + 4 inner"}
+        assert cond["rule_variant"] in cond["rule_variant_af1"] and set(cond["rule_variant_af1"]) == set(RULE_VARIANTS)
+    assert {"4 covering", "4 covering + 4 inner, resurvey below p 0.4"} <= set(RULE_VARIANTS)
 
 
 def test_table3_calibrated_fusion_is_fitted_on_the_training_scenes():

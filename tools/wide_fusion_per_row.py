@@ -5,7 +5,7 @@ Table III gives every row one fusion, chosen on validation by the mean AF1 of th
 the rule; a fusion that suits the rule may hurt a fixed route. Here each fixed route and the rule take the
 fusion with the best validation AF1 for themselves (among Table III's candidates, the calibrated ones fitted on
 the same training scenes), the best fixed route is the fixed route with the best validation AF1 on its own
-fusion, and the rule (its survey chosen on validation as in Table III, under its own fusion) is paired
+fusion, and the rule (its variant chosen on validation as in Table III, under its own fusion) is paired
 against it on the test scenes (95% scene-bootstrap interval). Writes a markdown table and prints it.
 
     python tools/wide_fusion_per_row.py --out results/search_wide/per_row_fusion.md
@@ -25,7 +25,7 @@ from tqdm import tqdm
 from uavsearch.search.data.view_cache import get_view_cache
 from uavsearch.search.evaluate.bounds import bootstrap_ci, scene_af1
 from uavsearch.search.evaluate.wide import (FIXED, FUSION_CANDIDATES, LABELS, RULE, calibrated_candidates,
-                                            choose_survey, conditions, fixed_agents, fusion_name, make_fusion,
+                                            choose_rule, conditions, fixed_agents, fusion_name, make_fusion,
                                             rule_agent, run_rows)
 from uavsearch.search.perception import load_perception, shipped_perception
 
@@ -47,19 +47,19 @@ def main() -> None:
     lines = [f"# {args.family}: every method on its own fusion (chosen on validation)", "",
              f"{caches['test'].num_scenes} test scenes, {caches['val'].num_scenes} validation, "
              f"{caches['train'].num_scenes} training (view sets, calibration); `python tools/wide_fusion_per_row.py`.",
-             "", "| budget | best fixed route (its fusion), test AF1 | the rule (its fusion, survey), test AF1 | "
+             "", "| budget | best fixed route (its fusion), test AF1 | the rule (its fusion, variant), test AF1 | "
              "rule − best fixed [95% CI] |", "|---|---|---|---|"]
     for name, cfg in conditions(caches["test"].config).items():
-        best: dict[str, tuple] = {}  # row -> (val AF1, fusion, agent, the rule's survey)
+        best: dict[str, tuple] = {}  # row -> (val AF1, fusion, agent, the rule's variant)
         for fusion in tqdm(fusions, desc=f"{args.family}, {name}", unit="fusion"):
             fixed, _ = fixed_agents(cfg, fusion, caches["train"])
-            survey, survey_af1 = choose_survey(caches["val"], cfg, fusion)  # the rule's validation runs
+            variant, variant_af1 = choose_rule(caches["val"], cfg, fusion)  # the rule's validation runs
             val = run_rows(caches["val"], cfg, {k: (a, 1) for k, a in fixed.items()})
             candidates = {**{k: (float(r["f1"][:, :, -1].mean()), fixed[k]) for k, r in val.items()},
-                          RULE: (survey_af1[survey], rule_agent(fusion, cfg, survey))}
+                          RULE: (variant_af1[variant], rule_agent(fusion, cfg, variant))}
             for k, (af1, agent) in candidates.items():
                 if k not in best or af1 > best[k][0]:
-                    best[k] = (af1, fusion, agent, survey)
+                    best[k] = (af1, fusion, agent, variant)
         top = max(FIXED, key=lambda k: (best[k][0], -FIXED.index(k)))
         test = run_rows(caches["test"], cfg, {k: (best[k][2], 1) for k in (top, RULE)})
         d = scene_af1(test[RULE]) - scene_af1(test[top])

@@ -1,6 +1,7 @@
 """The rule's mean F1 after each view of the wide family's episodes, on the validation scenes: where in an
 episode its gain comes from (the survey, the first descents, the later ones). Fusions are Table III's
-calibrated ones, fitted on the training scenes; one line per (fusion, survey), and a PNG of F1 against views.
+calibrated ones, fitted on the training scenes; one line per (fusion, rule variant: survey and resurvey
+threshold), and a PNG of F1 against views.
 
     python tools/wide_rule_steps.py --budget 240 --out results/search_wide/rule_steps.png
 """
@@ -14,7 +15,7 @@ import numpy as np
 import torch
 
 from uavsearch.search.data.view_cache import get_view_cache
-from uavsearch.search.evaluate.wide import RULE_SURVEYS, calibrated_candidates, conditions, rule_agent
+from uavsearch.search.evaluate.wide import RULE_VARIANTS, calibrated_candidates, conditions, rule_agent
 from uavsearch.search.perception import load_perception, shipped_perception
 from uavsearch.search.scoring import score_episode
 from uavsearch.search.search_loop import CachedViews, run_search
@@ -26,6 +27,7 @@ def main() -> None:
     ap.add_argument("--family", default="wide")
     ap.add_argument("--budget", choices=("8", "240"), default="240", help="T = 8 views, or 240 s of flight")
     ap.add_argument("--gammas", default="0.5,0.75", help="calibrated fusions' discounts")
+    ap.add_argument("--resurvey", default="0,0.4", help="the fused p below which the rule keeps surveying (0: never)")
     ap.add_argument("--train-scenes", type=int, default=20)
     ap.add_argument("--out", required=True, help="PNG to write (the same lines, printed, go beside it as .md)")
     args = ap.parse_args()
@@ -34,17 +36,19 @@ def main() -> None:
     val = get_view_cache(net, args.family, "large", "val", features=False, progress=False)
     cfg = list(conditions(val.config).values())[0 if args.budget == "8" else 1]
     gammas = [float(g) for g in args.gammas.split(",")]
+    below = {float(t) for t in args.resurvey.split(",")}
+    variants = [k for k, (_, t) in RULE_VARIANTS.items() if t in below]
     fig, ax = pyplot().subplots(figsize=(7, 4))
     lines = [f"{args.family}, {'T = 8 views' if args.budget == '8' else '240 s'}, {val.num_scenes} validation scenes: "
              "mean F1 after each view (the start view is view 1; `python tools/wide_rule_steps.py`)", ""]
     for fusion in calibrated_candidates(train, gammas):
-        for survey in RULE_SURVEYS:
+        for variant in variants:
             with torch.no_grad():
-                ep = run_search(CachedViews(val, np.arange(val.num_scenes), cfg), rule_agent(fusion, cfg, survey))
+                ep = run_search(CachedViews(val, np.arange(val.num_scenes), cfg), rule_agent(fusion, cfg, variant))
             f1 = score_episode(ep).f1.mean(0)
-            lines.append(f"- {fusion.spec}, survey {survey}: " + " ".join(f"{x:.3f}" for x in f1)
+            lines.append(f"- {fusion.spec}, {variant}: " + " ".join(f"{x:.3f}" for x in f1)
                          + f" | peak {f1.max():.3f} after view {int(f1.argmax()) + 1}, end {f1[-1]:.3f}")
-            ax.plot(np.arange(1, len(f1) + 1), f1, marker=".", label=f"{fusion.spec}, survey {survey}")
+            ax.plot(np.arange(1, len(f1) + 1), f1, marker=".", label=f"{fusion.spec}, {variant}")
     ax.set_xlabel("views taken")
     ax.set_ylabel("mean F1 of the fused map")
     ax.set_title(f"the rule on {val.num_scenes} {args.family} validation scenes")

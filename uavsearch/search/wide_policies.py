@@ -13,7 +13,8 @@ min_cell_area_px).
   footprints cover the area); then repeatedly descend to the allowed lowest-layer viewpoint whose footprint
   holds the highest fused p among the cells no lowest-layer view has measured yet (ties: the larger mean of
   those cells, then the lower index); when no lowest-layer viewpoint is allowed, the same score over every
-  allowed viewpoint.
+  allowed viewpoint. With `resurvey_below` it keeps surveying (the nearest allowed 70 m viewpoint) while no
+  open cell is that likely to hold a person.
 - `EntropyPerSecond`: the allowed viewpoint with the most binary entropy of the fused map in its footprint
   per second of flight from here (lattice.flight_time_s).
 - `MaskedRandom`: uniform over the allowed viewpoints (the caller's generator).
@@ -110,20 +111,35 @@ def argmax_allowed(score: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
 
 
 class DescendRule:
-    """Survey at 70 m, then descend over the viewpoint with the highest fused p (module docstring)."""
+    """Survey at 70 m, then descend over the viewpoint with the highest fused p (module docstring).
 
-    def __init__(self, config: SearchConfig, survey_xy_m=SURVEY_OUTER_M):
+    `resurvey_below`: while no open cell under an allowed lowest-layer viewpoint has fused p at least this,
+    take the nearest allowed top-layer viewpoint instead (keep surveying; 0: always descend). A time budget
+    affords more views than the groups need: after the descents that find them, a 40 m look over an empty
+    area adds its false alarms and little else, and another 70 m view finds the next group."""
+
+    def __init__(self, config: SearchConfig, survey_xy_m=SURVEY_OUTER_M, resurvey_below: float = 0.0):
         _need_any(config)
         self.survey = viewpoints_at(config, survey_xy_m, config.layers_m[0])
         self.foot = footprints(config).float()  # (P, N)
         alts = config.lattice.positions_enu[:, 2]
         self.low = torch.as_tensor(alts == alts.min())  # (P,) viewpoints of the lowest layer
+        self.top = torch.as_tensor(alts == alts.max())
+        self.resurvey_below = float(resurvey_below)
+        self.cost = torch.as_tensor(config.lattice.flight_time_s, dtype=torch.float32)
 
     def act(self, inp: PolicyInput, generator=None):
         if inp.step < len(self.survey):
             return torch.full_like(inp.lattice_idx, self.survey[inp.step]), None, None
         score, pick = self.descend_scores(inp)
-        return argmax_allowed(score, pick), None, None
+        a = argmax_allowed(score, pick)
+        if self.resurvey_below <= 0.0:
+            return a, None, None
+        allowed = candidates(inp)
+        low_ok, top_ok = allowed & self.low[None], allowed & self.top[None]
+        best_low = torch.where(low_ok, score, torch.full_like(score, -1.0)).amax(1)
+        nearest_top = argmax_allowed(-self.cost[inp.lattice_idx], top_ok)
+        return torch.where((best_low < self.resurvey_below) & top_ok.any(1), nearest_top, a), None, None
 
     def descend_scores(self, inp: PolicyInput) -> tuple[torch.Tensor, torch.Tensor]:
         """(score (B, P), the viewpoints to pick among (B, P) bool) of the descent after the survey."""

@@ -11,7 +11,8 @@ CALIBRATED_GAMMAS) with the best mean validation AF1 over the hand-made fixed ro
                        lawnmower; the view set chosen greedily on training scenes (AF1 gain, or AF1 gain per
                        second of flight); the best of these on the validation scenes is "the best fixed route"
     the rule           survey at 70 m, then descend over the highest fused p (wide_policies.DescendRule); its
-                       survey (RULE_SURVEYS: 4 covering views, or those and 4 inner ones) chosen on validation
+                       survey (RULE_SURVEYS: 4 covering views, or those and 4 inner ones) and the fused p below
+                       which it keeps surveying instead (RULE_RESURVEY_BELOW, 0: never) chosen on validation
     entropy per second greedy expected information per second of flight
     random             uniform over the allowed viewpoints (`episodes` per scene x `seeds`)
     bounds             the rule with oracle perception (a view detects an occupied cell iff its person shows a
@@ -192,39 +193,44 @@ def fixed_agents(config: SearchConfig, fusion: Fusion, train: ViewCache) -> tupl
     return agents, routes
 
 
-# The rule's survey, chosen on validation per family and budget: the 4 covering 70 m views, or those and the 4
-# inner ones (a time budget affords more survey, and the survey is what finds the groups to descend over).
+# The rule's variant, chosen on validation per family and budget: its survey (the 4 covering 70 m views, or those
+# and the 4 inner ones: a time budget affords more survey, and the survey is what finds the groups to descend
+# over) and the fused p below which it keeps surveying instead of descending (0: always descend).
 RULE_SURVEYS = {"4 covering": SURVEY_OUTER_M, "4 covering + 4 inner": SURVEY_OUTER_M + SURVEY_INNER_M}
+RULE_RESURVEY_BELOW = (0.0, 0.2, 0.3, 0.4, 0.5, 0.6)
+RULE_VARIANTS = {(s if t == 0 else f"{s}, resurvey below p {t:g}"): (s, t)
+                 for s in RULE_SURVEYS for t in RULE_RESURVEY_BELOW}
 
 
-def rule_agent(fusion: Fusion, config: SearchConfig, survey: str) -> Agent:
-    return Agent(fusion, DescendRule(config, RULE_SURVEYS[survey]))
+def rule_agent(fusion: Fusion, config: SearchConfig, variant: str) -> Agent:
+    survey, below = RULE_VARIANTS[variant]
+    return Agent(fusion, DescendRule(config, RULE_SURVEYS[survey], resurvey_below=below))
 
 
-def choose_survey(val: ViewCache, config: SearchConfig, fusion: Fusion) -> tuple[str, dict[str, float]]:
-    """The rule's survey with the best validation AF1 (ties: the first, the shorter), and each one's AF1."""
-    res = run_rows(val, config, {k: (rule_agent(fusion, config, k), 1) for k in RULE_SURVEYS})
+def choose_rule(val: ViewCache, config: SearchConfig, fusion: Fusion) -> tuple[str, dict[str, float]]:
+    """The rule's variant with the best validation AF1 (ties: the first listed, the simpler), and each one's AF1."""
+    res = run_rows(val, config, {k: (rule_agent(fusion, config, k), 1) for k in RULE_VARIANTS})
     af1 = {k: float(r["f1"][:, :, -1].mean()) for k, r in res.items()}
-    return max(RULE_SURVEYS, key=lambda k: (af1[k], -list(RULE_SURVEYS).index(k))), af1
+    return max(RULE_VARIANTS, key=lambda k: (af1[k], -list(RULE_VARIANTS).index(k))), af1
 
 
 def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusion: Fusion, episodes: int,
                        seeds: int, resamples: int = 10_000, bootstrap_seed: int = 0) -> dict:
-    """Every row of one budget: routes fixed on train, the best fixed route and the rule's survey chosen on
+    """Every row of one budget: routes fixed on train, the best fixed route and the rule's variant chosen on
     val, all scored on test."""
     fixed, routes = fixed_agents(config, fusion, caches["train"])
     val = run_rows(caches["val"], config, {k: (a, 1) for k, a in fixed.items()})
     val_af1 = {k: float(r["f1"][:, :, -1].mean()) for k, r in val.items()}
     best = max(FIXED, key=lambda k: (val_af1[k], -FIXED.index(k)))
-    survey, survey_af1 = choose_survey(caches["val"], config, fusion)
+    variant, variant_af1 = choose_rule(caches["val"], config, fusion)
     test = caches["test"]
     agents = {**{k: (a, 1) for k, a in fixed.items()},
-              RULE: (rule_agent(fusion, config, survey), 1),
+              RULE: (rule_agent(fusion, config, variant), 1),
               "entropy_per_s": (_agent(fusion, "entropy_per_s", config), 1),
               "random": (_agent(fusion, "random", config), episodes)}
     res = run_rows(test, config, agents, seeds)
     res.update({"rule_oracle": run_rows(oracle_perception(test), config,
-                                        {"rule_oracle": (rule_agent(OracleFusion(), config, survey), 1)})["rule_oracle"]})
+                                        {"rule_oracle": (rule_agent(OracleFusion(), config, variant), 1)})["rule_oracle"]})
     greedy = label_routes(test, fusion, config, beam=1)
     beam = label_routes(test, fusion, config, beam=HINDSIGHT_BEAM)
     both = run_rows(test, config, {"g": (_route_agent(fusion, greedy), 1), "b": (_route_agent(fusion, beam), 1)})
@@ -236,7 +242,7 @@ def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusio
         pick[:, None], pad(beam), pad(greedy))), 1)})["h"]
     paired = paired_differences(res, (best, RULE), LABELS, resamples, bootstrap_seed)
     return {"results": res, "paired": paired, "best_fixed": best, "val_af1": val_af1, "routes": routes,
-            "survey": survey, "survey_af1": survey_af1, "scenes": {k: c.num_scenes for k, c in caches.items()}}
+            "rule_variant": variant, "rule_variant_af1": variant_af1, "scenes": {k: c.num_scenes for k, c in caches.items()}}
 
 
 def row_order() -> list[str]:
@@ -277,9 +283,10 @@ def table_lines(family: str, name: str, cond: dict, rows: list[dict]) -> list[st
                   + ".")
     elif cond.get("fusion"):
         chosen = f" Fusion {cond['fusion']}."
-    if cond.get("survey_af1"):
-        chosen += (f" The rule's survey, chosen on the validation scenes: **{cond['survey']}** 70 m views ("
-                   + ", ".join(f"{k} {v:.3f}" for k, v in cond["survey_af1"].items()) + ").")
+    if cond.get("rule_variant_af1"):
+        chosen += (f" The rule's survey (70 m views) and the fused p below which it keeps surveying, chosen on the "
+                   f"validation scenes: **{cond['rule_variant']}** ("
+                   + ", ".join(f"{k} {v:.3f}" for k, v in cond["rule_variant_af1"].items()) + ").")
     lines = [f"### {family}, {name}", "",
              f"{sc['test']} test scenes; fixed view sets searched on {sc['train']} training scenes, the best fixed route "
              f"chosen on {sc['val']} validation scenes: **{LABELS[cond['best_fixed']]}**.{chosen}", "",
