@@ -143,6 +143,14 @@ def test_the_rule_surveys_then_descends_over_the_brightest_unresolved_cell():
     assert np.linalg.norm(pos[c] - pos[here]) == pytest.approx(25.0)  # a neighbour on the 25 m lattice
     assert keep.act(_inp(fused, done, done, step=4), None)[0].item() == a  # 0.9 >= 0.4: the same descent
     assert DescendRule(WIDE, resurvey_below=0.95).act(_inp(fused, done, done, step=4), None)[0].item() != a
+    # per second of flight: a near dim spot beats a far bright one; without it the brightest wins
+    two = torch.full((900,), 0.05)
+    far, near = 29, 25 * 30 + 2  # the NE corner cell, one near the SW corner: the survey ends above the SW
+    two[far], two[near] = 0.9, 0.8  # about 30 s and 21 s of flight away
+    assert pos[here][0] < 0 and pos[here][1] < 0
+    plain = DescendRule(WIDE).act(_inp(two, done, done, step=4), None)[0].item()
+    timed = DescendRule(WIDE, per_second_overhead_s=30.0).act(_inp(two, done, done, step=4), None)[0].item()
+    assert footprints(WIDE)[plain, far] and footprints(WIDE)[timed, near]
 
 
 def test_entropy_per_second_prefers_near_uncertainty():
@@ -234,10 +242,10 @@ def test_table3_chooses_its_fusion_on_validation(tmp_path):
     assert {r["fusion"] for r in res["rows"]} <= {"bayes:0.05", "bayes:0.1", "bayes:0.2", "bayes:0.3", "bayes:0.5",
                                                   "average:0.1", *(f"calibrated:{g:g}" for g in (0, 0.25, 0.5, 0.75, 1))}
     assert "calibrated:0.25" in text  # fitted on the training cache, scored on validation beside the others
-    assert text.count("The rule's survey (70 m views) and the fused p below which it keeps surveying") == 2
+    assert text.count("The rule's survey (70 m views), the fused p below which it keeps surveying") == 2
     for cond in res["conditions"].values():
         assert cond["rule_variant"] in cond["rule_variant_af1"] and set(cond["rule_variant_af1"]) == set(RULE_VARIANTS)
-    assert {"4 covering", "4 covering + 4 inner, resurvey below p 0.4"} <= set(RULE_VARIANTS)
+    assert {"4 covering", "4 covering + 4 inner, resurvey below p 0.4", "4 covering, resurvey below p 0.5, per second"} <= set(RULE_VARIANTS)
 
 
 def test_table3_calibrated_fusion_is_fitted_on_the_training_scenes():

@@ -173,10 +173,9 @@ class TeamRule:
     fused p (DescendRule's score); `per_second`: that score per second of flight from here."""
 
     def __init__(self, config: SearchConfig, per_second: bool = False, survey_xy_m=SURVEY_OUTER_M):
-        self.rule = DescendRule(config, survey_xy_m)
+        self.rule = DescendRule(config, survey_xy_m, per_second_overhead_s=0.0 if per_second else None)
         self.survey = torch.as_tensor(viewpoints_at(config, survey_xy_m, config.layers_m[0]))
         self.cost = config.lattice.flight_time_t.float()
-        self.per_second = per_second
 
     def reset(self, batch: int, vehicles: int) -> None:
         pass
@@ -189,9 +188,7 @@ class TeamRule:
         survey_free = allowed & in_survey
         nearest = argmax_allowed(-cost, survey_free)
         score, pick = self.rule.descend_scores(inp)
-        if self.per_second:
-            score = score / cost.clamp(min=1.0)
-        descend = argmax_allowed(score, pick)
+        descend = argmax_allowed(self.rule.per_second(score, inp), pick)
         out = torch.where(survey_free.any(1), nearest, descend)
         return torch.where(allowed.any(1), out, -1)
 

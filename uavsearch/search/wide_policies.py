@@ -14,7 +14,8 @@ min_cell_area_px).
   holds the highest fused p among the cells no lowest-layer view has measured yet (ties: the larger mean of
   those cells, then the lower index); when no lowest-layer viewpoint is allowed, the same score over every
   allowed viewpoint. With `resurvey_below` it keeps surveying (the nearest allowed 70 m viewpoint) while no
-  open cell is that likely to hold a person.
+  open cell is that likely to hold a person; with `per_second_overhead_s` it weighs each descent by the flight
+  time to it.
 - `EntropyPerSecond`: the allowed viewpoint with the most binary entropy of the fused map in its footprint
   per second of flight from here (lattice.flight_time_s).
 - `MaskedRandom`: uniform over the allowed viewpoints (the caller's generator).
@@ -116,9 +117,12 @@ class DescendRule:
     `resurvey_below`: while no open cell under an allowed lowest-layer viewpoint has fused p at least this,
     take the nearest allowed top-layer viewpoint instead (keep surveying; 0: always descend). A time budget
     affords more views than the groups need: after the descents that find them, a 40 m look over an empty
-    area adds its false alarms and little else, and another 70 m view finds the next group."""
+    area adds its false alarms and little else, and another 70 m view finds the next group.
+    `per_second_overhead_s`: choose the descent by its score per (flight time from here + this) instead of
+    by its score alone (None); the overhead keeps a far bright spot worth more than a near dim one."""
 
-    def __init__(self, config: SearchConfig, survey_xy_m=SURVEY_OUTER_M, resurvey_below: float = 0.0):
+    def __init__(self, config: SearchConfig, survey_xy_m=SURVEY_OUTER_M, resurvey_below: float = 0.0,
+                 per_second_overhead_s: float | None = None):
         _need_any(config)
         self.survey = viewpoints_at(config, survey_xy_m, config.layers_m[0])
         self.foot = footprints(config).float()  # (P, N)
@@ -126,13 +130,14 @@ class DescendRule:
         self.low = torch.as_tensor(alts == alts.min())  # (P,) viewpoints of the lowest layer
         self.top = torch.as_tensor(alts == alts.max())
         self.resurvey_below = float(resurvey_below)
-        self.cost = torch.as_tensor(config.lattice.flight_time_s, dtype=torch.float32)
+        self.overhead_s = per_second_overhead_s
+        self.cost = config.lattice.flight_time_t.float()
 
     def act(self, inp: PolicyInput, generator=None):
         if inp.step < len(self.survey):
             return torch.full_like(inp.lattice_idx, self.survey[inp.step]), None, None
         score, pick = self.descend_scores(inp)
-        a = argmax_allowed(score, pick)
+        a = argmax_allowed(self.per_second(score, inp), pick)
         if self.resurvey_below <= 0.0:
             return a, None, None
         allowed = candidates(inp)
@@ -140,6 +145,12 @@ class DescendRule:
         best_low = torch.where(low_ok, score, torch.full_like(score, -1.0)).amax(1)
         nearest_top = argmax_allowed(-self.cost[inp.lattice_idx], top_ok)
         return torch.where((best_low < self.resurvey_below) & top_ok.any(1), nearest_top, a), None, None
+
+    def per_second(self, score: torch.Tensor, inp: PolicyInput) -> torch.Tensor:
+        """The descent scores per (second of flight from here + the overhead), or as they are without one."""
+        if self.overhead_s is None:
+            return score
+        return score / (self.cost[inp.lattice_idx] + self.overhead_s).clamp(min=1.0)
 
     def descend_scores(self, inp: PolicyInput) -> tuple[torch.Tensor, torch.Tensor]:
         """(score (B, P), the viewpoints to pick among (B, P) bool) of the descent after the survey."""

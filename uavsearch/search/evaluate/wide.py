@@ -11,8 +11,9 @@ CALIBRATED_GAMMAS) with the best mean validation AF1 over the hand-made fixed ro
                        lawnmower; the view set chosen greedily on training scenes (AF1 gain, or AF1 gain per
                        second of flight); the best of these on the validation scenes is "the best fixed route"
     the rule           survey at 70 m, then descend over the highest fused p (wide_policies.DescendRule); its
-                       survey (RULE_SURVEYS: 4 covering views, or those and 4 inner ones) and the fused p below
-                       which it keeps surveying instead (RULE_RESURVEY_BELOW, 0: never) chosen on validation
+                       survey (RULE_SURVEYS: 4 covering views, or those and 4 inner ones), the fused p below
+                       which it keeps surveying instead (RULE_RESURVEY_BELOW, 0: never) and whether it weighs
+                       a descent per second of flight, chosen on validation (RULE_VARIANTS)
     entropy per second greedy expected information per second of flight
     random             uniform over the allowed viewpoints (`episodes` per scene x `seeds`)
     bounds             the rule with oracle perception (a view detects an occupied cell iff its person shows a
@@ -195,16 +196,19 @@ def fixed_agents(config: SearchConfig, fusion: Fusion, train: ViewCache) -> tupl
 
 # The rule's variant, chosen on validation per family and budget: its survey (the 4 covering 70 m views, or those
 # and the 4 inner ones: a time budget affords more survey, and the survey is what finds the groups to descend
-# over) and the fused p below which it keeps surveying instead of descending (0: always descend).
+# over), the fused p below which it keeps surveying instead of descending (0: always descend), and whether it
+# weighs a descent by the flight time to it (per second of flight plus RULE_OVERHEAD_S: under a time budget).
 RULE_SURVEYS = {"4 covering": SURVEY_OUTER_M, "4 covering + 4 inner": SURVEY_OUTER_M + SURVEY_INNER_M}
 RULE_RESURVEY_BELOW = (0.0, 0.2, 0.3, 0.4, 0.5, 0.6)
-RULE_VARIANTS = {(s if t == 0 else f"{s}, resurvey below p {t:g}"): (s, t)
-                 for s in RULE_SURVEYS for t in RULE_RESURVEY_BELOW}
+RULE_OVERHEAD_S = 30.0  # about a descent's climb back and one move: a far bright spot still beats a near dim one
+RULE_VARIANTS = {", ".join([s] + ([f"resurvey below p {t:g}"] if t else []) + (["per second"] if ps else [])): (s, t, ps)
+                 for s in RULE_SURVEYS for t in RULE_RESURVEY_BELOW for ps in (False, True)}
 
 
 def rule_agent(fusion: Fusion, config: SearchConfig, variant: str) -> Agent:
-    survey, below = RULE_VARIANTS[variant]
-    return Agent(fusion, DescendRule(config, RULE_SURVEYS[survey], resurvey_below=below))
+    survey, below, per_second = RULE_VARIANTS[variant]
+    return Agent(fusion, DescendRule(config, RULE_SURVEYS[survey], resurvey_below=below,
+                                     per_second_overhead_s=RULE_OVERHEAD_S if per_second else None))
 
 
 def choose_rule(val: ViewCache, config: SearchConfig, fusion: Fusion) -> tuple[str, dict[str, float]]:
@@ -284,8 +288,8 @@ def table_lines(family: str, name: str, cond: dict, rows: list[dict]) -> list[st
     elif cond.get("fusion"):
         chosen = f" Fusion {cond['fusion']}."
     if cond.get("rule_variant_af1"):
-        chosen += (f" The rule's survey (70 m views) and the fused p below which it keeps surveying, chosen on the "
-                   f"validation scenes: **{cond['rule_variant']}** ("
+        chosen += (f" The rule's survey (70 m views), the fused p below which it keeps surveying and whether it "
+                   f"weighs descents per second of flight, chosen on the validation scenes: **{cond['rule_variant']}** ("
                    + ", ".join(f"{k} {v:.3f}" for k, v in cond["rule_variant_af1"].items()) + ").")
     lines = [f"### {family}, {name}", "",
              f"{sc['test']} test scenes; fixed view sets searched on {sc['train']} training scenes, the best fixed route "
