@@ -11,12 +11,12 @@ import torch
 
 from uavsearch.errors import UavsearchError
 from uavsearch.search.agents import build_agent
-from uavsearch.search.config import SearchConfig, config_from_dict, config_to_dict, setting_config
+from uavsearch.search.config import SearchConfig, config_from_dict, config_to_dict, setting_config, wide_budgets
 from uavsearch.search.data.view_cache import CacheKey
-from uavsearch.search.evaluate.wide import RULE_VARIANTS, conditions, eval_wide, oracle_perception
+from uavsearch.search.evaluate.wide import eval_wide, oracle_perception
 from uavsearch.search.fusion import FUSIONS
 from uavsearch.search.search_loop import Agent, CachedViews, PolicyInput, run_search
-from uavsearch.search.wide_policies import (SURVEY_OUTER_M, DescendRule, EntropyPerSecond, RoutePolicy,
+from uavsearch.search.wide_policies import (RULE_VARIANTS, SURVEY_OUTER_M, DescendRule, EntropyPerSecond, RoutePolicy,
                                             footprints, greedy_view_set, label_routes, lawnmower,
                                             survey_then_lawnmower, viewpoints_at)
 from uavsearch.testing.synthetic_views import synthetic_cache
@@ -162,7 +162,7 @@ def test_entropy_per_second_prefers_near_uncertainty():
 
 
 def test_route_searches_on_a_known_map():
-    cfg = conditions(WIDE)["T = 8 views"]
+    cfg = wide_budgets(WIDE)["T = 8 views"]
     cache = wide_cache(3, config=cfg, k=3)
     route = greedy_view_set(cache, FUSIONS["average"](), cfg)
     assert len(route) == 7 and len(set(route)) == 7 and 72 not in route
@@ -217,7 +217,8 @@ def test_family_perception_report_judges_each_altitude_on_its_own_views(tmp_path
 
 
 def test_wide_fusion_specs():
-    from uavsearch.search.evaluate.wide import fusion_name, make_fusion
+    from uavsearch.search.evaluate.wide import fusion_name
+    from uavsearch.search.fusion import make_fusion
 
     assert fusion_name(make_fusion("bayes")) == "bayes:0.1"
     assert fusion_name(make_fusion("bayes:0.02")) == "bayes:0.02" and make_fusion("size").name == "size"
@@ -249,7 +250,7 @@ def test_table3_chooses_its_fusion_on_validation(tmp_path):
 
 
 def test_table3_calibrated_fusion_is_fitted_on_the_training_scenes():
-    from uavsearch.search.evaluate.wide import calibrated_candidates, make_fusion
+    from uavsearch.search.fusion import calibrated_candidates, make_fusion
 
     train = wide_cache(2, 3)
     fits = calibrated_candidates(train)

@@ -24,7 +24,7 @@ from uavsearch.logs.flight_log import read_flight_log
 from uavsearch.paths import MISSIONS_DIR
 from uavsearch.search.data.view_cache import get_view_cache
 from uavsearch.search.evaluate.team import make_planner
-from uavsearch.search.evaluate.wide import make_fusion
+from uavsearch.search.fusion import make_fusion
 from uavsearch.search.metrics import map_f1
 from uavsearch.search.perception import load_perception
 from uavsearch.search.search_loop import CachedViews

@@ -24,9 +24,10 @@ from tqdm import tqdm
 
 from uavsearch.search.data.view_cache import get_view_cache
 from uavsearch.search.evaluate.bounds import bootstrap_ci, scene_af1
-from uavsearch.search.evaluate.wide import (FIXED, FUSION_CANDIDATES, LABELS, RULE, calibrated_candidates,
-                                            choose_rule, conditions, fixed_agents, fusion_name, make_fusion,
-                                            rule_agent, run_rows)
+from uavsearch.search.config import wide_budgets
+from uavsearch.search.evaluate.wide import FIXED, FUSION_CANDIDATES, LABELS, RULE, fixed_agents, fusion_name, rule_agent, run_rows
+from uavsearch.search.fusion import calibrated_candidates, make_fusion
+from uavsearch.search.wide_policies import choose_rule
 from uavsearch.search.perception import load_perception, shipped_perception
 
 
@@ -49,7 +50,7 @@ def main() -> None:
              f"{caches['train'].num_scenes} training (view sets, calibration); `python tools/wide_fusion_per_row.py`.",
              "", "| budget | best fixed route (its fusion), test AF1 | the rule (its fusion, variant), test AF1 | "
              "rule − best fixed [95% CI] |", "|---|---|---|---|"]
-    for name, cfg in conditions(caches["test"].config).items():
+    for name, cfg in wide_budgets(caches["test"].config).items():
         best: dict[str, tuple] = {}  # row -> (val AF1, fusion, agent, the rule's variant)
         for fusion in tqdm(fusions, desc=f"{args.family}, {name}", unit="fusion"):
             fixed, _ = fixed_agents(cfg, fusion, caches["train"])

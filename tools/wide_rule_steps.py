@@ -15,7 +15,10 @@ import numpy as np
 import torch
 
 from uavsearch.search.data.view_cache import get_view_cache
-from uavsearch.search.evaluate.wide import RULE_VARIANTS, calibrated_candidates, conditions, rule_agent
+from uavsearch.search.config import wide_budgets
+from uavsearch.search.evaluate.wide import rule_agent
+from uavsearch.search.fusion import calibrated_candidates
+from uavsearch.search.wide_policies import RULE_VARIANTS
 from uavsearch.search.perception import load_perception, shipped_perception
 from uavsearch.search.scoring import score_episode
 from uavsearch.search.search_loop import CachedViews, run_search
@@ -34,7 +37,7 @@ def main() -> None:
     net, _ = load_perception(str(shipped_perception(args.family)))
     train = get_view_cache(net, args.family, "large", "train", features=False, limit=args.train_scenes, progress=False)
     val = get_view_cache(net, args.family, "large", "val", features=False, progress=False)
-    cfg = list(conditions(val.config).values())[0 if args.budget == "8" else 1]
+    cfg = list(wide_budgets(val.config).values())[0 if args.budget == "8" else 1]
     gammas = [float(g) for g in args.gammas.split(",")]
     below = {float(t) for t in args.resurvey.split(",")}
     variants = [k for k, (_, t) in RULE_VARIANTS.items() if t in below]

@@ -240,13 +240,15 @@ def _add_train_parser(sub) -> None:
     # lazy: torch (2-5 s); built only when `train` is the command (build_parser)
     from .search.train.perception import add_train_perception_parser
     from .search.train.policy import add_train_policy_parser
+    from .search.train.map_policy import add_train_map_parser
     from .search.train.reactive import add_train_reactive_parser
 
     train = sub.add_parser("train", help=TRAIN_HELP)
-    tsub = train.add_subparsers(dest="train_cmd", required=True, metavar="{perception,policy,reactive}")
+    tsub = train.add_subparsers(dest="train_cmd", required=True, metavar="{perception,policy,reactive,map}")
     add_train_perception_parser(tsub)
     add_train_policy_parser(tsub)
     add_train_reactive_parser(tsub)
+    add_train_map_parser(tsub)
 
 
 def _add_eval_parser(sub) -> None:

@@ -234,7 +234,7 @@ class Mission(_Strict):
         if scene is not None and scene.family is not None:  # a team's fusion spec and planner (search/team.py)
             from ..search.config import setting_config
             from ..search.evaluate.team import make_planner
-            from ..search.evaluate.wide import make_fusion
+            from ..search.fusion import make_fusion
 
             try:
                 if info.field_name == "fusion":

@@ -151,7 +151,7 @@ def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_
 
         from ..search.perception import load_perception
         from ..search.evaluate.team import make_planner
-        from ..search.evaluate.wide import make_fusion
+        from ..search.fusion import make_fusion
         from ..search.team import run_team
 
         torch.set_num_threads(int(torch_threads))

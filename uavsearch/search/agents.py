@@ -8,7 +8,8 @@ log) and training all build their agents here, so a fusion method or a policy is
 - policies: `POLICIES` below. "learned" (the paper's PolicyNet) loads its net from a search checkpoint
   (search_s<K>_<fusion>.pt, trained with that fusion), "reactive" (reactive.ReactivePolicyNet) from
   search_s<K>_<fusion>_reactive.pt, "external" (external_policy.ExternalPolicyNet, a PPO actor trained on the
-  gymnasium env) from search_s<K>_<fusion>_external.pt; the others are built from the search config.
+  gymnasium env) from search_s<K>_<fusion>_external.pt, "map" (map_policy.MapPolicyNet, the wide-area
+  search's) from the checkpoint a wide mission or Table III names; the others are built from the search config.
 
 Adding a fusion method is one class and one entry in fusion.py's FUSIONS; adding a policy is one entry here.
 """
@@ -51,6 +52,8 @@ POLICIES: dict[str, PolicyKind] = {
                                  "paper)", "reactive"),
     "external": PolicyKind(None, "a PPO actor trained outside on the gymnasium env's cells observations "
                                  "(examples/sb3_ppo.py, examples/cleanrl_ppo.py; beyond the paper)", "external"),
+    "map": PolicyKind(None, "the wide-area search's learned policy: a conv net on the map scores every viewpoint "
+                            "(DAgger + REINFORCE)", "map", move_set="any"),
     "random": PolicyKind(lambda config: RandomPolicy(len(config.actions)) if config.move_set == "steps"
                          else MaskedRandom(config), "uniform random moves (any viewpoint: uniform over the allowed)"),
     "coverage": PolicyKind(CoverageRoute, "a fixed geometric route (beyond the paper)"),

@@ -169,6 +169,15 @@ def wide_config() -> SearchConfig:
                         lattice_points=6, move_set="any", budget_s=240.0)
 
 
+def wide_budgets(config: SearchConfig) -> dict[str, SearchConfig]:
+    """The wide family's two budgets (Table III's conditions) from its config, which holds both: T views with no
+    time limit, and budget_s seconds of flight with as many views as fit."""
+    if config.budget_s is None:
+        raise UavsearchError("the wide search's budgets need a config with budget_s (the time budget)")
+    return {f"T = {config.budget_T} views": dataclasses.replace(config, budget_s=None),
+            f"{config.budget_s:g} s": dataclasses.replace(config, budget_T=config.lattice.num_positions)}
+
+
 def setting_config(setting) -> SearchConfig:
     """The search task a scene setting is searched with: the paper's for its settings 1-3, the wide one for
     the wide families (the grid is the family's: world/settings.py)."""
@@ -179,4 +188,4 @@ def setting_config(setting) -> SearchConfig:
 
 
 __all__ = ["ACTIONS", "MOVE_SETS", "PAPER_ACTIONS", "wide_config", "FlightSpeeds", "SearchConfig", "config_from_dict", "config_to_dict",
-           "setting_config"]
+           "setting_config", "wide_budgets"]

@@ -477,6 +477,45 @@ def fusion_from_spec(spec: str, what: str = "fusion") -> Fusion:
     return FUSIONS[name](value)
 
 
+# The calibrated fusion's discount of views repeated at one scale: 0 is Bayes' rule (every view independent
+# evidence); a 70 m lawnmower sees a cell ten times, and clutter that fools the net once fools it from the next
+# viewpoint too.
+CALIBRATED_GAMMAS = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def calibrated_candidates(train, gammas=CALIBRATED_GAMMAS) -> list[Fusion]:
+    """Calibrated fusions fitted on every view of a training view cache (its p, cell masks, pixel areas and
+    labels), one per discount."""
+    views = FusionViews(train.log_probs[..., 1].exp(), train.valid, train.cell_area_px, labels=train.occupancy)
+    fitted = CalibratedFusion.fit(views)
+    return [CalibratedFusion(fitted.coef, fitted.prior, g) for g in gammas]
+
+
+def make_fusion(spec: str, train=None) -> Fusion:
+    """A fusion from a spec: fusion_from_spec's ("name" or "name:prior"), or "calibrated[:GAMMA]" fitted on the
+    training view cache `train` (Table III's --wide-fusion, a wide mission's fusion, the map policy's)."""
+    gamma = calibrated_gamma(spec)
+    if gamma is not None and train is not None:
+        return calibrated_candidates(train, (gamma,))[0]
+    return fusion_from_spec(spec, "--wide-fusion")
+
+
+def calibrated_gamma(spec: str) -> float | None:
+    """The discount of a "calibrated[:GAMMA]" spec (0 without one), None for any other spec, or a one-line
+    error."""
+    name, _, gamma = str(spec).partition(":")
+    if name != "calibrated":
+        return None
+    try:
+        g = float(gamma or 0.0)
+    except ValueError:
+        g = float("nan")
+    if not 0.0 <= g <= 1.0:
+        raise UavsearchError(f"--wide-fusion {spec}: the calibrated fusion's discount must be a number in [0, 1]")
+    return g
+
+
+
 def load_fusion(d: dict) -> Fusion:
     """The fusion object of a `save_dict()` (weights cast to float32, in eval mode)."""
     fusion = fusion_class(d["name"]).from_config(d["config"])

@@ -34,6 +34,7 @@ from .config import SearchConfig
 from .external_policy import ExternalConfig, ExternalPolicyNet
 from .fusion import Fusion, load_fusion
 from .perception import EMBED_DIM, ImageEmbedding
+from .map_policy import MapPolicyConfig, MapPolicyNet
 from .reactive import ReactiveConfig, ReactivePolicyNet
 from .search_loop import PolicyInput, sample_actions
 
@@ -172,6 +173,7 @@ POLICY_NETS: dict[str, tuple[type[nn.Module], type]] = {
     PolicyNet.KIND: (PolicyNet, PolicyConfig),
     ReactivePolicyNet.KIND: (ReactivePolicyNet, ReactiveConfig),
     ExternalPolicyNet.KIND: (ExternalPolicyNet, ExternalConfig),
+    MapPolicyNet.KIND: (MapPolicyNet, MapPolicyConfig),
 }
 
 

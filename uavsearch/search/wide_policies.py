@@ -31,7 +31,7 @@ from uavsearch.errors import UavsearchError
 from .config import SearchConfig
 from .fusion import Fusion, FusionViews
 from .metrics import map_f1
-from .search_loop import PolicyInput
+from .search_loop import Agent, CachedViews, PolicyInput, run_search
 
 SURVEY_OUTER_M = ((-37.5, 37.5), (37.5, 37.5), (37.5, -37.5), (-37.5, -37.5))  # 4 x 81 m footprints cover 150 m
 SURVEY_INNER_M = ((-12.5, 12.5), (12.5, 12.5), (12.5, -12.5), (-12.5, -12.5))
@@ -164,6 +164,36 @@ class DescendRule:
         return best + 1e-3 * mean, torch.where(low_ok.any(1)[:, None], low_ok, allowed)
 
 
+# The rule's variants (Table III chooses one on validation per family and budget): its survey (the 4 covering
+# 70 m views, or those and the 4 inner ones: a time budget affords more survey, and the survey is what finds the
+# groups to descend over), the fused p below which it keeps surveying instead of descending (0: always descend),
+# and whether it weighs a descent by the flight time to it (per second of flight plus RULE_OVERHEAD_S).
+RULE_SURVEYS = {"4 covering": SURVEY_OUTER_M, "4 covering + 4 inner": SURVEY_OUTER_M + SURVEY_INNER_M}
+RULE_RESURVEY_BELOW = (0.0, 0.2, 0.3, 0.4, 0.5, 0.6)
+RULE_OVERHEAD_S = 30.0  # about a descent's climb back and one move: a far bright spot still beats a near dim one
+RULE_VARIANTS = {", ".join([s] + ([f"resurvey below p {t:g}"] if t else []) + (["per second"] if ps else [])): (s, t, ps)
+                 for s in RULE_SURVEYS for t in RULE_RESURVEY_BELOW for ps in (False, True)}
+
+
+def rule_policy(config: SearchConfig, variant: str) -> DescendRule:
+    survey, below, per_second = RULE_VARIANTS[variant]
+    return DescendRule(config, RULE_SURVEYS[survey], resurvey_below=below,
+                       per_second_overhead_s=RULE_OVERHEAD_S if per_second else None)
+
+
+@torch.no_grad()
+def choose_rule(val, config: SearchConfig, fusion: Fusion) -> tuple[str, dict[str, float]]:
+    """The rule's variant with the best mean final F1 (AF1) on a validation view cache (ties: the first listed,
+    the simpler), and each variant's AF1."""
+    from .scoring import score_episode
+
+    af1 = {}
+    for k in RULE_VARIANTS:
+        ep = run_search(CachedViews(val, torch.arange(val.num_scenes), config), Agent(fusion, rule_policy(config, k)))
+        af1[k] = float(score_episode(ep).f1[:, -1].mean())
+    return max(RULE_VARIANTS, key=lambda k: (af1[k], -list(RULE_VARIANTS).index(k))), af1
+
+
 def binary_entropy(p: torch.Tensor) -> torch.Tensor:
     q = p.clamp(1e-6, 1 - 1e-6)
     return -(q * q.log2() + (1 - q) * (1 - q).log2())
@@ -265,6 +295,6 @@ def label_routes(cache, fusion: Fusion, config: SearchConfig, beam: int = 1) -> 
     return torch.tensor([r + [-1] * (L - len(r)) for r in out], dtype=torch.long)
 
 
-__all__ = ["argmax_allowed", "DescendRule", "EntropyPerSecond", "MaskedRandom", "RoutePolicy", "SURVEY_INNER_M", "SURVEY_OUTER_M",
+__all__ = ["RULE_VARIANTS", "argmax_allowed", "choose_rule", "rule_policy", "DescendRule", "EntropyPerSecond", "MaskedRandom", "RoutePolicy", "SURVEY_INNER_M", "SURVEY_OUTER_M",
            "binary_entropy", "candidates", "footprints", "greedy_view_set", "label_routes", "lawnmower",
            "survey_then_lawnmower", "viewpoints_at"]

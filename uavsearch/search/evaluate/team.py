@@ -33,7 +33,8 @@ from ..team import EachVehicle, Partition, TeamEntropy, TeamRule, run_team
 from ..wide_policies import EntropyPerSecond
 from .bounds import RESAMPLES, bootstrap_ci
 from .tables import write_csv
-from .wide import FUSION_CANDIDATES, family_caches, make_fusion
+from ..fusion import make_fusion
+from .wide import FUSION_CANDIDATES, family_caches
 
 PLANNERS = {
     "rule": "the rule for a team (nearest free survey viewpoint, then the descent score)",

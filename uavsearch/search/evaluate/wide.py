@@ -40,14 +40,13 @@ from uavsearch.paths import display_path
 from uavsearch.world.settings import setting_params
 
 from ..agents import build_agent
-from ..config import SearchConfig
+from ..config import SearchConfig, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
-from ..fusion import CalibratedFusion, Fusion, FusionViews, OracleFusion, fusion_from_spec
+from ..fusion import Fusion, OracleFusion, calibrated_candidates, calibrated_gamma, make_fusion
 from ..perception import load_perception, shipped_perception
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
-from ..wide_policies import (SURVEY_INNER_M, SURVEY_OUTER_M, DescendRule, RoutePolicy, greedy_view_set,
-                             label_routes)
+from ..wide_policies import RULE_VARIANTS, RoutePolicy, choose_rule, greedy_view_set, label_routes, rule_policy
 from .bounds import paired_differences, scene_af1
 from .tables import write_csv
 
@@ -68,14 +67,6 @@ LABELS = {
 BOUNDS = ("rule_oracle", "label_greedy", "hindsight")
 RULE = "descend_rule"
 HINDSIGHT_BEAM = 4
-
-
-def conditions(config: SearchConfig) -> dict[str, SearchConfig]:
-    """The two budgets of Table III from the family's config (which holds both)."""
-    if config.budget_s is None:
-        raise UavsearchError("the wide evaluation needs a config with budget_s (the time budget)")
-    return {f"T = {config.budget_T} views": dataclasses.replace(config, budget_s=None),
-            f"{config.budget_s:g} s": dataclasses.replace(config, budget_T=config.lattice.num_positions)}
 
 
 def oracle_perception(cache: ViewCache) -> ViewCache:
@@ -116,30 +107,6 @@ def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarra
     return t[idx[:, :-1], idx[:, 1:]].sum(1) if idx.shape[1] > 1 else np.zeros(len(idx))
 
 
-def make_fusion(spec: str, train: ViewCache | None = None) -> Fusion:
-    """--wide-fusion's fusion: fusion.fusion_from_spec ("name" or "name:prior"), or "calibrated[:GAMMA]" fitted
-    on the training cache `train`."""
-    gamma = calibrated_gamma(spec)
-    if gamma is not None and train is not None:
-        return calibrated_candidates(train, (gamma,))[0]
-    return fusion_from_spec(spec, "--wide-fusion")
-
-
-def calibrated_gamma(spec: str) -> float | None:
-    """The discount of a "calibrated[:GAMMA]" spec (0 without one), None for any other spec, or a one-line
-    error."""
-    name, _, gamma = str(spec).partition(":")
-    if name != "calibrated":
-        return None
-    try:
-        g = float(gamma or 0.0)
-    except ValueError:
-        g = float("nan")
-    if not 0.0 <= g <= 1.0:
-        raise UavsearchError(f"--wide-fusion {spec}: the calibrated fusion's discount must be a number in [0, 1]")
-    return g
-
-
 def fusion_name(fusion: Fusion) -> str:
     return getattr(fusion, "spec", None) or f"{fusion.name}:{fusion.prior:g}"
 
@@ -147,19 +114,6 @@ def fusion_name(fusion: Fusion) -> str:
 # What `--wide-fusion auto` chooses among on the validation scenes. Bayes' prior is the p a view must exceed to
 # count as evidence for a person, so it decides how fast a cell's mild false alarms pile up over many views.
 FUSION_CANDIDATES = ("bayes:0.05", "bayes:0.1", "bayes:0.2", "bayes:0.3", "bayes:0.5", "average")
-# The calibrated fusion's discount of views repeated at one scale: 0 is Bayes' rule (every view independent
-# evidence); a 70 m lawnmower sees a cell ten times, and clutter that fools the net once fools it from the next
-# viewpoint too.
-CALIBRATED_GAMMAS = (0.0, 0.25, 0.5, 0.75, 1.0)
-
-
-def calibrated_candidates(train: ViewCache, gammas=CALIBRATED_GAMMAS) -> list[Fusion]:
-    """Calibrated fusions fitted on every view of the training cache, one per discount."""
-    views = FusionViews(train.log_probs[..., 1].exp(), train.valid, train.cell_area_px, labels=train.occupancy)
-    fitted = CalibratedFusion.fit(views)
-    return [CalibratedFusion(fitted.coef, fitted.prior, g) for g in gammas]
-
-
 def choose_fusion(val: ViewCache, config: SearchConfig, candidates=FUSION_CANDIDATES) -> tuple[Fusion, dict[str, float]]:
     """The candidate (a spec or a Fusion) with the best mean validation AF1 over the hand-made fixed routes and
     the rule (the rows that need no training scenes), and every candidate's score: chosen on validation, the
@@ -194,28 +148,8 @@ def fixed_agents(config: SearchConfig, fusion: Fusion, train: ViewCache) -> tupl
     return agents, routes
 
 
-# The rule's variant, chosen on validation per family and budget: its survey (the 4 covering 70 m views, or those
-# and the 4 inner ones: a time budget affords more survey, and the survey is what finds the groups to descend
-# over), the fused p below which it keeps surveying instead of descending (0: always descend), and whether it
-# weighs a descent by the flight time to it (per second of flight plus RULE_OVERHEAD_S: under a time budget).
-RULE_SURVEYS = {"4 covering": SURVEY_OUTER_M, "4 covering + 4 inner": SURVEY_OUTER_M + SURVEY_INNER_M}
-RULE_RESURVEY_BELOW = (0.0, 0.2, 0.3, 0.4, 0.5, 0.6)
-RULE_OVERHEAD_S = 30.0  # about a descent's climb back and one move: a far bright spot still beats a near dim one
-RULE_VARIANTS = {", ".join([s] + ([f"resurvey below p {t:g}"] if t else []) + (["per second"] if ps else [])): (s, t, ps)
-                 for s in RULE_SURVEYS for t in RULE_RESURVEY_BELOW for ps in (False, True)}
-
-
 def rule_agent(fusion: Fusion, config: SearchConfig, variant: str) -> Agent:
-    survey, below, per_second = RULE_VARIANTS[variant]
-    return Agent(fusion, DescendRule(config, RULE_SURVEYS[survey], resurvey_below=below,
-                                     per_second_overhead_s=RULE_OVERHEAD_S if per_second else None))
-
-
-def choose_rule(val: ViewCache, config: SearchConfig, fusion: Fusion) -> tuple[str, dict[str, float]]:
-    """The rule's variant with the best validation AF1 (ties: the first listed, the simpler), and each one's AF1."""
-    res = run_rows(val, config, {k: (rule_agent(fusion, config, k), 1) for k in RULE_VARIANTS})
-    af1 = {k: float(r["f1"][:, :, -1].mean()) for k, r in res.items()}
-    return max(RULE_VARIANTS, key=lambda k: (af1[k], -list(RULE_VARIANTS).index(k))), af1
+    return Agent(fusion, rule_policy(config, variant))
 
 
 def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusion: Fusion, episodes: int,
@@ -347,7 +281,7 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
         cs = caches[fam] if caches is not None else family_caches(args, fam)
         tag = cs["test"].perception_tag
         config = cs["test"].config
-        for name, cfg in conditions(config).items():
+        for name, cfg in wide_budgets(config).items():
             if auto:
                 candidates = (*FUSION_CANDIDATES, *calibrated_candidates(cs["train"]))
                 chosen, scores = choose_fusion(cs["val"], cfg, candidates)
@@ -373,4 +307,4 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
     return {"rows": rows, "paired": paired, "conditions": conds, "table": md}
 
 
-__all__ = ["conditions", "eval_wide", "evaluate_condition", "oracle_perception", "run_rows", "table_rows"]
+__all__ = ["eval_wide", "evaluate_condition", "oracle_perception", "run_rows", "table_rows"]

@@ -1,0 +1,151 @@
+"""The wide-area search's learned policy: its map state and masks, the label-peeking teacher, the leave-one-out
+baseline, a checkpoint's round trip, and a short DAgger + REINFORCE run end to end on a synthetic wide cache."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from test_wide_search import WIDE, wide_cache
+from uavsearch.errors import UavsearchError
+from uavsearch.search.config import config_to_dict, wide_budgets
+from uavsearch.search.fusion import FUSIONS, FusionViews, make_fusion
+from uavsearch.search.map_policy import MAP_PLANES, VIEWPOINT_FEATURES, MapPolicyConfig, MapPolicyNet
+from uavsearch.search.policy import ArgmaxPolicy, load_search_model, save_search_model
+from uavsearch.search.search_loop import Agent, CachedViews, classification_reward, run_search
+from uavsearch.search.train.map_policy import Args, LabelLookahead, leave_one_out, train, wide_checkpoint
+from uavsearch.search.wide_policies import footprints
+
+TIMED = wide_budgets(WIDE)["240 s"]
+
+
+def _net(config=TIMED, **kw) -> MapPolicyNet:
+    torch.manual_seed(0)
+    return MapPolicyNet(MapPolicyConfig(config_to_dict(config), **kw))
+
+
+class Record:
+    """Wraps a policy and keeps the inputs it was asked about."""
+
+    def __init__(self, policy):
+        self.policy, self.inputs = policy, []
+
+    def act(self, inp, generator=None):
+        self.inputs.append(inp)
+        return self.policy.act(inp, generator)
+
+
+def test_the_map_policy_reads_the_map_and_masks_what_it_may_not_take():
+    cache = wide_cache(3)
+    net = _net()
+    rec = Record(net)
+    ep = run_search(CachedViews(cache, np.arange(3), TIMED), Agent(FUSIONS["average"](), rec),
+                    generator=torch.Generator().manual_seed(0))
+    assert ep.log_prob is not None and ep.log_prob.requires_grad and ep.flight_s.max() <= 240.0
+    inp = rec.inputs[3]
+    planes, vp = net.state(inp)
+    assert planes.shape == (3, len(MAP_PLANES), 30, 30) and vp.shape == (3, len(VIEWPOINT_FEATURES), 73)
+    here = planes[:, MAP_PLANES.index("here")].flatten(1)
+    assert torch.equal(here.bool(), footprints(TIMED)[inp.lattice_idx])
+    secs = planes[:, MAP_PLANES.index("seconds_left"), 0, 0]
+    assert torch.allclose(secs, inp.time_left_s / 240.0)
+    logits = net.logits(inp)
+    assert (logits[inp.visited] <= -1e8).all() and (logits[inp.allowed] > -1e8).all()
+    # a view-budget net has a constant seconds plane and counts views left
+    untimed = wide_budgets(WIDE)["T = 8 views"]
+    net8 = _net(untimed)
+    rec8 = Record(net8)
+    run_search(CachedViews(cache, np.arange(3), untimed), Agent(FUSIONS["average"](), rec8))
+    p8, _ = net8.state(rec8.inputs[2])
+    assert (p8[:, MAP_PLANES.index("seconds_left")] == 1).all()
+    assert p8[0, MAP_PLANES.index("views_left"), 0, 0].item() == pytest.approx(1 - 3 / 8)
+    with pytest.raises(UavsearchError, match="move_set"):
+        _net(config=wide_budgets(WIDE)["T = 8 views"].__class__())  # the paper's steps config
+
+
+def test_a_map_policy_checkpoint_round_trips_with_its_calibrated_fusion(tmp_path):
+    cache = wide_cache(3)
+    fusion = make_fusion("calibrated:0.5", cache)
+    net = _net()
+    path = save_search_model(tmp_path / "m.pt", fusion, net, {"search_config": config_to_dict(TIMED)})
+    fusion2, net2, extra = load_search_model(path)
+    assert net2.KIND == "map" and fusion2.spec == "calibrated:0.5" and fusion2.coef == pytest.approx(fusion.coef)
+    a = run_search(CachedViews(cache, np.arange(3), TIMED), Agent(fusion, ArgmaxPolicy(net.eval())))
+    b = run_search(CachedViews(cache, np.arange(3), TIMED), Agent(fusion2, ArgmaxPolicy(net2)))
+    assert torch.equal(a.lattice_idx, b.lattice_idx)  # weights stored at half precision, same choices here
+    assert wide_checkpoint("8").name == "search_wide_T8_map.pt" and wide_checkpoint("240").name == "search_wide_240s_map.pt"
+
+
+def test_the_teacher_takes_the_view_that_finds_people_per_second():
+    cache = wide_cache(2, k=3)
+    fusion = FUSIONS["average"]()
+    teacher = LabelLookahead(cache, torch.arange(2), fusion, TIMED)
+    rec = Record(teacher)
+    ep = run_search(CachedViews(cache, np.arange(2), TIMED), Agent(fusion, rec))
+    inp = rec.inputs[0]
+    g = LabelLookahead(cache, torch.arange(2), fusion, TIMED).gains(inp)
+    assert torch.isinf(g[inp.visited]).all() and torch.isfinite(g[inp.allowed]).all()
+    # its first choice is the best gain per second: the change of N_tp - N_fp (+ a tenth of the occupied cells'
+    # summed p) of the map fused from the start view and that view, over the flight time to it
+    a = ep.lattice_idx[:, 1]
+    assert torch.equal(a, g.argmax(1)) and (g.amax(1) > 0).all()
+
+    def score(views):
+        fused = fusion.fuse(FusionViews(cache.log_probs[0, views, :, 1].exp()[None], cache.valid[0, views][None]))
+        y = cache.occupancy[:1]
+        return float(classification_reward(fused, y) + 0.1 * (fused * y).sum(-1))
+
+    start, first = TIMED.lattice.start_index, int(a[0])
+    expect = (score([start, first]) - score([start])) / float(TIMED.lattice.flight_time_s[start, first])
+    assert float(g[0, first]) == pytest.approx(expect, rel=1e-5)
+    # the teacher's maps end better than the untrained net's
+    net_ep = run_search(CachedViews(cache, np.arange(2), TIMED), Agent(fusion, ArgmaxPolicy(_net().eval())))
+    from uavsearch.search.scoring import score_episode
+    assert score_episode(ep).f1[:, -1].mean() > score_episode(net_ep).f1[:, -1].mean()
+    with pytest.raises(UavsearchError, match="forward"):
+        teacher.gains(rec.inputs[0])  # it follows one batch forward only
+
+
+def test_leave_one_out_baseline_subtracts_the_other_episodes_of_the_scene():
+    G = torch.tensor([[1.0, 0.0], [3.0, 2.0], [5.0, 5.0], [7.0, 9.0]])  # 2 scenes x 2 episodes
+    assert torch.equal(leave_one_out(G, 2), torch.tensor([[-2.0, -2.0], [2.0, 2.0], [-2.0, -4.0], [2.0, 4.0]]))
+    three = torch.tensor([[0.0], [3.0], [6.0]])
+    assert torch.allclose(leave_one_out(three, 3), torch.tensor([[-4.5], [0.0], [4.5]]))
+
+
+def test_training_imitates_the_teacher_then_reinforces_and_keeps_the_best_on_validation(tmp_path):
+    train_c, val_c = wide_cache(6, seed=1), wide_cache(3, seed=2)
+    args = Args(family="wide", budget="240", fusion="calibrated:0.5", calibration_scenes=4, train_eval_scenes=3,
+                dagger_iterations=3, dagger_episodes=12, dagger_epochs=4, batch_size=64, pg_iterations=2,
+                scenes_per_batch=2, episodes_per_scene=2, eval_every=1, channels=8, conv_layers=2, hidden=16,
+                runs_dir=str(tmp_path), progress=False, plot=True, seed=3)
+    res = train(args, caches=(train_c, val_c))
+    rows = list(csv.DictReader((res.run_dir / "metrics.csv").open()))
+    assert [r["phase"] for r in rows] == ["dagger"] * 3 + ["pg"] * 2
+    dagger = rows[:3]
+    assert int(dagger[2]["charts/aggregate"]) > int(dagger[0]["charts/aggregate"]) > 0
+    assert float(dagger[2]["losses/imitation"]) < float(dagger[0]["losses/imitation"]) - 0.3  # it learns the teacher
+    for r in rows[2:]:  # validation and training margins after DAgger and every REINFORCE iteration
+        assert r["eval/val_vs_rule"] != "" and r["eval/train_vs_rule"] != ""
+    summary = json.loads((res.run_dir / "summary.json").read_text())
+    best = max(float(r["eval/val_vs_rule"]) for r in rows[2:])
+    assert summary["best"]["val_vs_rule"] == pytest.approx(best)
+    assert (res.run_dir / "learning_curve.png").stat().st_size > 0
+    fusion, net, extra = load_search_model(res.checkpoint)
+    assert net.KIND == "map" and extra["best"]["iteration"] == summary["best"]["iteration"]
+    assert fusion.spec == "calibrated:0.5" and extra["rule"] in {t["method"][10:-1] for t in summary["validation"][:1]}
+    # the same seed gives the same run
+    again = train(args, caches=(train_c, val_c))
+    assert json.loads((again.run_dir / "summary.json").read_text())["best"] == summary["best"]
+
+
+def test_bad_training_arguments_are_one_line_errors():
+    with pytest.raises(UavsearchError, match="episodes-per-scene"):
+        train(Args(episodes_per_scene=1), caches=(wide_cache(2), wide_cache(2)))
+    with pytest.raises(UavsearchError, match="wide family"):
+        from uavsearch.testing.synthetic_views import synthetic_cache
+        train(Args(progress=False, plot=False), caches=(synthetic_cache(2), synthetic_cache(2)))

@@ -1,0 +1,479 @@
+"""The wide-area search's learned policy (map_policy.MapPolicyNet): DAgger from a label-peeking teacher, then
+REINFORCE, one net per budget of Table III (T = 8 views, or the family's seconds of flight).
+
+CleanRL-style: `Args`, then `train(args)` does everything. Perception is FROZEN (its view caches), and so is the
+fusion: the calibrated fusion (`--fusion calibrated:GAMMA`, fitted on the first `calibration_scenes` training
+scenes, as Table III fits it) or any fusion a name builds. Every episode is a few gathers (run_search on
+CachedViews).
+
+1. DAgger (`dagger_iterations`): roll out a mixture, per episode and step the teacher (`LabelLookahead`: for each
+   viewpoint it may take, the fused map after that view, scored on the labels: the change of N_tp - N_fp plus a
+   tenth of the change of the summed p of the occupied cells, which breaks the ties of views that flip no cell;
+   per second of flight under a time budget) with probability beta (1, then times `beta_decay`), else the net
+   (sampled); keep every (state, teacher move); fit the net by cross-entropy on the aggregate.
+2. REINFORCE (`pg_iterations`), reward per view: the change of N_tp - N_fp of the fused map (its sum is the
+   final map's N_tp - N_fp, what F1 counts). Each move's return to go is baselined by the mean return to go of
+   the OTHER episodes of the same scene in the batch at the same step (leave-one-out: scenes differ far more
+   than moves, and a fixed route's return would not know how this episode got here). Advantages normalised;
+   an entropy bonus decays linearly; an imitation term keeps the teacher's lessons.
+3. Selection: after DAgger and every `eval_every` iterations, the net's argmax viewpoints on the validation
+   scenes; the checkpoint kept has the best AF1 minus the rule's (wide_policies.DescendRule, its variant chosen on
+   the same validation scenes as Table III chooses it). The same margin on `train_eval_scenes` training scenes
+   is logged beside it: a net that memorises its scenes shows a training margin its validation one lacks.
+
+Output: runs/<name>__<seed>__<unix time>/ with args.json, metrics.csv, learning_curve.png, model.pt (the net and
+its fusion) and summary.json. `--out PATH` or `--ship` (models/search_wide_<budget>_map.pt) copies it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch.nn import functional as F
+from tqdm import tqdm
+
+from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.errors import UavsearchError, run_command
+from uavsearch.paths import MODELS_DIR
+from uavsearch.viz import pyplot, save_figure
+
+from ..config import SearchConfig, config_to_dict, wide_budgets
+from ..data.view_cache import ViewCache, get_view_cache
+from ..fusion import Fusion, FusionViews, make_fusion
+from ..map_policy import MapPolicyConfig, MapPolicyNet
+from ..perception import load_perception, shipped_perception
+from ..policy import ArgmaxPolicy, save_search_model
+from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward, run_search, step_rewards
+from ..wide_policies import argmax_allowed, candidates, choose_rule, rule_policy
+from .runs import RunArgs, copy_checkpoint, seed_everything, start_run
+
+BUDGETS = ("8", "240")  # Table III's two conditions: T = 8 views, or the family's time budget
+
+
+def wide_checkpoint(budget: str, models_dir=None) -> Path:
+    """Where the shipped learned wide-area policy of a budget lives."""
+    return Path(models_dir or MODELS_DIR) / f"search_wide_{'T8' if budget == '8' else f'{budget}s'}_map.pt"
+
+
+def budget_config(config: SearchConfig, budget: str) -> SearchConfig:
+    """The family's config under one of Table III's budgets (evaluate.wide.conditions, by its short name)."""
+    return list(wide_budgets(config).values())[BUDGETS.index(budget)]
+
+
+@dataclass
+class Args(RunArgs):
+    family: str = opt("wide", "scene family (wide | wide-uniform)")
+    budget: str = opt("240", "Table III's budget: 8 (views) or 240 (seconds of flight)", choices=BUDGETS)
+    perception: str | None = opt(None, "frozen perception (default the family's shipped net)")
+    fusion: str = opt("calibrated:0.75", "fusion: calibrated:GAMMA (fitted on the calibration scenes) or a name")
+    train_scenes: int = opt(500, "training scenes, the first N of the part (views are rendered where missing, resumable)")
+    val_scenes: int = opt(50, "validation scenes (selection)")
+    calibration_scenes: int = opt(20, "training scenes the calibrated fusion is fitted on (Table III's)")
+    train_eval_scenes: int = opt(50, "training scenes the training margin is measured on")
+    out: str | None = opt(None, "also copy the best checkpoint here (it always stays in the run directory)")
+    ship: bool = opt(False, "copy the best checkpoint over the shipped models/search_wide_<budget>_map.pt")
+    name: str | None = opt(None, "run name (default map_<family>_<budget>)")
+    seed: int = opt(0, "seeds random, numpy, torch and the episode sampling")
+    # 1. DAgger
+    dagger_iterations: int = opt(6, "DAgger iterations (rollout, aggregate, fit)")
+    dagger_episodes: int = opt(200, "episodes rolled out per DAgger iteration (scenes drawn with replacement)")
+    beta_decay: float = opt(0.5, "teacher probability: 1 in the first iteration, times this per iteration")
+    dagger_epochs: int = opt(3, "passes over the aggregate per DAgger iteration")
+    batch_size: int = opt(256, "states per cross-entropy minibatch")
+    lr: float = opt(1e-3, "Adam, imitation")
+    # 2. REINFORCE
+    pg_iterations: int = opt(200, "policy-gradient iterations after DAgger")
+    scenes_per_batch: int = opt(16, "training scenes per policy-gradient batch (drawn with replacement)")
+    episodes_per_scene: int = opt(4, "episodes per scene per policy-gradient batch (>= 2: the baseline)")
+    lr_pg: float = opt(3e-4, "Adam, policy gradient")
+    weight_decay: float = opt(1e-5, "Adam L2")
+    entropy_start: float = opt(0.01, "entropy bonus at the first policy-gradient iteration")
+    entropy_end: float = opt(0.0, "entropy bonus at the last (linear in between)")
+    imitation_coef: float = opt(0.1, "weight of the cross-entropy on the DAgger aggregate during REINFORCE")
+    # architecture (map_policy.MapPolicyConfig)
+    channels: int = opt(32, "conv channels")
+    conv_layers: int = opt(4, "3x3 conv layers")
+    hidden: int = opt(64, "per-viewpoint head width")
+    eval_every: int = opt(20, "policy-gradient iterations between validations")
+
+
+class TrainResult(NamedTuple):
+    run_dir: Path
+    checkpoint: Path
+    best: dict  # validation metrics of the saved checkpoint
+    table: list[dict]  # validation rows: the rule, the policy, the teacher
+    seconds: float
+
+
+def check_args(args: Args) -> None:
+    if min(args.dagger_episodes, args.dagger_epochs, args.batch_size, args.scenes_per_batch, args.eval_every,
+           args.channels, args.conv_layers, args.hidden, args.val_scenes, args.calibration_scenes,
+           args.train_eval_scenes) < 1 or min(args.dagger_iterations, args.pg_iterations) < 0 or \
+            args.dagger_iterations + args.pg_iterations < 1:
+        raise UavsearchError("iterations, episodes, scenes, batch sizes, eval_every and the architecture must be "
+                             "positive")
+    if args.episodes_per_scene < 2:
+        raise UavsearchError("--episodes-per-scene must be at least 2 (each episode's baseline is the others')")
+    if not 0.0 <= args.beta_decay <= 1.0:
+        raise UavsearchError(f"--beta-decay must lie in [0, 1], got {args.beta_decay}")
+    if args.budget not in BUDGETS:
+        raise UavsearchError(f"--budget must be one of {', '.join(BUDGETS)}")
+
+
+# --------------------------------------------------------------------------------------------------
+# The teacher
+
+
+def _repeat(x, k: int):
+    """A fusion state (tensors, NamedTuples of them, None) with each batch row repeated k times."""
+    if x is None:
+        return None
+    if isinstance(x, torch.Tensor):
+        return x.repeat_interleave(k, 0)
+    if isinstance(x, tuple):
+        return type(x)(*(_repeat(f, k) for f in x))
+    return x
+
+
+def view_of(cache: ViewCache, rows: torch.Tensor, positions: torch.Tensor) -> FusionViews:
+    """One view per episode as a fusion batch of T = 1: scene rows (B,), viewpoints (B,)."""
+    return FusionViews(cache.log_probs[rows, positions][..., 1].exp()[:, None], cache.valid[rows, positions][:, None],
+                       cache.cell_area_px[rows, positions][:, None])
+
+
+class LabelLookahead:
+    """DAgger's teacher: the allowed viewpoint whose view most improves the fused map on the labels (module
+    docstring), per second of flight under a time budget; ties: the nearer. Follows one batch of episodes step
+    by step (it keeps the fusion state of each episode's views, so a step costs one view per candidate)."""
+
+    def __init__(self, cache: ViewCache, rows, fusion: Fusion, config: SearchConfig, chunk: int = 8):
+        self.cache, self.fusion, self.config, self.chunk = cache, fusion, config, chunk
+        self.rows = torch.as_tensor(np.asarray(rows), dtype=torch.long).reshape(-1)
+        self.labels = cache.occupancy[self.rows]
+        self.cost = config.lattice.flight_time_t.float()
+        self.timed = config.budget_s is not None
+        self.state, self.fused, self.seen = None, None, 0
+
+    def _follow(self, inp: PolicyInput) -> None:
+        """Bring the kept fusion state up to the episode's views so far."""
+        t = inp.view_positions.shape[1]
+        if t < self.seen:
+            raise UavsearchError("the teacher follows one batch of episodes forward; build a new one per batch")
+        for j in range(self.seen, t):
+            self.state, self.fused = self.fusion.update(self.state, view_of(self.cache, self.rows,
+                                                                            inp.view_positions[:, j]))
+        self.seen = t
+
+    @torch.no_grad()
+    def gains(self, inp: PolicyInput) -> torch.Tensor:
+        """(B, P) what each viewpoint's view would add (-inf where it may not be taken)."""
+        self._follow(inp)
+        allowed = candidates(inp)
+        B, P = allowed.shape
+        occ = self.labels.float()
+        now = classification_reward(self.fused, self.labels).float() + 0.1 * (self.fused * occ).sum(-1)
+        out = torch.full((B, P), -np.inf)
+        for c0 in range(0, P, self.chunk):
+            cs = [c for c in range(c0, min(c0 + self.chunk, P)) if bool(allowed[:, c].any())]
+            if not cs:
+                continue
+            k = len(cs)
+            pos = torch.tensor(cs).repeat(B)  # (B*k,) episode-major
+            rows = self.rows.repeat_interleave(k)
+            _, fused = self.fusion.update(_repeat(self.state, k), view_of(self.cache, rows, pos))
+            lab = self.labels.repeat_interleave(k, 0)
+            after = classification_reward(fused, lab).float() + 0.1 * (fused * lab.float()).sum(-1)
+            out[:, cs] = after.reshape(B, k) - now[:, None]
+        gain = out
+        if self.timed:
+            gain = gain / self.cost[inp.lattice_idx].clamp(min=1.0)
+        return torch.where(allowed, gain, torch.full_like(gain, -np.inf))
+
+    @torch.no_grad()
+    def act(self, inp: PolicyInput, generator=None):
+        key = self.gains(inp) - 1e-6 * self.cost[inp.lattice_idx]  # ties: the nearer
+        return argmax_allowed(key, candidates(inp)), None, None
+
+
+class DaggerMixture:
+    """DAgger's rollout policy; records every (state, mask, teacher move) it passes."""
+
+    def __init__(self, net: MapPolicyNet, teacher: LabelLookahead, beta: float, generator):
+        self.net, self.teacher, self.beta, self.gen = net, teacher, beta, generator
+        self.planes, self.vps, self.masks, self.targets = [], [], [], []
+
+    @torch.no_grad()
+    def act(self, inp, generator=None):
+        planes, vp = self.net.state(inp)
+        mask = self.net.mask(inp)
+        a_teacher = self.teacher.act(inp)[0]
+        a_net = torch.multinomial(torch.softmax(self.net(planes, vp, mask), -1), 1, generator=self.gen).squeeze(-1)
+        use_teacher = torch.rand(len(a_net), generator=self.gen) < self.beta
+        live = candidates(inp).any(1)  # an episode with nothing left to take has ended: nothing to learn there
+        self.planes.append(planes[live].half())
+        self.vps.append(vp[live])
+        self.masks.append(mask[live])
+        self.targets.append(a_teacher[live])
+        return torch.where(use_teacher, a_teacher, a_net), None, None
+
+
+def imitation_loss(net: MapPolicyNet, planes, vps, masks, targets) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cross-entropy of the net's masked logits against the teacher's viewpoints, and the agreement (argmax)."""
+    logits = net(planes.float(), vps, masks)
+    return F.cross_entropy(logits, targets), (logits.argmax(-1) == targets).float().mean()
+
+
+def returns_to_go(ep) -> torch.Tensor:
+    """(B, T-1) each move's return to go: the change of N_tp - N_fp of the fused map from view t to the end."""
+    r = step_rewards(ep.maps.detach(), ep.labels, ep.revisit, r_re=0.0, shaped=True)[:, 1:]
+    return r.flip(1).cumsum(1).flip(1)
+
+
+def leave_one_out(G: torch.Tensor, per_scene: int) -> torch.Tensor:
+    """G (S*E, L) -> each episode's G minus the mean of the other E - 1 episodes of its scene."""
+    g = G.reshape(-1, per_scene, G.shape[-1])
+    return (g - (g.sum(1, keepdim=True) - g) / (per_scene - 1)).reshape(G.shape)
+
+
+# --------------------------------------------------------------------------------------------------
+# Training
+
+
+@torch.no_grad()
+def scene_f1(cache: ViewCache, config: SearchConfig, agent: Agent) -> np.ndarray:
+    """(S,) each scene's final F1 under an agent (deterministic policies)."""
+    from ..scoring import score_episode
+
+    ep = run_search(CachedViews(cache, torch.arange(cache.num_scenes), config), agent)
+    return score_episode(ep).f1[:, -1]
+
+
+def _caches(args: Args):
+    net, _ = load_perception(args.perception or str(shipped_perception(args.family)))
+    kw = dict(cache_dir=args.cache_dir, progress=args.progress, features=False)
+    train = get_view_cache(net, args.family, "large", "train", limit=args.train_scenes, **kw)
+    val = get_view_cache(net, args.family, "large", "val", limit=args.val_scenes, **kw)
+    return train, val
+
+
+def _plot(rows: list[dict], path: Path, title: str) -> None:
+    plt = pyplot()
+    ev = [r for r in rows if r["eval/val_af1"] is not None]
+    pg = [r for r in rows if r["phase"] == "pg"]
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.8), layout="constrained")
+    il = [r for r in rows if r["losses/imitation"] is not None]
+    ax[0].plot([r["iteration"] for r in il], [r["losses/imitation"] for r in il], lw=0.8, label="imitation loss")
+    ax[0].plot([r["iteration"] for r in il], [r["charts/teacher_agreement"] for r in il], lw=0.8,
+               label="agrees with the teacher")
+    ax[0].set_title("imitation of the teacher")
+    ax[0].legend(fontsize=8)
+    ax[1].plot([r["iteration"] for r in ev], [r["eval/val_vs_rule"] for r in ev], "o-", label="validation")
+    ax[1].plot([r["iteration"] for r in ev], [r["eval/train_vs_rule"] for r in ev], "s--", label="training scenes")
+    ax[1].axhline(0.0, color="k", lw=0.6)
+    ax[1].set_title("AF1 - the rule's AF1 (argmax)")
+    ax[1].legend(fontsize=8)
+    ax[2].plot([r["iteration"] for r in pg], [r["charts/return"] for r in pg], lw=0.8, label="return (N_tp - N_fp)")
+    ax[2].plot([r["iteration"] for r in pg], [r["charts/entropy"] for r in pg], lw=0.8, label="entropy (nats)")
+    ax[2].set_title("REINFORCE")
+    ax[2].legend(fontsize=8)
+    for a in ax:
+        a.set_xlabel("iteration (DAgger, then REINFORCE)")
+        a.grid(alpha=0.3)
+    fig.suptitle(title)
+    save_figure(fig, path)
+
+
+def train(args: Args, caches=None) -> TrainResult:
+    """Train the map policy; `caches` = (train, val) ViewCaches skips loading perception (tests)."""
+    check_args(args)
+    t_start = time.perf_counter()
+    torch.set_num_threads(int(args.threads))
+    seed_everything(args.seed)
+    gen = torch.Generator().manual_seed(args.seed)
+    train_cache, val_cache = caches if caches is not None else _caches(args)
+    if train_cache.config.move_set != "any":
+        raise UavsearchError(f"the map policy is the wide family's: {args.family!r} is not a wide family")
+    config = budget_config(train_cache.config, args.budget)
+    S = train_cache.num_scenes
+    fusion = make_fusion(args.fusion, train_cache.subset(np.arange(min(args.calibration_scenes, S))))
+    name = args.name or f"map_{args.family}_{args.budget}"
+    run_dir = start_run(args, name, args.seed)
+    net = MapPolicyNet(MapPolicyConfig(config_to_dict(config), channels=args.channels, conv_layers=args.conv_layers,
+                                       hidden=args.hidden))
+    train_eval = train_cache.subset(np.arange(min(args.train_eval_scenes, S)))
+    variant, _ = choose_rule(val_cache, config, fusion)
+    rule = Agent(fusion, rule_policy(config, variant))
+    rule_val, rule_train = scene_f1(val_cache, config, rule), scene_f1(train_eval, config, rule)
+    teacher_val = scene_f1(val_cache, config, Agent(fusion, LabelLookahead(val_cache, torch.arange(val_cache.num_scenes),
+                                                                           fusion, config)))
+
+    opt_il = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    opt_pg = torch.optim.Adam(net.parameters(), lr=args.lr_pg, weight_decay=args.weight_decay)
+    agg: list[list[torch.Tensor]] = [[], [], [], []]  # planes, viewpoint features, masks, targets
+    rows: list[dict] = []
+    best, best_key = {}, -float("inf")
+    ckpt = run_dir / "model.pt"
+    csv_f = (run_dir / "metrics.csv").open("w", newline="")
+    writer = None
+    meta = {"args": asdict(args), "fusion": getattr(fusion, "spec", fusion.name), "rule": variant,
+            "perception_tag": train_cache.perception_tag, "search_config": config_to_dict(config)}
+
+    def validate(row: dict, it: int) -> None:
+        nonlocal best, best_key
+        net.eval()
+        agent = Agent(fusion, ArgmaxPolicy(net))
+        v, tr = scene_f1(val_cache, config, agent), scene_f1(train_eval, config, agent)
+        net.train()
+        row.update({"eval/val_af1": float(v.mean()), "eval/val_vs_rule": float((v - rule_val).mean()),
+                    "eval/train_af1": float(tr.mean()), "eval/train_vs_rule": float((tr - rule_train).mean())})
+        if row["eval/val_vs_rule"] > best_key:
+            best_key = row["eval/val_vs_rule"]
+            best = {"iteration": it, "phase": row["phase"], "val_af1": row["eval/val_af1"],
+                    "val_vs_rule": row["eval/val_vs_rule"], "train_vs_rule": row["eval/train_vs_rule"]}
+            save_search_model(ckpt, fusion, net, {**meta, "best": best})
+
+    def log(row: dict) -> None:
+        nonlocal writer
+        rows.append(row)
+        if writer is None:
+            writer = csv.DictWriter(csv_f, fieldnames=list(row))
+            writer.writeheader()
+        writer.writerow(row)
+        csv_f.flush()
+
+    def blank(it: int, phase: str) -> dict:
+        return {"iteration": it, "phase": phase, "seconds": round(time.perf_counter() - t_start, 1),
+                "losses/imitation": None, "losses/policy": None, "charts/teacher_agreement": None,
+                "charts/beta": None, "charts/aggregate": None, "charts/return": None, "charts/entropy": None,
+                "charts/entropy_coef": None, "charts/steps_per_s": None, "eval/val_af1": None,
+                "eval/val_vs_rule": None, "eval/train_af1": None, "eval/train_vs_rule": None}
+
+    bar = tqdm(total=args.dagger_iterations + args.pg_iterations, desc=name, disable=not args.progress, unit="it")
+    it = 0
+    for i in range(args.dagger_iterations):  # 1. DAgger
+        it += 1
+        beta = args.beta_decay ** i
+        rows_b = torch.randint(S, (args.dagger_episodes,), generator=gen)
+        mix = DaggerMixture(net, LabelLookahead(train_cache, rows_b, fusion, config), beta, gen)
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            run_search(CachedViews(train_cache, rows_b, config), Agent(fusion, mix), generator=gen)
+        steps_s = sum(len(t) for t in mix.targets) / (time.perf_counter() - t0)
+        for store, new in zip(agg, (mix.planes, mix.vps, mix.masks, mix.targets)):
+            store.append(torch.cat(new))
+        X, V, M, Y = (torch.cat(a) for a in agg)
+        losses, agree = [], []
+        for _ in range(args.dagger_epochs):
+            perm = torch.randperm(len(Y), generator=gen)
+            for j in range(0, len(Y), args.batch_size):
+                b = perm[j:j + args.batch_size]
+                loss, acc = imitation_loss(net, X[b], V[b], M[b], Y[b])
+                opt_il.zero_grad()
+                loss.backward()
+                opt_il.step()
+                losses.append(float(loss.detach()))
+                agree.append(float(acc))
+        row = blank(it, "dagger")
+        row.update({"losses/imitation": float(np.mean(losses[-10:])), "charts/teacher_agreement":
+                    float(np.mean(agree[-10:])), "charts/beta": beta, "charts/aggregate": len(Y),
+                    "charts/steps_per_s": steps_s})
+        if i == args.dagger_iterations - 1:
+            validate(row, it)
+        log(row)
+        bar.update()
+        bar.set_postfix(il_loss=f"{row['losses/imitation']:.3f}")
+
+    have_agg = bool(agg[0])
+    if have_agg:
+        X, V, M, Y = (torch.cat(a) for a in agg)
+    E = args.episodes_per_scene
+    for k in range(args.pg_iterations):  # 2. REINFORCE, leave-one-out baseline per scene
+        it += 1
+        coef = args.entropy_start + (args.entropy_end - args.entropy_start) * k / max(args.pg_iterations - 1, 1)
+        rows_b = torch.randint(S, (args.scenes_per_batch,), generator=gen).repeat_interleave(E)
+        t0 = time.perf_counter()
+        ep = run_search(CachedViews(train_cache, rows_b, config), Agent(fusion, net), generator=gen)
+        G = returns_to_go(ep)
+        live = (ep.taken[:, 1:] if ep.taken is not None else torch.ones_like(G, dtype=torch.bool)).float()
+        adv = leave_one_out(G, E)
+        adv = (adv - (adv * live).sum() / live.sum()) / (adv[live.bool()].std() + 1e-8)
+        n = live.sum().clamp(min=1.0)
+        loss_pg = -(ep.log_prob * adv * live).sum() / n
+        entropy = (ep.entropy * live).sum() / n
+        loss = loss_pg - coef * entropy
+        loss_il = agreement = None
+        if have_agg and args.imitation_coef > 0:
+            b = torch.randint(len(Y), (args.batch_size,), generator=gen)
+            loss_il, agreement = imitation_loss(net, X[b], V[b], M[b], Y[b])
+            loss = loss + args.imitation_coef * loss_il
+        opt_pg.zero_grad()
+        loss.backward()
+        opt_pg.step()
+        row = blank(it, "pg")
+        row.update({"losses/policy": float(loss_pg.detach()), "charts/return": float(G[:, 0].mean()),
+                    "charts/entropy": float(entropy.detach()), "charts/entropy_coef": coef,
+                    "charts/steps_per_s": float(live.sum()) / (time.perf_counter() - t0)})
+        if loss_il is not None:
+            row["losses/imitation"], row["charts/teacher_agreement"] = float(loss_il.detach()), float(agreement)
+        if (k + 1) % args.eval_every == 0 or k == args.pg_iterations - 1:
+            validate(row, it)
+            bar.set_postfix(val_vs_rule=f"{row['eval/val_vs_rule']:+.3f}", best=f"{best_key:+.3f}")
+        log(row)
+        bar.update()
+    bar.close()
+    csv_f.close()
+    if args.plot:
+        _plot(rows, run_dir / "learning_curve.png", f"{name}, seed {args.seed}")
+    out = copy_checkpoint(ckpt, args.out, args.ship, wide_checkpoint(args.budget))
+    seconds = time.perf_counter() - t_start
+    table = [{"method": f"the rule ({variant})", "af1": float(rule_val.mean()), "vs_rule": 0.0},
+             {"method": f"learned map policy (iteration {best.get('iteration')})", "af1": best.get("val_af1"),
+              "vs_rule": best.get("val_vs_rule")},
+             {"method": "label-peeking teacher (reads the labels)", "af1": float(teacher_val.mean()),
+              "vs_rule": float((teacher_val - rule_val).mean())}]
+    summary = {"best": best, "validation": table, "seconds": seconds, "checkpoint": str(out or ckpt),
+               "scenes": {"train": S, "val": val_cache.num_scenes, "train_eval": train_eval.num_scenes}}
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    return TrainResult(run_dir, out or ckpt, best, table, seconds)
+
+
+def format_table(table: list[dict], scenes: str) -> str:
+    lines = [f"| method ({scenes}, argmax viewpoints) | AF1 | − the rule |", "|---|---|---|"]
+    lines += [f"| {r['method']} | {r['af1']:.3f} | {r['vs_rule']:+.3f} |" for r in table]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------------
+# CLI
+
+
+def add_train_map_parser(subparsers) -> None:
+    """`uavsearch train map ...` (subparsers: the `train` command's); one flag per Args field."""
+    p = subparsers.add_parser("map", help="the wide-area search's learned policy: DAgger + REINFORCE",
+                              description="A conv net on the fused map scoring every viewpoint, imitating a "
+                                          "label-peeking teacher, then REINFORCE; see "
+                                          "uavsearch/search/train/map_policy.py.")
+    add_dataclass_args(p, Args)
+    p.set_defaults(func=cmd_train_map)
+
+
+def cmd_train_map(args) -> int:
+    a = dataclass_from_args(Args, args)
+    res = train(a)
+    print(format_table(res.table, f"{res.best and 'validation scenes'}"))
+    print(f"best validation: {json.dumps(res.best)}")
+    print(f"{res.seconds:.0f} s; run {res.run_dir}; checkpoint {res.checkpoint}")
+    return 0
+
+
+if __name__ == "__main__":  # python -m uavsearch.search.train.map_policy [flags] = uavsearch train map [flags]
+    raise SystemExit(run_command(cmd_train_map, add_dataclass_args(argparse.ArgumentParser(
+        prog="python -m uavsearch.search.train.map_policy"), Args).parse_args()))
