@@ -14,10 +14,10 @@ from test_wide_search import WIDE, wide_cache
 from uavsearch.errors import UavsearchError
 from uavsearch.search.config import config_to_dict, wide_budgets
 from uavsearch.search.fusion import FUSIONS, FusionViews, make_fusion
-from uavsearch.search.map_policy import MAP_PLANES, VIEWPOINT_FEATURES, MapPolicyConfig, MapPolicyNet
+from uavsearch.search.map_policy import MAP_PLANES, VIEWPOINT_FEATURES, MapPolicyConfig, MapPolicyNet, wide_checkpoint
 from uavsearch.search.policy import ArgmaxPolicy, load_search_model, save_search_model
 from uavsearch.search.search_loop import Agent, CachedViews, classification_reward, run_search
-from uavsearch.search.train.map_policy import Args, LabelLookahead, leave_one_out, train, wide_checkpoint
+from uavsearch.search.train.map_policy import Args, LabelLookahead, leave_one_out, train
 from uavsearch.search.wide_policies import footprints
 
 TIMED = wide_budgets(WIDE)["240 s"]

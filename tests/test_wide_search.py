@@ -175,13 +175,30 @@ def test_route_searches_on_a_known_map():
 
 def test_table3_on_a_tiny_synthetic_family(tmp_path):
     caches = {"wide": {"test": wide_cache(3, 1), "val": wide_cache(2, 2), "train": wide_cache(2, 3)}}
+    # a learned policy for the time budget only: that table gets its row, the other does not
+    from uavsearch.search.map_policy import MapPolicyConfig, MapPolicyNet, wide_checkpoint
+    from uavsearch.search.policy import save_search_model
+
+    timed_cfg = wide_budgets(WIDE)["240 s"]
+    save_search_model(wide_checkpoint("240", tmp_path / "models"), FUSIONS["average"](),
+                      MapPolicyNet(MapPolicyConfig(config_to_dict(timed_cfg))), {})
     args = SimpleNamespace(out=str(tmp_path), wide_fusion="average", episodes=2, seeds=1, bootstrap=200,
-                           bootstrap_seed=0, perception="models/perception.pt", progress=False)
+                           bootstrap_seed=0, perception="models/perception.pt", progress=False,
+                           wide_policy_dir=str(tmp_path / "models"))
     res = eval_wide(args, ["wide"], caches)
     text = (tmp_path / "table3.md").read_text()
     assert "the rule" in text and "(best fixed)" in text and "240 s" in text and "T = 8 views" in text
     rows = res["rows"]
-    assert len(rows) == 2 * 12 and (tmp_path / "table3.csv").is_file() and (tmp_path / "table3_paired.csv").is_file()
+    assert len(rows) == 12 + 13 and (tmp_path / "table3.csv").is_file() and (tmp_path / "table3_paired.csv").is_file()
+    ours = [r for r in rows if r["key"] == "map_policy"]
+    assert [r["budget"] for r in ours] == ["240 s"] and np.isfinite(ours[0]["vs_rule"])
+    assert np.isfinite(ours[0]["vs_best_fixed"]) and text.count("ours: learned wide-area policy") == 1
+    assert "search_wide_240s_map.pt (average:0.1)" in text
+    # a checkpoint made for the other budget is refused in one line
+    from uavsearch.search.evaluate.wide import learned_agent
+
+    with pytest.raises(UavsearchError, match="another search"):
+        learned_agent(wide_checkpoint("240", tmp_path / "models"), wide_budgets(WIDE)["T = 8 views"])
     timed = [r for r in rows if r["budget"] == "240 s"]
     assert all(r["flight_s"] <= 240.0 + 1e-6 for r in timed)
     views = [r for r in rows if r["budget"] == "T = 8 views"]
@@ -235,7 +252,7 @@ def test_table3_chooses_its_fusion_on_validation(tmp_path):
     assert set(scores) == {"bayes:0.1", "average:0.1"} and all(0.0 <= v <= 1.0 for v in scores.values())
     assert f"{fusion.name}:{fusion.prior:g}" == max(scores, key=scores.get)
     caches = {"wide": {"test": wide_cache(2, 1), "val": val, "train": wide_cache(2, 3)}}
-    args = SimpleNamespace(out=str(tmp_path), wide_fusion="auto", episodes=1, seeds=1, bootstrap=100,
+    args = SimpleNamespace(out=str(tmp_path), wide_fusion="auto", episodes=1, seeds=1, bootstrap=100, wide_policy_dir=str(tmp_path),
                            bootstrap_seed=0, perception="models/perception.pt", progress=False)
     res = eval_wide(args, ["wide"], caches)
     text = (tmp_path / "table3.md").read_text()

@@ -18,11 +18,13 @@ runs on the view cache; train/map_policy.py trains it.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import nn
 
 from uavsearch.errors import UavsearchError
+from uavsearch.paths import MODELS_DIR
 
 from .config import SearchConfig, config_from_dict
 from .search_loop import PolicyInput, sample_actions
@@ -34,6 +36,12 @@ MAP_PLANES = ("fused", "uncertainty", "views_top", "views_low", "max_p", "low_me
 VIEWPOINT_FEATURES = ("descent_score", "mean_p", "entropy", "flight_time", "is_low", "is_top")
 VIEWS_SCALE = 4.0  # a cell's view count enters as n / 4 (a 70 m lawnmower sees a cell up to ~10 times)
 TIME_SCALE_S = 60.0  # flight times enter as seconds / 60
+BUDGETS = ("8", "240")  # Table III's two conditions: T = 8 views, or the family's time budget (one net each)
+
+
+def wide_checkpoint(budget: str, models_dir=None) -> Path:
+    """Where the learned wide-area policy of a budget lives (default: the shipped one in models/)."""
+    return Path(models_dir or MODELS_DIR) / f"search_wide_{'T8' if budget == '8' else f'{budget}s'}_map.pt"
 
 
 @dataclass(frozen=True)
@@ -132,4 +140,4 @@ class MapPolicyNet(nn.Module):
         return sample_actions(self.logits(inp), generator, greedy)
 
 
-__all__ = ["MAP_PLANES", "VIEWPOINT_FEATURES", "MapPolicyConfig", "MapPolicyNet"]
+__all__ = ["BUDGETS", "MAP_PLANES", "VIEWPOINT_FEATURES", "MapPolicyConfig", "MapPolicyNet", "wide_checkpoint"]

@@ -157,6 +157,9 @@ class EvalArgs(ScaleOutArgs):
     wide_train_scenes: int = opt(500, "Table III: training scenes the fixed view sets are searched on (the first N)")
     wide_val_scenes: int | None = opt(None, "Table III: validation scenes choosing the best fixed route (first N; all)")
     wide_test_scenes: int | None = opt(None, "Table III: test scenes (the first N; default all 100)")
+    wide_policy_dir: str | None = opt(None, "Table III: where the learned wide-area policies are "
+                                            "(search_wide_T8_map.pt, search_wide_240s_map.pt; default models/); a "
+                                            "budget without one has no learned row")
 
 
 def evaluate_setting(setting: int, cache, args: EvalArgs, keys=None) -> dict[str, dict]:

@@ -43,7 +43,9 @@ from ..agents import build_agent
 from ..config import SearchConfig, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
 from ..fusion import Fusion, OracleFusion, calibrated_candidates, calibrated_gamma, make_fusion
+from ..map_policy import BUDGETS, wide_checkpoint
 from ..perception import load_perception, shipped_perception
+from ..policy import ArgmaxPolicy, load_search_model
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
 from ..wide_policies import RULE_VARIANTS, RoutePolicy, choose_rule, greedy_view_set, label_routes, rule_policy
@@ -58,6 +60,7 @@ LABELS = {
     "viewset": "view set optimised on training scenes (AF1 gain)",
     "viewset_per_s": "view set optimised on training scenes (AF1 gain per second)",
     "descend_rule": "the rule: survey at 70 m, then descend over the highest fused p",
+    "map_policy": "ours: learned wide-area policy (its own fusion)",
     "entropy_per_s": "greedy expected information per second",
     "random": "random viewpoints",
     "rule_oracle": "the rule, oracle perception (bound)",
@@ -152,10 +155,28 @@ def rule_agent(fusion: Fusion, config: SearchConfig, variant: str) -> Agent:
     return Agent(fusion, rule_policy(config, variant))
 
 
+def learned_agent(path: Path, config: SearchConfig) -> Agent | None:
+    """The learned wide-area policy of a checkpoint (its argmax viewpoints, with the fusion it was trained
+    with), or None where the file is missing; a checkpoint made for another search is a one-line error."""
+    if not Path(path).is_file():
+        return None
+    fusion, net, extra = load_search_model(path)
+    if net.KIND != "map":
+        raise UavsearchError(f"{display_path(path)} holds a {net.KIND!r} policy, not the wide family's map policy")
+    trained = net.cfg.search_config()
+    same = trained.lattice.positions_enu.shape == config.lattice.positions_enu.shape and \
+        (trained.lattice.positions_enu == config.lattice.positions_enu).all()
+    if not same or trained.budget_s != config.budget_s or trained.grid != config.grid:
+        raise UavsearchError(f"{display_path(path)} was trained for another search (lattice, grid or budget) than "
+                             f"this Table III condition")
+    return Agent(fusion, ArgmaxPolicy(net))
+
+
 def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusion: Fusion, episodes: int,
-                       seeds: int, resamples: int = 10_000, bootstrap_seed: int = 0) -> dict:
+                       seeds: int, resamples: int = 10_000, bootstrap_seed: int = 0,
+                       learned: Agent | None = None) -> dict:
     """Every row of one budget: routes fixed on train, the best fixed route and the rule's variant chosen on
-    val, all scored on test."""
+    val, all scored on test; `learned`: the learned policy's row too."""
     fixed, routes = fixed_agents(config, fusion, caches["train"])
     val = run_rows(caches["val"], config, {k: (a, 1) for k, a in fixed.items()})
     val_af1 = {k: float(r["f1"][:, :, -1].mean()) for k, r in val.items()}
@@ -166,6 +187,8 @@ def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusio
               RULE: (rule_agent(fusion, config, variant), 1),
               "entropy_per_s": (_agent(fusion, "entropy_per_s", config), 1),
               "random": (_agent(fusion, "random", config), episodes)}
+    if learned is not None:
+        agents[LEARNED] = (learned, 1)
     res = run_rows(test, config, agents, seeds)
     res.update({"rule_oracle": run_rows(oracle_perception(test), config,
                                         {"rule_oracle": (rule_agent(OracleFusion(), config, variant), 1)})["rule_oracle"]})
@@ -183,15 +206,20 @@ def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusio
             "rule_variant": variant, "rule_variant_af1": variant_af1, "scenes": {k: c.num_scenes for k, c in caches.items()}}
 
 
-def row_order() -> list[str]:
-    return [*FIXED, RULE, "entropy_per_s", "random", *BOUNDS]
+LEARNED = "map_policy"
+
+
+def row_order(results: dict | None = None) -> list[str]:
+    """Table III's rows in order (the learned policy's where `results` has it)."""
+    learned = [LEARNED] if results is None or LEARNED in results else []
+    return [*FIXED, RULE, *learned, "entropy_per_s", "random", *BOUNDS]
 
 
 def table_rows(family: str, name: str, cond: dict) -> list[dict]:
     """table3.csv rows of one family and budget."""
     out = []
     res, best = cond["results"], cond["best_fixed"]
-    for key in row_order():
+    for key in row_order(res):
         r = res[key]
         row = {"setting": family, "budget": name, "fusion": cond.get("fusion", ""), "key": key, "method": LABELS[key],
                "aacc": float(r["acc"][:, :, -1].mean() * 100), "af1": float(r["f1"][:, :, -1].mean()),
@@ -225,6 +253,8 @@ def table_lines(family: str, name: str, cond: dict, rows: list[dict]) -> list[st
         chosen += (f" The rule's survey (70 m views), the fused p below which it keeps surveying and whether it "
                    f"weighs descents per second of flight, chosen on the validation scenes: **{cond['rule_variant']}** ("
                    + ", ".join(f"{k} {v:.3f}" for k, v in cond["rule_variant_af1"].items()) + ").")
+    if cond.get("learned"):
+        chosen += f" The learned policy: {cond['learned']}, trained on the family's training scenes."
     lines = [f"### {family}, {name}", "",
              f"{sc['test']} test scenes; fixed view sets searched on {sc['train']} training scenes, the best fixed route "
              f"chosen on {sc['val']} validation scenes: **{LABELS[cond['best_fixed']]}**.{chosen}", "",
@@ -287,9 +317,12 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
                 chosen, scores = choose_fusion(cs["val"], cfg, candidates)
             else:
                 chosen, scores = make_fusion(args.wide_fusion, cs["train"]), {}
+            path = wide_checkpoint(BUDGETS[list(wide_budgets(config)).index(name)], getattr(args, "wide_policy_dir", None))
+            learned = learned_agent(path, cfg)
             cond = evaluate_condition(cs, cfg, chosen, args.episodes, args.seeds, args.bootstrap,
-                                      args.bootstrap_seed)
-            cond.update(fusion=fusion_name(chosen), fusion_scores=scores)
+                                      args.bootstrap_seed, learned)
+            cond.update(fusion=fusion_name(chosen), fusion_scores=scores,
+                        learned=f"{display_path(path)} ({fusion_name(learned.fusion)})" if learned else None)
             conds[(fam, name)] = cond
             r = table_rows(fam, name, cond)
             rows += r

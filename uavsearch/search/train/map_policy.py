@@ -42,26 +42,17 @@ from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
-from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot, save_figure
 
 from ..config import SearchConfig, config_to_dict, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
 from ..fusion import Fusion, FusionViews, make_fusion
-from ..map_policy import MapPolicyConfig, MapPolicyNet
+from ..map_policy import BUDGETS, MapPolicyConfig, MapPolicyNet, wide_checkpoint
 from ..perception import load_perception, shipped_perception
 from ..policy import ArgmaxPolicy, save_search_model
 from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward, run_search, step_rewards
 from ..wide_policies import argmax_allowed, candidates, choose_rule, rule_policy
 from .runs import RunArgs, copy_checkpoint, seed_everything, start_run
-
-BUDGETS = ("8", "240")  # Table III's two conditions: T = 8 views, or the family's time budget
-
-
-def wide_checkpoint(budget: str, models_dir=None) -> Path:
-    """Where the shipped learned wide-area policy of a budget lives."""
-    return Path(models_dir or MODELS_DIR) / f"search_wide_{'T8' if budget == '8' else f'{budget}s'}_map.pt"
-
 
 def budget_config(config: SearchConfig, budget: str) -> SearchConfig:
     """The family's config under one of Table III's budgets (evaluate.wide.conditions, by its short name)."""
