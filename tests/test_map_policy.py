@@ -149,3 +149,16 @@ def test_bad_training_arguments_are_one_line_errors():
     with pytest.raises(UavsearchError, match="wide family"):
         from uavsearch.testing.synthetic_views import synthetic_cache
         train(Args(progress=False, plot=False), caches=(synthetic_cache(2), synthetic_cache(2)))
+
+
+def test_the_rule_can_be_the_teacher(tmp_path):
+    args = Args(family="wide", budget="8", fusion="average", teacher="rule", calibration_scenes=2,
+                train_eval_scenes=2, dagger_iterations=3, dagger_episodes=16, dagger_epochs=6, batch_size=32,
+                pg_iterations=0, channels=8, conv_layers=2, hidden=16, runs_dir=str(tmp_path), progress=False,
+                plot=False, seed=0)
+    res = train(args, caches=(wide_cache(4, seed=5), wide_cache(2, seed=6)))
+    rows = list(csv.DictReader((res.run_dir / "metrics.csv").open()))
+    assert [r["phase"] for r in rows] == ["dagger"] * 3 and rows[-1]["eval/val_vs_rule"] != ""
+    assert float(rows[-1]["losses/imitation"]) < float(rows[0]["losses/imitation"])
+    with pytest.raises(UavsearchError, match="teacher"):
+        train(Args(teacher="oracle"), caches=(wide_cache(2), wide_cache(2)))

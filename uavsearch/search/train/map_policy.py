@@ -6,11 +6,12 @@ fusion: the calibrated fusion (`--fusion calibrated:GAMMA`, fitted on the first 
 scenes, as Table III fits it) or any fusion a name builds. Every episode is a few gathers (run_search on
 CachedViews).
 
-1. DAgger (`dagger_iterations`): roll out a mixture, per episode and step the teacher (`LabelLookahead`: for each
-   viewpoint it may take, the fused map after that view, scored on the labels: the change of N_tp - N_fp plus a
-   tenth of the change of the summed p of the occupied cells, which breaks the ties of views that flip no cell;
-   per second of flight under a time budget) with probability beta (1, then times `beta_decay`), else the net
-   (sampled); keep every (state, teacher move); fit the net by cross-entropy on the aggregate.
+1. DAgger (`dagger_iterations`): roll out a mixture, per episode and step the teacher (`--teacher labels`:
+   `LabelLookahead`, for each viewpoint it may take, the fused map after that view, scored on the labels: the
+   change of N_tp - N_fp plus a tenth of the change of the summed p of the occupied cells, which breaks the ties
+   of views that flip no cell; per second of flight under a time budget. `--teacher rule`: the rule's variant
+   chosen on validation, a warm start at the rule) with probability beta (1, then times `beta_decay`), else
+   the net (sampled); keep every (state, teacher move); fit the net by cross-entropy on the aggregate.
 2. REINFORCE (`pg_iterations`), reward per view: the change of N_tp - N_fp of the fused map (its sum is the
    final map's N_tp - N_fp, what F1 counts). Each move's return to go is baselined by the mean return to go of
    the OTHER episodes of the same scene in the batch at the same step (leave-one-out: scenes differ far more
@@ -74,6 +75,9 @@ class Args(RunArgs):
     name: str | None = opt(None, "run name (default map_<family>_<budget>)")
     seed: int = opt(0, "seeds random, numpy, torch and the episode sampling")
     # 1. DAgger
+    teacher: str = opt("labels", "DAgger's teacher: labels (LabelLookahead: peeks at the labels) or rule (the rule's "
+                                 "variant chosen on validation: a warm start at the rule for REINFORCE to improve)",
+                       choices=("labels", "rule"))
     dagger_iterations: int = opt(6, "DAgger iterations (rollout, aggregate, fit)")
     dagger_episodes: int = opt(200, "episodes rolled out per DAgger iteration (scenes drawn with replacement)")
     beta_decay: float = opt(0.5, "teacher probability: 1 in the first iteration, times this per iteration")
@@ -115,6 +119,8 @@ def check_args(args: Args) -> None:
         raise UavsearchError("--episodes-per-scene must be at least 2 (each episode's baseline is the others')")
     if not 0.0 <= args.beta_decay <= 1.0:
         raise UavsearchError(f"--beta-decay must lie in [0, 1], got {args.beta_decay}")
+    if args.teacher not in ("labels", "rule"):
+        raise UavsearchError(f"--teacher must be labels or rule, got {args.teacher!r}")
     if args.budget not in BUDGETS:
         raise UavsearchError(f"--budget must be one of {', '.join(BUDGETS)}")
 
@@ -208,7 +214,9 @@ class DaggerMixture:
         a_teacher = self.teacher.act(inp)[0]
         a_net = torch.multinomial(torch.softmax(self.net(planes, vp, mask), -1), 1, generator=self.gen).squeeze(-1)
         use_teacher = torch.rand(len(a_net), generator=self.gen) < self.beta
-        live = candidates(inp).any(1)  # an episode with nothing left to take has ended: nothing to learn there
+        # an episode with nothing left to take has ended, and a teacher's move the net may not make (the rule
+        # flies its survey by step, also over a viewpoint the net visited): nothing to learn there
+        live = candidates(inp).any(1) & mask.gather(1, a_teacher[:, None])[:, 0]
         self.planes.append(planes[live].half())
         self.vps.append(vp[live])
         self.masks.append(mask[live])
@@ -353,7 +361,8 @@ def train(args: Args, caches=None) -> TrainResult:
         it += 1
         beta = args.beta_decay ** i
         rows_b = torch.randint(S, (args.dagger_episodes,), generator=gen)
-        mix = DaggerMixture(net, LabelLookahead(train_cache, rows_b, fusion, config), beta, gen)
+        teacher = LabelLookahead(train_cache, rows_b, fusion, config) if args.teacher == "labels" else rule.policy
+        mix = DaggerMixture(net, teacher, beta, gen)
         t0 = time.perf_counter()
         with torch.no_grad():
             run_search(CachedViews(train_cache, rows_b, config), Agent(fusion, mix), generator=gen)
