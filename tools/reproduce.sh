@@ -108,7 +108,7 @@ UAV="$PY -m uavsearch"
 NEWPERC=$RUN/perception.pt
 NEWPERC_WIDE=$RUN/perception_wide.pt   # the wide families' (trained across 70 m and 40 m)
 # the learned wide-area policy's training (docs/learning.md), the same for both budgets
-MAP_TRAIN="--train-scenes 100 --dagger-iterations 5 --dagger-episodes 128 --pg-iterations 150 --eval-every 15 --threads 2 --seed 0 --no-progress"
+MAP_TRAIN="--train-scenes 100 --threads 1 --seed 0 --no-progress"
 
 # ---------------------------------------------------------------------------------------------------
 # Steps: name | mode (quick = also in --quick, full = full mode only, ship = --ship only) | what | command
@@ -142,7 +142,7 @@ add wide_renders full "every viewpoint of the wide families' scenes (wide: 50 va
   "$PY tools/render_wide.py --families wide --parts val --workers 2 && $PY tools/render_wide.py --families wide --parts train --scenes 100 --workers 2 && $PY tools/render_wide.py --families wide --parts test --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts test --scenes 50 --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts val,train --scenes 20 --workers 2"
 add train_perception_wide full "stage 1 across altitudes: the paper's net fine-tuned (seed 1, 1500 steps) on every viewpoint of 100 wide training scenes -> $NEWPERC_WIDE" \
   "$UAV train perception --settings wide --train-scenes 100 --val-scenes 4 --altitude-feature --init models/perception.pt --lr 1e-3 --steps 1500 --eval-every 300 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 2 --runs-dir $RUN --out $NEWPERC_WIDE --no-progress"
-add train_map_wide full "the wide family's learned policy, one per budget (DAgger + REINFORCE, seed 0, 100 training scenes) on $NEWPERC_WIDE -> $RUN/search_wide_*_map.pt" \
+add train_map_wide full "the wide family's learned policy, one per budget (DAgger from the rule + REINFORCE, seed 0, 100 training scenes) on $NEWPERC_WIDE -> $RUN/search_wide_*_map.pt" \
   "$UAV train map --budget 8 --fusion calibrated:0.5 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_T8_map.pt && $UAV train map --budget 240 --fusion calibrated:0.75 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_240s_map.pt"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE, $RUN/seed0/search_s*_*.pt and $RUN/search_wide_*_map.pt into models/" \
   "cp $NEWPERC models/perception.pt && cp $NEWPERC_WIDE models/perception_wide.pt && cp $RUN/seed0/search_s*_*.pt $RUN/search_wide_*_map.pt models/"

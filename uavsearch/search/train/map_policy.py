@@ -75,17 +75,17 @@ class Args(RunArgs):
     name: str | None = opt(None, "run name (default map_<family>_<budget>)")
     seed: int = opt(0, "seeds random, numpy, torch and the episode sampling")
     # 1. DAgger
-    teacher: str = opt("labels", "DAgger's teacher: labels (LabelLookahead: peeks at the labels) or rule (the rule's "
+    teacher: str = opt("rule", "DAgger's teacher: labels (LabelLookahead: peeks at the labels) or rule (the rule's "
                                  "variant chosen on validation: a warm start at the rule for REINFORCE to improve)",
                        choices=("labels", "rule"))
-    dagger_iterations: int = opt(6, "DAgger iterations (rollout, aggregate, fit)")
-    dagger_episodes: int = opt(200, "episodes rolled out per DAgger iteration (scenes drawn with replacement)")
+    dagger_iterations: int = opt(4, "DAgger iterations (rollout, aggregate, fit)")
+    dagger_episodes: int = opt(128, "episodes rolled out per DAgger iteration (scenes drawn with replacement)")
     beta_decay: float = opt(0.5, "teacher probability: 1 in the first iteration, times this per iteration")
-    dagger_epochs: int = opt(3, "passes over the aggregate per DAgger iteration")
-    batch_size: int = opt(256, "states per cross-entropy minibatch")
+    dagger_epochs: int = opt(8, "passes over the aggregate per DAgger iteration")
+    batch_size: int = opt(64, "states per cross-entropy minibatch")
     lr: float = opt(1e-3, "Adam, imitation")
     # 2. REINFORCE
-    pg_iterations: int = opt(200, "policy-gradient iterations after DAgger")
+    pg_iterations: int = opt(150, "policy-gradient iterations after DAgger")
     scenes_per_batch: int = opt(16, "training scenes per policy-gradient batch (drawn with replacement)")
     episodes_per_scene: int = opt(4, "episodes per scene per policy-gradient batch (>= 2: the baseline)")
     lr_pg: float = opt(3e-4, "Adam, policy gradient")
@@ -97,7 +97,7 @@ class Args(RunArgs):
     channels: int = opt(32, "conv channels")
     conv_layers: int = opt(4, "3x3 conv layers")
     hidden: int = opt(64, "per-viewpoint head width")
-    eval_every: int = opt(20, "policy-gradient iterations between validations")
+    eval_every: int = opt(15, "policy-gradient iterations between validations")
 
 
 class TrainResult(NamedTuple):
