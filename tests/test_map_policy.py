@@ -119,7 +119,7 @@ def test_leave_one_out_baseline_subtracts_the_other_episodes_of_the_scene():
 
 def test_training_imitates_the_teacher_then_reinforces_and_keeps_the_best_on_validation(tmp_path):
     train_c, val_c = wide_cache(6, seed=1), wide_cache(3, seed=2)
-    args = Args(family="wide", budget="240", fusion="calibrated:0.5", calibration_scenes=4, train_eval_scenes=3,
+    args = Args(family="wide", budget="240", fusion="calibrated:0.5", teacher="labels", calibration_scenes=4, train_eval_scenes=3,
                 dagger_iterations=3, dagger_episodes=12, dagger_epochs=4, batch_size=64, pg_iterations=2,
                 scenes_per_batch=2, episodes_per_scene=2, eval_every=1, channels=8, conv_layers=2, hidden=16,
                 runs_dir=str(tmp_path), progress=False, plot=True, seed=3)

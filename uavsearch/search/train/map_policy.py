@@ -29,7 +29,6 @@ its fusion) and summary.json. `--out PATH` or `--ship` (models/search_wide_<budg
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -53,7 +52,7 @@ from ..perception import load_perception, shipped_perception
 from ..policy import ArgmaxPolicy, save_search_model
 from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward, run_search, step_rewards
 from ..wide_policies import argmax_allowed, candidates, choose_rule, rule_policy
-from .runs import RunArgs, copy_checkpoint, seed_everything, start_run
+from .runs import MetricsCsv, RunArgs, copy_checkpoint, seed_everything, start_run
 
 def budget_config(config: SearchConfig, budget: str) -> SearchConfig:
     """The family's config under one of Table III's budgets (evaluate.wide.conditions, by its short name)."""
@@ -317,11 +316,10 @@ def train(args: Args, caches=None) -> TrainResult:
     opt_il = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     opt_pg = torch.optim.Adam(net.parameters(), lr=args.lr_pg, weight_decay=args.weight_decay)
     agg: list[list[torch.Tensor]] = [[], [], [], []]  # planes, viewpoint features, masks, targets
-    rows: list[dict] = []
     best, best_key = {}, -float("inf")
     ckpt = run_dir / "model.pt"
-    csv_f = (run_dir / "metrics.csv").open("w", newline="")
-    writer = None
+    metrics = MetricsCsv(run_dir / "metrics.csv")
+    rows, log = metrics.rows, metrics.log
     meta = {"args": asdict(args), "fusion": getattr(fusion, "spec", fusion.name), "rule": variant,
             "perception_tag": train_cache.perception_tag, "search_config": config_to_dict(config)}
 
@@ -338,15 +336,6 @@ def train(args: Args, caches=None) -> TrainResult:
             best = {"iteration": it, "phase": row["phase"], "val_af1": row["eval/val_af1"],
                     "val_vs_rule": row["eval/val_vs_rule"], "train_vs_rule": row["eval/train_vs_rule"]}
             save_search_model(ckpt, fusion, net, {**meta, "best": best})
-
-    def log(row: dict) -> None:
-        nonlocal writer
-        rows.append(row)
-        if writer is None:
-            writer = csv.DictWriter(csv_f, fieldnames=list(row))
-            writer.writeheader()
-        writer.writerow(row)
-        csv_f.flush()
 
     def blank(it: int, phase: str) -> dict:
         return {"iteration": it, "phase": phase, "seconds": round(time.perf_counter() - t_start, 1),
@@ -429,7 +418,7 @@ def train(args: Args, caches=None) -> TrainResult:
         log(row)
         bar.update()
     bar.close()
-    csv_f.close()
+    metrics.close()
     if args.plot:
         _plot(rows, run_dir / "learning_curve.png", f"{name}, seed {args.seed}")
     out = copy_checkpoint(ckpt, args.out, args.ship, wide_checkpoint(args.budget))

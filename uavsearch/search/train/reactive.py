@@ -26,7 +26,6 @@ self-contained) and summary.json. `--out PATH` or `--ship` (models/search_s<K>_l
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 import time
@@ -50,7 +49,7 @@ from ..policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search
 from ..reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
 from ..scoring import evaluate_agent
 from ..search_loop import R_RE, Agent, CachedViews, classification_reward, run_search, step_rewards
-from .runs import RunArgs, copy_checkpoint, load_caches, seed_everything, start_run
+from .runs import MetricsCsv, RunArgs, copy_checkpoint, load_caches, seed_everything, start_run
 
 FUSION = "learned"
 
@@ -228,11 +227,10 @@ def train(args: Args, caches=None) -> TrainResult:
     opt_il = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     opt_pg = torch.optim.Adam(net.parameters(), lr=args.lr_pg, weight_decay=args.weight_decay)
     agg_states, agg_masks, agg_targets = [], [], []
-    rows: list[dict] = []
     best, best_key = {}, (-float("inf"), -float("inf"))
     ckpt = run_dir / "model.pt"
-    csv_f = (run_dir / "metrics.csv").open("w", newline="")
-    writer = None
+    metrics = MetricsCsv(run_dir / "metrics.csv")
+    rows, log = metrics.rows, metrics.log
     meta = {"args": asdict(args), "confidence": str(conf_path), "perception_tag": train_cache.perception_tag,
             "search_config": config_to_dict(config)}
 
@@ -246,15 +244,6 @@ def train(args: Args, caches=None) -> TrainResult:
             best = {"iteration": it, "phase": row["phase"], "val_af1": v["af1"], "val_aacc": v["aacc"],
                     "val_revisit": v["revisit"], "val_af1_vs_coverage": row["eval/af1_vs_coverage"]}
             save_search_model(ckpt, fusion, net, {**meta, "best": best})
-
-    def log(row: dict) -> None:
-        nonlocal writer
-        rows.append(row)
-        if writer is None:
-            writer = csv.DictWriter(csv_f, fieldnames=list(row))
-            writer.writeheader()
-        writer.writerow(row)
-        csv_f.flush()
 
     def blank(it: int, phase: str) -> dict:
         return {"iteration": it, "phase": phase, "losses/imitation": None, "losses/policy": None,
@@ -335,7 +324,7 @@ def train(args: Args, caches=None) -> TrainResult:
         log(row)
         bar.update()
     bar.close()
-    csv_f.close()
+    metrics.close()
     if args.plot:
         _plot(rows, run_dir / "learning_curve.png", f"{name}, seed {args.seed}")
     out = copy_checkpoint(ckpt, args.out, args.ship, checkpoint_path(args.setting, FUSION, policy="reactive"))

@@ -3,6 +3,7 @@ chosen checkpoint out (never over models/ unless asked)."""
 
 from __future__ import annotations
 
+import csv
 import json
 import random
 import shutil
@@ -45,6 +46,27 @@ def start_run(args: RunArgs, name: str, seed: int) -> Path:
     return run_dir
 
 
+class MetricsCsv:
+    """A run's metrics.csv: one row per iteration, the header from the first row, flushed row by row (a run cut
+    short keeps what it logged). `rows` keeps them for the plots."""
+
+    def __init__(self, path: Path):
+        self.file = Path(path).open("w", newline="")
+        self.writer: csv.DictWriter | None = None
+        self.rows: list[dict] = []
+
+    def log(self, row: dict) -> None:
+        self.rows.append(row)
+        if self.writer is None:
+            self.writer = csv.DictWriter(self.file, fieldnames=list(row))
+            self.writer.writeheader()
+        self.writer.writerow(row)
+        self.file.flush()
+
+    def close(self) -> None:
+        self.file.close()
+
+
 def load_caches(args):
     """The (train, val) view caches of args.setting / args.split under the frozen args.perception."""
 
@@ -74,4 +96,4 @@ def seed_everything(seed: int) -> np.random.Generator:
     return np.random.default_rng(seed)
 
 
-__all__ = ["RunArgs", "copy_checkpoint", "load_caches", "seed_everything", "start_run"]
+__all__ = ["MetricsCsv", "RunArgs", "copy_checkpoint", "load_caches", "seed_everything", "start_run"]
