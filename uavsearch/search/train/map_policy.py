@@ -52,7 +52,7 @@ from ..perception import load_perception, shipped_perception
 from ..policy import ArgmaxPolicy, save_search_model
 from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward, run_search, step_rewards
 from ..wide_policies import argmax_allowed, candidates, choose_rule, rule_policy
-from .runs import MetricsCsv, RunArgs, copy_checkpoint, seed_everything, start_run
+from .runs import MetricsCsv, RunArgs, fit_minibatches, copy_checkpoint, seed_everything, start_run
 
 def budget_config(config: SearchConfig, budget: str) -> SearchConfig:
     """The family's config under one of Table III's budgets (evaluate.wide.conditions, by its short name)."""
@@ -359,21 +359,11 @@ def train(args: Args, caches=None) -> TrainResult:
         for store, new in zip(agg, (mix.planes, mix.vps, mix.masks, mix.targets)):
             store.append(torch.cat(new))
         X, V, M, Y = (torch.cat(a) for a in agg)
-        losses, agree = [], []
-        for _ in range(args.dagger_epochs):
-            perm = torch.randperm(len(Y), generator=gen)
-            for j in range(0, len(Y), args.batch_size):
-                b = perm[j:j + args.batch_size]
-                loss, acc = imitation_loss(net, X[b], V[b], M[b], Y[b])
-                opt_il.zero_grad()
-                loss.backward()
-                opt_il.step()
-                losses.append(float(loss.detach()))
-                agree.append(float(acc))
+        loss, agree = fit_minibatches(opt_il, len(Y), args.dagger_epochs, args.batch_size, gen,
+                                      lambda b: imitation_loss(net, X[b], V[b], M[b], Y[b]))
         row = blank(it, "dagger")
-        row.update({"losses/imitation": float(np.mean(losses[-10:])), "charts/teacher_agreement":
-                    float(np.mean(agree[-10:])), "charts/beta": beta, "charts/aggregate": len(Y),
-                    "charts/steps_per_s": steps_s})
+        row.update({"losses/imitation": loss, "charts/teacher_agreement": agree, "charts/beta": beta,
+                    "charts/aggregate": len(Y), "charts/steps_per_s": steps_s})
         if i == args.dagger_iterations - 1:
             validate(row, it)
         log(row)

@@ -49,7 +49,7 @@ from ..policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search
 from ..reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
 from ..scoring import evaluate_agent
 from ..search_loop import R_RE, Agent, CachedViews, classification_reward, run_search, step_rewards
-from .runs import MetricsCsv, RunArgs, copy_checkpoint, load_caches, seed_everything, start_run
+from .runs import MetricsCsv, RunArgs, fit_minibatches, copy_checkpoint, load_caches, seed_everything, start_run
 
 FUSION = "learned"
 
@@ -265,20 +265,10 @@ def train(args: Args, caches=None) -> TrainResult:
         agg_masks.append(torch.cat(mix.masks))
         agg_targets.append(torch.cat(mix.targets))
         X, M, Y = torch.cat(agg_states), torch.cat(agg_masks), torch.cat(agg_targets)
-        losses, agree = [], []
-        for _ in range(args.dagger_epochs):
-            perm = torch.randperm(len(Y), generator=gen)
-            for j in range(0, len(Y), args.batch_size):
-                b = perm[j:j + args.batch_size]
-                loss, acc = imitation_loss(net, X[b], M[b], Y[b], gen if args.mirror else None, config)
-                opt_il.zero_grad()
-                loss.backward()
-                opt_il.step()
-                losses.append(float(loss.detach()))
-                agree.append(float(acc))
+        loss, agree = fit_minibatches(opt_il, len(Y), args.dagger_epochs, args.batch_size, gen, lambda b: imitation_loss(
+            net, X[b], M[b], Y[b], gen if args.mirror else None, config))
         row = blank(it, "dagger")
-        row.update({"losses/imitation": sum(losses[-10:]) / len(losses[-10:]),
-                    "charts/teacher_agreement": sum(agree[-10:]) / len(agree[-10:]), "charts/beta": beta,
+        row.update({"losses/imitation": loss, "charts/teacher_agreement": agree, "charts/beta": beta,
                     "charts/aggregate": len(Y)})
         if i == args.dagger_iterations - 1 or args.pg_iterations == 0:
             validate(row, it)

@@ -67,6 +67,22 @@ class MetricsCsv:
         self.file.close()
 
 
+def fit_minibatches(optimizer, n: int, epochs: int, batch_size: int, generator, loss_of) -> tuple[float, float]:
+    """`epochs` passes over n examples in shuffled minibatches; loss_of(index tensor) -> (loss, agreement).
+    Returns the mean loss and agreement of the last 10 minibatches (what a DAgger iteration logs)."""
+    losses, agree = [], []
+    for _ in range(epochs):
+        perm = torch.randperm(n, generator=generator)
+        for j in range(0, n, batch_size):
+            loss, acc = loss_of(perm[j:j + batch_size])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(float(loss.detach()))
+            agree.append(float(acc))
+    return float(np.mean(losses[-10:])), float(np.mean(agree[-10:]))
+
+
 def load_caches(args):
     """The (train, val) view caches of args.setting / args.split under the frozen args.perception."""
 
@@ -96,4 +112,4 @@ def seed_everything(seed: int) -> np.random.Generator:
     return np.random.default_rng(seed)
 
 
-__all__ = ["MetricsCsv", "RunArgs", "copy_checkpoint", "load_caches", "seed_everything", "start_run"]
+__all__ = ["MetricsCsv", "RunArgs", "fit_minibatches", "copy_checkpoint", "load_caches", "seed_everything", "start_run"]
