@@ -29,8 +29,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--family", default="wide")
     ap.add_argument("--budget", choices=("8", "240"), default="240", help="T = 8 views, or 240 s of flight")
-    ap.add_argument("--gammas", default="0.5,0.75", help="calibrated fusions' discounts")
-    ap.add_argument("--resurvey", default="0,0.4", help="the fused p below which the rule keeps surveying (0: never)")
+    ap.add_argument("--gammas", default="0.75", help="calibrated fusions' discounts")
+    ap.add_argument("--resurvey", default="0,0.6", help="the fused p below which the rule keeps surveying (0: never)")
     ap.add_argument("--train-scenes", type=int, default=20)
     ap.add_argument("--out", required=True, help="PNG to write (the same lines, printed, go beside it as .md)")
     args = ap.parse_args()
@@ -40,7 +40,7 @@ def main() -> None:
     cfg = list(wide_budgets(val.config).values())[0 if args.budget == "8" else 1]
     gammas = [float(g) for g in args.gammas.split(",")]
     below = {float(t) for t in args.resurvey.split(",")}
-    variants = [k for k, (_, t) in RULE_VARIANTS.items() if t in below]
+    variants = [k for k, (_, t, _) in RULE_VARIANTS.items() if t in below]
     fig, ax = pyplot().subplots(figsize=(7, 4))
     lines = [f"{args.family}, {'T = 8 views' if args.budget == '8' else '240 s'}, {val.num_scenes} validation scenes: "
              "mean F1 after each view (the start view is view 1; `python tools/wide_rule_steps.py`)", ""]
