@@ -27,7 +27,6 @@ scenes with a 95% scene-bootstrap interval, bounds.bootstrap_ci / paired_differe
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 
@@ -48,7 +47,7 @@ from ..perception import load_perception, shipped_perception
 from ..policy import ArgmaxPolicy, load_search_model
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
-from ..wide_policies import RULE_VARIANTS, RoutePolicy, choose_rule, greedy_view_set, label_routes, rule_policy
+from ..wide_policies import RoutePolicy, choose_rule, greedy_view_set, label_routes, rule_policy
 from .bounds import paired_differences, scene_af1
 from .tables import write_csv
 

@@ -447,7 +447,7 @@ def add_train_map_parser(subparsers) -> None:
 def cmd_train_map(args) -> int:
     a = dataclass_from_args(Args, args)
     res = train(a)
-    print(format_table(res.table, f"{res.best and 'validation scenes'}"))
+    print(format_table(res.table, "validation scenes"))
     print(f"best validation: {json.dumps(res.best)}")
     print(f"{res.seconds:.0f} s; run {res.run_dir}; checkpoint {res.checkpoint}")
     return 0
