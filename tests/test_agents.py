@@ -14,9 +14,10 @@ from uavsearch.replay.replay import _fuse_all
 from uavsearch.fly.missions import mission_from_dict
 from uavsearch.search import fusion
 from uavsearch.search.agents import POLICIES, build_agent, checkpoint_path, new_agent, trained_fusion
-from uavsearch.search.config import SearchConfig, config_to_dict, setting_config
+from uavsearch.search.config import SearchConfig, config_to_dict, setting_config, wide_budgets
 from uavsearch.search.external_policy import ExternalPolicyNet
 from uavsearch.search.fusion import BY_NAME, FUSIONS, Fusion
+from uavsearch.search.map_policy import MapPolicyConfig, MapPolicyNet
 from uavsearch.search.policy import save_search_model
 from uavsearch.search.reactive import ReactivePolicyNet
 from uavsearch.search.search_loop import CachedViews, run_search
@@ -30,6 +31,9 @@ def _ship(models, setting=2, cell_dim=6, global_dim=16):
         save_search_model(checkpoint_path(setting, f, models, policy="reactive"), a.fusion, ReactivePolicyNet())
         save_search_model(checkpoint_path(setting, f, models, policy="external"), a.fusion,
                           ExternalPolicyNet.for_config(SearchConfig()), {"search_config": config_to_dict(SearchConfig())})
+        wide = wide_budgets(setting_config("wide"))["240 s"]
+        save_search_model(checkpoint_path(setting, f, models, policy="map"), a.fusion,
+                          MapPolicyNet(MapPolicyConfig(config_to_dict(wide))), {"search_config": config_to_dict(wide)})
 
 
 @pytest.mark.parametrize("policy", list(POLICIES))
@@ -37,6 +41,8 @@ def _ship(models, setting=2, cell_dim=6, global_dim=16):
 def test_every_registered_pair_builds_and_runs(tmp_path, fusion, policy):
     _ship(tmp_path)
     config = setting_config("wide") if POLICIES[policy].move_set == "any" else SearchConfig()
+    if policy == "map":  # a map net is trained for one budget: the time budget's here
+        config = wide_budgets(config)["240 s"]
     loaded = build_agent(fusion, policy, config, checkpoint=checkpoint_path(2, fusion, tmp_path, policy=policy),
                          confidence_checkpoint=checkpoint_path(2, "learned", tmp_path), scores_net=True)
     assert loaded.agent.fusion_name == fusion and loaded.agent.fusion.trainable == trained_fusion(fusion)

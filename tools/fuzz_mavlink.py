@@ -668,24 +668,29 @@ def _count_acks(sock, vehicle_addr, datagrams, command=M.MAV_CMD_REQUEST_MESSAGE
     parser.robust_parsing = True
     n = 0
 
-    def read():
+    def read() -> bool:
+        """Drain the socket; whether an ack of `command` (any result) came."""
         nonlocal n
+        got = False
         while True:
             try:
                 data, _ = sock.recvfrom(65535)
             except (BlockingIOError, InterruptedError):
-                return
+                return got
             for m in parser.parse_buffer(data) or []:
-                if m.get_type() == "COMMAND_ACK" and m.command == command and m.result == 0:
-                    n += 1
+                if m.get_type() == "COMMAND_ACK" and m.command == command:
+                    got = True
+                    n += m.result == 0
 
     for d in datagrams:
         sock.sendto(d, vehicle_addr)
         read()
         time.sleep(gap_s)
-    end = time.monotonic() + settle_s
-    while time.monotonic() < end:
-        read()
+    # settle until no ack has come for settle_s (a loaded machine answers late), at most 10 x that
+    quiet_until, give_up = time.monotonic() + settle_s, time.monotonic() + 10 * settle_s
+    while time.monotonic() < min(quiet_until, give_up):
+        if read():
+            quiet_until = time.monotonic() + settle_s
         time.sleep(0.01)
     return n
 

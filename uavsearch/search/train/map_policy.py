@@ -42,6 +42,7 @@ from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
+from uavsearch.paths import display_path
 from uavsearch.viz import pyplot, save_figure
 
 from ..config import SearchConfig, config_to_dict, wide_budgets
@@ -418,7 +419,7 @@ def train(args: Args, caches=None) -> TrainResult:
               "vs_rule": best.get("val_vs_rule")},
              {"method": "label-peeking teacher (reads the labels)", "af1": float(teacher_val.mean()),
               "vs_rule": float((teacher_val - rule_val).mean())}]
-    summary = {"best": best, "validation": table, "seconds": seconds, "checkpoint": str(out or ckpt),
+    summary = {"best": best, "validation": table, "seconds": seconds, "checkpoint": display_path(out or ckpt),
                "scenes": {"train": S, "val": val_cache.num_scenes, "train_eval": train_eval.num_scenes}}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     return TrainResult(run_dir, out or ckpt, best, table, seconds)
