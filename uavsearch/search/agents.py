@@ -97,7 +97,8 @@ def loads_checkpoint(policy: str) -> bool:
     return POLICIES[policy].build is None
 
 
-def _same_lattice(a: SearchConfig, b: SearchConfig) -> bool:
+def same_lattice(a: SearchConfig, b: SearchConfig) -> bool:
+    """Whether a policy trained on config `a` reads config `b`: the same viewpoints, actions and move set."""
     pa, pb = a.lattice.positions_enu, b.lattice.positions_enu
     return (pa.shape == pb.shape and bool((abs(pa - pb) < 1e-6).all()) and a.actions == b.actions
             and a.move_set == b.move_set)
@@ -158,7 +159,7 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
             raise error(f"{where}checkpoint {checkpoint} holds a {net.KIND!r} policy net, not the {policy!r} "
                         f"policy's {kind.net!r}")
         recorded = extra.get("search_config") if isinstance(extra, dict) else None
-        if recorded is not None and not _same_lattice(config_from_dict(recorded), config):
+        if recorded is not None and not same_lattice(config_from_dict(recorded), config):
             raise error(f"{where}checkpoint {checkpoint} was trained on another viewpoint lattice "
                         f"({_lattice_text(config_from_dict(recorded))}) than this search's ({_lattice_text(config)})")
         if net.cfg.num_actions != config.num_actions:
@@ -201,4 +202,4 @@ def new_agent(fusion: str, config: SearchConfig, global_dim: int, cell_dim: int,
 
 
 __all__ = ["FUSIONS", "POLICIES", "LoadedAgent", "PolicyKind", "build_agent", "check_names",
-           "checkpoint_path", "loads_checkpoint", "new_agent", "trained_fusion"]
+           "checkpoint_path", "loads_checkpoint", "new_agent", "same_lattice", "trained_fusion"]

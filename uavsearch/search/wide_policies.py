@@ -31,7 +31,7 @@ from uavsearch.errors import UavsearchError
 from .config import SearchConfig
 from .fusion import Fusion, FusionViews
 from .metrics import map_f1
-from .search_loop import Agent, CachedViews, PolicyInput, run_search
+from .search_loop import Agent, PolicyInput
 
 SURVEY_OUTER_M = ((-37.5, 37.5), (37.5, 37.5), (37.5, -37.5), (-37.5, -37.5))  # 4 x 81 m footprints cover 150 m
 SURVEY_INNER_M = ((-12.5, 12.5), (12.5, 12.5), (12.5, -12.5), (-12.5, -12.5))
@@ -185,12 +185,10 @@ def rule_policy(config: SearchConfig, variant: str) -> DescendRule:
 def choose_rule(val, config: SearchConfig, fusion: Fusion) -> tuple[str, dict[str, float]]:
     """The rule's variant with the best mean final F1 (AF1) on a validation view cache (ties: the first listed,
     the simpler), and each variant's AF1."""
-    from .scoring import score_episode
+    from .scoring import evaluate_agent
 
-    af1 = {}
-    for k in RULE_VARIANTS:
-        ep = run_search(CachedViews(val, torch.arange(val.num_scenes), config), Agent(fusion, rule_policy(config, k)))
-        af1[k] = float(score_episode(ep).f1[:, -1].mean())
+    af1 = {k: float(evaluate_agent(val, Agent(fusion, rule_policy(config, k)), 1, config=config).f1[:, -1].mean())
+           for k in RULE_VARIANTS}
     return max(RULE_VARIANTS, key=lambda k: (af1[k], -list(RULE_VARIANTS).index(k))), af1
 
 
@@ -217,7 +215,7 @@ class EntropyPerSecond:
 # Routes searched offline over a view cache: fixed view sets (training scenes) and hindsight bounds (labels)
 
 
-def _route_views(cache, rows: torch.Tensor, positions: torch.Tensor) -> FusionViews:
+def route_views(cache, rows: torch.Tensor, positions: torch.Tensor) -> FusionViews:
     """FusionViews of views at `positions` (M, t) of scenes `rows` (M,)."""
     r = rows[:, None].expand_as(positions)
     return FusionViews(cache.log_probs[r, positions][..., 1].exp(), cache.valid[r, positions],
@@ -240,13 +238,13 @@ def greedy_view_set(cache, fusion: Fusion, config: SearchConfig, per_second: boo
     y = cache.occupancy.numpy()
     route, here = [lat.start_index], lat.start_index
     left = float("inf") if config.budget_s is None else float(config.budget_s)
-    base = map_f1(fusion.fuse(_route_views(cache, rows, torch.tensor([route]).expand(S, -1))).numpy(), y).mean()
+    base = map_f1(fusion.fuse(route_views(cache, rows, torch.tensor([route]).expand(S, -1))).numpy(), y).mean()
     while len(route) < config.budget_T:
         cand = [c for c in range(P) if c not in route and float(cost[here, c]) <= left + 1e-9]
         if not cand:
             break
         pos = torch.tensor([route + [c] for c in cand])  # (C, t+1)
-        views = _route_views(cache, rows.repeat(len(cand)), pos.repeat_interleave(S, 0))
+        views = route_views(cache, rows.repeat(len(cand)), pos.repeat_interleave(S, 0))
         f1 = map_f1(fusion.fuse(views).numpy(), np.tile(y, (len(cand), 1))).reshape(len(cand), S).mean(1)
         gain = f1 - base
         if per_second:
@@ -284,7 +282,7 @@ def label_routes(cache, fusion: Fusion, config: SearchConfig, beam: int = 1) -> 
                     done.append((route, left, _))
                     continue
                 pos = torch.tensor([route + [c] for c in cand])
-                f1 = map_f1(fusion.fuse(_route_views(cache, torch.full((len(cand),), s), pos)).numpy(),
+                f1 = map_f1(fusion.fuse(route_views(cache, torch.full((len(cand),), s), pos)).numpy(),
                             np.repeat(y, len(cand), 0))
                 grow += [(route + [c], left - cost[route[-1], c], f) for c, f in zip(cand, f1)]
             grow.sort(key=lambda st: (-st[2], -st[1]))
@@ -297,4 +295,4 @@ def label_routes(cache, fusion: Fusion, config: SearchConfig, beam: int = 1) -> 
 
 __all__ = ["RULE_VARIANTS", "argmax_allowed", "choose_rule", "rule_policy", "DescendRule", "EntropyPerSecond", "MaskedRandom", "RoutePolicy", "SURVEY_INNER_M", "SURVEY_OUTER_M",
            "binary_entropy", "candidates", "footprints", "greedy_view_set", "label_routes", "lawnmower",
-           "survey_then_lawnmower", "viewpoints_at"]
+           "route_views", "survey_then_lawnmower", "viewpoints_at"]

@@ -38,7 +38,7 @@ from uavsearch.parallel import Executor
 from uavsearch.paths import display_path
 from uavsearch.world.settings import setting_params
 
-from ..agents import build_agent
+from ..agents import build_agent, same_lattice
 from ..config import SearchConfig, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
 from ..fusion import Fusion, OracleFusion, calibrated_candidates, calibrated_gamma, make_fusion
@@ -163,9 +163,7 @@ def learned_agent(path: Path, config: SearchConfig) -> Agent | None:
     if net.KIND != "map":
         raise UavsearchError(f"{display_path(path)} holds a {net.KIND!r} policy, not the wide family's map policy")
     trained = net.cfg.search_config()
-    same = trained.lattice.positions_enu.shape == config.lattice.positions_enu.shape and \
-        (trained.lattice.positions_enu == config.lattice.positions_enu).all()
-    if not same or trained.budget_s != config.budget_s or trained.grid != config.grid:
+    if not same_lattice(trained, config) or trained.budget_s != config.budget_s or trained.grid != config.grid:
         raise UavsearchError(f"{display_path(path)} was trained for another search (lattice, grid or budget) than "
                              f"this Table III condition")
     return Agent(fusion, ArgmaxPolicy(net))

@@ -43,17 +43,19 @@ from tqdm import tqdm
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import display_path
-from uavsearch.viz import pyplot, save_figure
+from uavsearch.viz import pyplot
 
 from ..config import SearchConfig, config_to_dict, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
-from ..fusion import Fusion, FusionViews, make_fusion
+from ..fusion import Fusion, make_fusion
 from ..map_policy import BUDGETS, MapPolicyConfig, MapPolicyNet, wide_checkpoint
 from ..perception import load_perception, shipped_perception
 from ..policy import ArgmaxPolicy, save_search_model
 from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward, run_search, step_rewards
-from ..wide_policies import argmax_allowed, candidates, choose_rule, rule_policy
-from .runs import MetricsCsv, RunArgs, fit_minibatches, copy_checkpoint, seed_everything, start_run
+from ..scoring import evaluate_agent
+from ..wide_policies import argmax_allowed, candidates, choose_rule, route_views, rule_policy
+from .runs import (MetricsCsv, RunArgs, copy_checkpoint, finish_curves, fit_minibatches, imitation_panel, start_run,
+                   start_training)
 
 def budget_config(config: SearchConfig, budget: str) -> SearchConfig:
     """The family's config under one of Table III's budgets (evaluate.wide.conditions, by its short name)."""
@@ -140,12 +142,6 @@ def _repeat(x, k: int):
     return x
 
 
-def view_of(cache: ViewCache, rows: torch.Tensor, positions: torch.Tensor) -> FusionViews:
-    """One view per episode as a fusion batch of T = 1: scene rows (B,), viewpoints (B,)."""
-    return FusionViews(cache.log_probs[rows, positions][..., 1].exp()[:, None], cache.valid[rows, positions][:, None],
-                       cache.cell_area_px[rows, positions][:, None])
-
-
 class LabelLookahead:
     """DAgger's teacher: the allowed viewpoint whose view most improves the fused map on the labels (module
     docstring), per second of flight under a time budget; ties: the nearer. Follows one batch of episodes step
@@ -165,8 +161,8 @@ class LabelLookahead:
         if t < self.seen:
             raise UavsearchError("the teacher follows one batch of episodes forward; build a new one per batch")
         for j in range(self.seen, t):
-            self.state, self.fused = self.fusion.update(self.state, view_of(self.cache, self.rows,
-                                                                            inp.view_positions[:, j]))
+            self.state, self.fused = self.fusion.update(self.state, route_views(self.cache, self.rows,
+                                                                                inp.view_positions[:, j:j + 1]))
         self.seen = t
 
     @torch.no_grad()
@@ -185,7 +181,7 @@ class LabelLookahead:
             k = len(cs)
             pos = torch.tensor(cs).repeat(B)  # (B*k,) episode-major
             rows = self.rows.repeat_interleave(k)
-            _, fused = self.fusion.update(_repeat(self.state, k), view_of(self.cache, rows, pos))
+            _, fused = self.fusion.update(_repeat(self.state, k), route_views(self.cache, rows, pos[:, None]))
             lab = self.labels.repeat_interleave(k, 0)
             after = classification_reward(fused, lab).float() + 0.1 * (fused * lab.float()).sum(-1)
             out[:, cs] = after.reshape(B, k) - now[:, None]
@@ -248,11 +244,8 @@ def leave_one_out(G: torch.Tensor, per_scene: int) -> torch.Tensor:
 
 @torch.no_grad()
 def scene_f1(cache: ViewCache, config: SearchConfig, agent: Agent) -> np.ndarray:
-    """(S,) each scene's final F1 under an agent (deterministic policies)."""
-    from ..scoring import score_episode
-
-    ep = run_search(CachedViews(cache, torch.arange(cache.num_scenes), config), agent)
-    return score_episode(ep).f1[:, -1]
+    """(S,) each scene's final F1 under a deterministic agent, one episode a scene."""
+    return evaluate_agent(cache, agent, 1, config=config).f1[:, -1]
 
 
 def _caches(args: Args):
@@ -268,12 +261,7 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
     ev = [r for r in rows if r["eval/val_af1"] is not None]
     pg = [r for r in rows if r["phase"] == "pg"]
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.8), layout="constrained")
-    il = [r for r in rows if r["losses/imitation"] is not None]
-    ax[0].plot([r["iteration"] for r in il], [r["losses/imitation"] for r in il], lw=0.8, label="imitation loss")
-    ax[0].plot([r["iteration"] for r in il], [r["charts/teacher_agreement"] for r in il], lw=0.8,
-               label="agrees with the teacher")
-    ax[0].set_title("imitation of the teacher")
-    ax[0].legend(fontsize=8)
+    imitation_panel(ax[0], rows)
     ax[1].plot([r["iteration"] for r in ev], [r["eval/val_vs_rule"] for r in ev], "o-", label="validation")
     ax[1].plot([r["iteration"] for r in ev], [r["eval/train_vs_rule"] for r in ev], "s--", label="training scenes")
     ax[1].axhline(0.0, color="k", lw=0.6)
@@ -283,20 +271,14 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
     ax[2].plot([r["iteration"] for r in pg], [r["charts/entropy"] for r in pg], lw=0.8, label="entropy (nats)")
     ax[2].set_title("REINFORCE")
     ax[2].legend(fontsize=8)
-    for a in ax:
-        a.set_xlabel("iteration (DAgger, then REINFORCE)")
-        a.grid(alpha=0.3)
-    fig.suptitle(title)
-    save_figure(fig, path)
+    finish_curves(fig, ax, title, path)
 
 
 def train(args: Args, caches=None) -> TrainResult:
     """Train the map policy; `caches` = (train, val) ViewCaches skips loading perception (tests)."""
     check_args(args)
     t_start = time.perf_counter()
-    torch.set_num_threads(int(args.threads))
-    seed_everything(args.seed)
-    gen = torch.Generator().manual_seed(args.seed)
+    gen = start_training(args.threads, args.seed)
     train_cache, val_cache = caches if caches is not None else _caches(args)
     if train_cache.config.move_set != "any":
         raise UavsearchError(f"the map policy is the wide family's: {args.family!r} is not a wide family")

@@ -50,7 +50,7 @@ from ..metrics import map_f1
 from ..policy import save_search_model
 from ..scoring import evaluate_agent
 from ..search_loop import R_FP, R_RE, R_TP, Agent, CachedViews, classification_reward, run_search, step_rewards
-from .runs import RunArgs, copy_checkpoint, load_caches, seed_everything, start_run
+from .runs import RunArgs, copy_checkpoint, load_caches, start_run, start_training
 
 
 @dataclass
@@ -154,9 +154,7 @@ def train(args: Args, caches=None) -> TrainResult:
     to skip loading perception (tests)."""
     check_args(args)
     t_start = time.perf_counter()
-    torch.set_num_threads(int(args.threads))
-    seed_everything(args.seed)
-    gen = torch.Generator().manual_seed(args.seed)
+    gen = start_training(args.threads, args.seed)
     name = args.name or f"policy_s{args.setting}_{args.fusion}"
     run_dir = start_run(args, name, args.seed)
 

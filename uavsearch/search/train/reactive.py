@@ -40,7 +40,7 @@ from tqdm import tqdm
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import MODELS_DIR
-from uavsearch.viz import pyplot, save_figure
+from uavsearch.viz import pyplot
 
 from ..agents import checkpoint_path
 from ..config import SearchConfig, config_to_dict
@@ -49,7 +49,8 @@ from ..policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search
 from ..reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
 from ..scoring import evaluate_agent
 from ..search_loop import R_RE, Agent, CachedViews, classification_reward, run_search, step_rewards
-from .runs import MetricsCsv, RunArgs, fit_minibatches, copy_checkpoint, load_caches, seed_everything, start_run
+from .runs import (MetricsCsv, RunArgs, copy_checkpoint, finish_curves, fit_minibatches, imitation_panel, load_caches,
+                   start_run, start_training)
 
 FUSION = "learned"
 
@@ -163,14 +164,10 @@ def _validate(val, agent: Agent, config) -> dict:
 
 def _plot(rows: list[dict], path: Path, title: str) -> None:
     plt = pyplot()
-    it = [r["iteration"] for r in rows]
     ev = [r for r in rows if r["eval/af1_vs_coverage"] is not None]
     pg = [r for r in rows if r["phase"] == "pg"]
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.8), layout="constrained")
-    ax[0].plot(it, [r["losses/imitation"] for r in rows], lw=0.8, label="imitation loss")
-    ax[0].plot(it, [r["charts/teacher_agreement"] for r in rows], lw=0.8, label="agrees with the teacher")
-    ax[0].set_title("imitation of the teacher")
-    ax[0].legend(fontsize=8)
+    imitation_panel(ax[0], rows)
     ax[1].plot([r["iteration"] for r in ev], [r["eval/af1_vs_coverage"] for r in ev], "o-")
     ax[1].axhline(0.0, color="k", lw=0.6)
     ax[1].set_title("validation: AF1 - coverage AF1 (argmax)")
@@ -179,20 +176,14 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
     ax[2].plot([r["iteration"] for r in pg], [r["charts/entropy"] for r in pg], lw=0.8, label="entropy (nats)")
     ax[2].set_title("REINFORCE")
     ax[2].legend(fontsize=8)
-    for a in ax:
-        a.set_xlabel("iteration (DAgger, then REINFORCE)")
-        a.grid(alpha=0.3)
-    fig.suptitle(title)
-    save_figure(fig, path)
+    finish_curves(fig, ax, title, path)
 
 
 def train(args: Args, caches=None) -> TrainResult:
     """Train the reactive policy; `caches` = (train, val) ViewCaches to skip loading perception (tests)."""
     check_args(args)
     t_start = time.perf_counter()
-    torch.set_num_threads(int(args.threads))
-    seed_everything(args.seed)
-    gen = torch.Generator().manual_seed(args.seed)
+    gen = start_training(args.threads, args.seed)
     conf_path = Path(args.confidence) if args.confidence else checkpoint_path(args.setting, FUSION)
     fusion, _, conf_extra = load_search_model(conf_path)
     if not fusion.trainable:

@@ -83,6 +83,34 @@ def fit_minibatches(optimizer, n: int, epochs: int, batch_size: int, generator, 
     return float(np.mean(losses[-10:])), float(np.mean(agree[-10:]))
 
 
+def start_training(threads: int, seed: int) -> torch.Generator:
+    """Torch's CPU threads, every seed (seed_everything), and the generator a run draws its episodes from."""
+    torch.set_num_threads(int(threads))
+    seed_everything(seed)
+    return torch.Generator().manual_seed(seed)
+
+
+def imitation_panel(ax, rows: list[dict]) -> None:
+    """A learning curve's DAgger panel: imitation loss and agreement with the teacher, where logged."""
+    il = [r for r in rows if r["losses/imitation"] is not None]
+    ax.plot([r["iteration"] for r in il], [r["losses/imitation"] for r in il], lw=0.8, label="imitation loss")
+    ax.plot([r["iteration"] for r in il], [r["charts/teacher_agreement"] for r in il], lw=0.8,
+            label="agrees with the teacher")
+    ax.set_title("imitation of the teacher")
+    ax.legend(fontsize=8)
+
+
+def finish_curves(fig, axes, title: str, path: Path, xlabel: str = "iteration (DAgger, then REINFORCE)") -> None:
+    """Label and grid every panel of a learning curve, title it, and save it (viz.save_figure)."""
+    from uavsearch.viz import save_figure
+
+    for a in axes:
+        a.set_xlabel(xlabel)
+        a.grid(alpha=0.3)
+    fig.suptitle(title)
+    save_figure(fig, path)
+
+
 def load_caches(args):
     """The (train, val) view caches of args.setting / args.split under the frozen args.perception."""
 
@@ -112,4 +140,4 @@ def seed_everything(seed: int) -> np.random.Generator:
     return np.random.default_rng(seed)
 
 
-__all__ = ["MetricsCsv", "RunArgs", "fit_minibatches", "copy_checkpoint", "load_caches", "seed_everything", "start_run"]
+__all__ = ["MetricsCsv", "RunArgs", "finish_curves", "fit_minibatches", "imitation_panel", "start_training", "copy_checkpoint", "load_caches", "seed_everything", "start_run"]
