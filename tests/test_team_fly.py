@@ -17,7 +17,7 @@ from uavsearch.replay.flight_review import write_flight_review
 from uavsearch.replay.replay import replay_run_dir, trajectory_figure
 from uavsearch.testing.clean_env import clean_env
 
-WIDE = MISSIONS_DIR / "wide.yaml"
+WIDE = MISSIONS_DIR / "wide_team.yaml"
 
 
 @pytest.fixture(scope="module")

@@ -190,15 +190,23 @@ def test_table3_on_a_tiny_synthetic_family(tmp_path):
     assert "the rule" in text and "(best fixed)" in text and "240 s" in text and "T = 8 views" in text
     rows = res["rows"]
     assert len(rows) == 12 + 13 and (tmp_path / "table3.csv").is_file() and (tmp_path / "table3_paired.csv").is_file()
+    # Fig. 6's curves end where the table's AF1 does: after the last view, and at the end of the time budget
+    assert res["figure"] == tmp_path / "fig6.png" and res["figure"].stat().st_size > 10_000
+    for (_, name), cond in res["conditions"].items():
+        for key, r in cond["results"].items():
+            final = float(r["f1"][:, :, -1].mean())
+            curve = r["f1_by_s"] if name == "240 s" else r["f1_by_view"]
+            assert curve[-1] == pytest.approx(final, abs=1e-9), (name, key)
+            assert r["f1_by_s"][0] == pytest.approx(r["f1_by_view"][0], abs=1e-9)  # at 0 s: the start view
     ours = [r for r in rows if r["key"] == "map_policy"]
     assert [r["budget"] for r in ours] == ["240 s"] and np.isfinite(ours[0]["vs_rule"])
     assert np.isfinite(ours[0]["vs_best_fixed"]) and text.count("ours: learned wide-area policy") == 1
     assert "search_wide_240s_map.pt (average:0.1)" in text
     # a checkpoint made for the other budget is refused in one line
-    from uavsearch.search.evaluate.wide import learned_agent
+    from uavsearch.search.agents import load_wide_agent
 
-    with pytest.raises(UavsearchError, match="another search"):
-        learned_agent(wide_checkpoint("240", tmp_path / "models"), wide_budgets(WIDE)["T = 8 views"])
+    with pytest.raises(UavsearchError, match="trained for 240 s of flight, this search has T = 8 views"):
+        load_wide_agent(wide_checkpoint("240", tmp_path / "models"), wide_budgets(WIDE)["T = 8 views"])
     timed = [r for r in rows if r["budget"] == "240 s"]
     assert all(r["flight_s"] <= 240.0 + 1e-6 for r in timed)
     views = [r for r in rows if r["budget"] == "T = 8 views"]
@@ -234,7 +242,7 @@ def test_family_perception_report_judges_each_altitude_on_its_own_views(tmp_path
 
 
 def test_wide_fusion_specs():
-    from uavsearch.search.evaluate.wide import fusion_name
+    from uavsearch.search.fusion import fusion_name
     from uavsearch.search.fusion import make_fusion
 
     assert fusion_name(make_fusion("bayes")) == "bayes:0.1"
@@ -280,3 +288,15 @@ def test_table3_calibrated_fusion_is_fitted_on_the_training_scenes():
             make_fusion(bad, train)
         with pytest.raises(UavsearchError, match="discount"):  # before any cache is built (none is given here)
             eval_wide(SimpleNamespace(wide_fusion=bad), ["wide"])
+
+
+def test_f1_by_seconds_reads_the_map_after_the_views_taken_by_then():
+    from uavsearch.search.evaluate.wide import f1_by_seconds
+
+    cfg = wide_budgets(WIDE)["240 s"]
+    t = cfg.lattice.flight_time_s
+    s, a, b = cfg.lattice.start_index, 0, 5
+    idx = torch.tensor([[s, a, b, b]])  # the episode ended after three views: its last column repeats
+    f1 = np.array([[0.1, 0.2, 0.3, 0.3]])
+    seconds = np.array([0.0, t[s, a] - 1.0, t[s, a], t[s, a] + t[a, b], 240.0])
+    assert f1_by_seconds(cfg, idx, f1, seconds).tolist() == [[0.1, 0.1, 0.2, 0.3, 0.3]]

@@ -24,7 +24,8 @@ from tqdm import tqdm
 from uavsearch.search.data.view_cache import get_view_cache
 from uavsearch.search.evaluate.bounds import bootstrap_ci, scene_af1
 from uavsearch.search.config import wide_budgets
-from uavsearch.search.evaluate.wide import FIXED, FUSION_CANDIDATES, LABELS, RULE, fixed_agents, fusion_name, rule_agent, run_rows
+from uavsearch.search.evaluate.wide import FIXED, FUSION_CANDIDATES, LABELS, RULE, fixed_agents, rule_agent, run_rows
+from uavsearch.search.fusion import fusion_name
 from uavsearch.search.fusion import calibrated_candidates, make_fusion
 from uavsearch.search.wide_policies import choose_rule
 from uavsearch.search.perception import load_perception, shipped_perception

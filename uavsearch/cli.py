@@ -105,7 +105,7 @@ def _cmd_fly(args) -> int:
     if args.vehicles is not None or args.mission_time is not None:
         if mission.family is None:
             raise UavsearchError(f"--vehicles / --mission-time: {mission.source} searches the paper's setting with one "
-                                 "vehicle; a team flies a scene family's mission (--mission missions/wide.yaml)")
+                                 "vehicle; a team flies a scene family's mission (--mission missions/wide_team.yaml)")
         team = {"vehicles": args.vehicles, "mission_time_s": args.mission_time}
         mission = mission.with_team(**{k: v for k, v in team.items() if v is not None})
     if mission.family is not None:  # a scene family's mission: its team flies it
@@ -161,7 +161,7 @@ def _add_fly_parser(sub) -> None:
     p.add_argument("--gcs-port", type=int, default=14550,
                    help="the started vehicle's ground-station link sends here (QGroundControl; 0: off)")
     p.add_argument("--vehicles", type=int, default=None, metavar="N",
-                   help="(a scene family's mission, e.g. missions/wide.yaml) fly a team of N vehicles on one map")
+                   help="(a scene family's mission, e.g. missions/wide_team.yaml) fly a team of N vehicles on one map")
     p.add_argument("--mission-time", type=float, default=None, metavar="S",
                    help="(a scene family's mission) simulated seconds of flight the team searches for")
     p.set_defaults(func=_cmd_fly, exit_at_once=True)

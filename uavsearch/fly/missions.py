@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, NamedTuple
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
@@ -27,8 +27,14 @@ from .vehicle import FlightSettings
 
 if TYPE_CHECKING:
     from ..search.agents import LoadedAgent
+    from ..search.fusion import Fusion
+    from ..search.team import TeamPlanner
 
 DEFAULT_MISSION = MISSIONS_DIR / "default.yaml"
+# A scene family's mission flown by the learned wide-area policy (search/map_policy.py) instead of a team planner,
+# with the fusion its checkpoint was trained and saved with.
+WIDE_POLICY = "map"
+FROM_CHECKPOINT = "checkpoint"
 # The agent registry (search/agents.py) imports torch (1-4 s). Validating with the context {REGISTRY: False}
 # leaves the fusion / policy names unchecked, so `uavsearch fly` can start its vehicle first and check
 # them (Mission.check_registry) while the vehicle starts.
@@ -205,6 +211,15 @@ class TeamSection(_Strict):
 
     vehicles: int = Field(1, ge=1, le=16)  # `uavsearch fly --vehicles N` overrides it
     mission_time_s: float = Field(240.0, gt=0, le=3600)  # simulated seconds of flight, by the lattice's flight times
+    max_views: int | None = Field(None, ge=1, le=72)  # a view budget too (Table III's T = 8); None: views until the time
+
+
+class TeamMethod(NamedTuple):
+    """How a scene family's mission searches: the fusion, the planner run_team asks, and what they are in words."""
+
+    fusion: Fusion
+    planner: TeamPlanner
+    description: str
 
 
 class Mission(_Strict):
@@ -236,6 +251,8 @@ class Mission(_Strict):
             from ..search.evaluate.team import make_planner
             from ..search.fusion import make_fusion
 
+            if v == {"fusion": FROM_CHECKPOINT, "policy": WIDE_POLICY}[info.field_name]:
+                return v  # the learned wide-area policy and the fusion saved with it (checked in _consistent)
             try:
                 if info.field_name == "fusion":
                     make_fusion(v)
@@ -261,8 +278,15 @@ class Mission(_Strict):
         if s.family is not None:
             if s.spec is not None:
                 raise ValueError("scene: a scene family's mission names a seed, not a spec file")
-            if self.checkpoint is not None:
-                raise ValueError("checkpoint: a wide-area mission's planner has no checkpoint")
+            learned = self.policy == WIDE_POLICY
+            if (self.fusion == FROM_CHECKPOINT) != learned:
+                raise ValueError(f"fusion: the learned wide-area policy (policy: {WIDE_POLICY}) flies with the fusion "
+                                 f"saved in its checkpoint (fusion: {FROM_CHECKPOINT}), and only it")
+            if self.checkpoint is not None and not learned:
+                raise ValueError(f"checkpoint: only the learned wide-area policy (policy: {WIDE_POLICY}) has a "
+                                 "checkpoint; a team planner has none")
+            if learned and self.vehicles != 1:
+                raise ValueError(f"team.vehicles: the learned wide-area policy flies one vehicle, not {self.vehicles}")
             return self
         if self.team is not None:
             raise ValueError("team: only a scene family's mission (scene.setting: wide) flies a team")
@@ -329,6 +353,11 @@ class Mission(_Strict):
     def checkpoint_path(self) -> Path:
         if self.checkpoint:
             return self._resolve(self.checkpoint)
+        if self.family is not None:  # the shipped learned wide-area policy of the mission's budget
+            from ..search.map_policy import wide_checkpoint
+
+            views = self.team.max_views if self.team is not None else None
+            return wide_checkpoint(str(views) if views is not None else f"{self.search_config().budget_s:g}")
         agents = _registry()
         trained = self.policy in agents.POLICIES and agents.loads_checkpoint(self.policy)
         return agents.checkpoint_path(self.setting_for_models, self.fusion, policy=self.policy if trained else "learned")
@@ -359,9 +388,9 @@ class Mission(_Strict):
             from ..search.config import setting_config
 
             cfg = setting_config(self.family)
-            t = self.team.mission_time_s if self.team is not None else TeamSection().mission_time_s
-            return dataclasses.replace(cfg, budget_T=cfg.lattice.num_positions, budget_s=float(t),
-                                       intrinsics=self.camera.intrinsics())
+            team = self.team or TeamSection()
+            return dataclasses.replace(cfg, budget_T=team.max_views or cfg.lattice.num_positions,
+                                       budget_s=float(team.mission_time_s), intrinsics=self.camera.intrinsics())
         try:
             return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions),
                                 altitudes_m=tuple(float(a) for a in s.altitudes_m), intrinsics=self.camera.intrinsics())
@@ -397,6 +426,34 @@ class Mission(_Strict):
                            confidence_checkpoint=learned_ck, greedy=self.greedy_policy,
                            perception=self.perception_path, scores_net=True, error=MissionError,
                            where=f"mission {self.source}: ")
+
+    def team_method(self, config: SearchConfig | None = None) -> TeamMethod:
+        """A scene family's mission's fusion and planner (search/team.py's run_team flies them): a team planner
+        with its fusion spec, or the learned wide-area policy with the fusion saved in its checkpoint (one
+        vehicle; the checkpoint must have been trained for the mission's budget)."""
+        from ..search.evaluate.team import make_planner
+        from ..search.fusion import fusion_name, make_fusion
+        from ..search.team import EachVehicle
+
+        config = config or self.search_config()
+        if self.policy != WIDE_POLICY:
+            return TeamMethod(make_fusion(self.fusion), make_planner(self.policy, config),
+                              f"{self.fusion} fusion + {self.policy} team planner")
+        import dataclasses
+
+        from ..search.agents import budget_text, load_wide_agent
+        from ..paths import display_path
+
+        views = self.team.max_views if self.team is not None else None
+        budget = dataclasses.replace(config, budget_s=None) if views else \
+            dataclasses.replace(config, budget_T=config.lattice.num_positions)
+        where = f"mission {self.source}: "
+        agent = load_wide_agent(self.checkpoint_path, budget, error=MissionError, where=where)
+        if agent is None:
+            raise MissionError(f"{where}checkpoint: no file {display_path(self.checkpoint_path)}")
+        return TeamMethod(agent.fusion, EachVehicle(agent.policy),
+                          f"learned wide-area policy {display_path(self.checkpoint_path)} ({budget_text(budget)}, "
+                          f"{fusion_name(agent.fusion)} fusion from its checkpoint)")
 
     def check_registry(self) -> "Mission":
         """The mission validated with its fusion / policy names checked against the agent registry."""
@@ -452,4 +509,5 @@ def load_mission(path=None, check_registry: bool = True) -> Mission:
     return mission_from_dict(data, str(path), check_registry)
 
 
-__all__ = ["DEFAULT_MISSION", "Mission", "load_mission", "mission_from_dict"]
+__all__ = ["DEFAULT_MISSION", "FROM_CHECKPOINT", "WIDE_POLICY", "Mission", "TeamMethod", "load_mission",
+           "mission_from_dict"]

@@ -1,4 +1,4 @@
-"""Flying a team: a scene family's mission (missions/wide.yaml) on N simulated vehicles sharing one map.
+"""Flying a team: a scene family's mission (missions/wide_team.yaml) on N simulated vehicles sharing one map.
 
 There is no second team loop here either: `search.team.run_team` runs with `LiveTeamViews` as its view source,
 the same event loop and planner as the teleport team, with the events taken in the order of their predicted
@@ -149,18 +149,18 @@ def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_
     try:
         import torch
 
+        from ..search.fusion import fusion_name
         from ..search.perception import load_perception
-        from ..search.evaluate.team import make_planner
-        from ..search.fusion import make_fusion
         from ..search.team import run_team
 
         torch.set_num_threads(int(torch_threads))
         mission = mission.check_registry()
         config = mission.search_config()
-        progress(f"models    {mission.perception_path.name}, {mission.fusion} fusion, {mission.policy} planner, "
-                 f"mission time {config.budget_s:g} s")
+        method = mission.team_method(config)
+        max_views = mission.team.max_views if mission.team is not None else None
+        progress(f"models    {mission.perception_path.name}, {method.description}, mission time {config.budget_s:g} s"
+                 f"{f', at most {max_views} views' if max_views else ''}")
         perception, _ = load_perception(mission.perception_path)
-        fusion, planner = make_fusion(mission.fusion), make_planner(mission.policy, config)
         vehicles = [MavlinkVehicle(None, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
                                    progress=progress, system_id=i + 1, connection=conn) for i in range(n)]
         for v in vehicles:
@@ -173,8 +173,8 @@ def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_
                    config={"altitude_m": config.altitude_m, "altitudes_m": list(config.layers_m),
                            "budget_s": config.budget_s, "actions": ["viewpoint"]},
                    team={"vehicles": n, "planner": mission.policy, "mission_time_s": config.budget_s,
-                         "system_ids": list(range(1, n + 1))},
-                   agent=f"{mission.fusion} fusion + {mission.policy} team planner", fusion=mission.fusion,
+                         "max_views": max_views, "system_ids": list(range(1, n + 1))},
+                   agent=method.description, fusion=fusion_name(method.fusion),
                    policy=mission.policy, home=mission.home.model_dump(), tlog_clock="simulated")
         sitl.wait_ready()
         phases["vehicle_ready_s"] = time.monotonic() - wall0
@@ -191,7 +191,8 @@ def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_
                  vehicles[0].settings.takeoff_timeout_s)
             phases["took_off_s"] = time.monotonic() - wall0
             with torch.no_grad():
-                run_team(views, fusion, planner, n, float(config.budget_s), on_event=rec.event)
+                run_team(views, method.fusion, method.planner, n, float(config.budget_s), max_views=max_views,
+                         on_event=rec.event)
             phases["searched_s"] = time.monotonic() - wall0
             status = "completed"
         except VehicleLost as e:

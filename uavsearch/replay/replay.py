@@ -34,12 +34,13 @@ from tqdm import tqdm
 
 from ..errors import LogError, UavsearchError
 from ..flight.mavlink import wire_units as wire
-from ..fly.missions import load_mission, mission_from_dict
+from ..fly.missions import WIDE_POLICY, load_mission, mission_from_dict
 from ..geometry import CameraIntrinsics, GeodeticOrigin, Grid, camera_pose_from_vehicle
 from ..logs.flight_log import read_flight_log
 from ..search.agents import FUSIONS, check_names
-from ..search.fusion import FusionViews, fusion_from_spec
+from ..search.fusion import Fusion, FusionViews, fusion_from_spec, fusion_name
 from ..search.metrics import map_accuracy, map_f1
+from ..search.policy import load_search_model
 from ..search.views import make_view
 from ..viz import draw_grid_overlay, pyplot, save_figure, settle_tight_layout
 from ..world.render import SceneRenderer
@@ -182,9 +183,12 @@ class ReplayData:
         return map_f1(self.maps, np.broadcast_to(self.labels, self.maps.shape))
 
 
-def _fuse_all(method: str, p, valid, area=None, scores=None, labels=None) -> np.ndarray:
-    """The fused map after each view, with the inputs the log holds (the method takes what it needs)."""
-    if ":" in method:  # a spec with its prior (a wide-area mission's fusion, e.g. bayes:0.5)
+def _fuse_all(method, p, valid, area=None, scores=None, labels=None) -> np.ndarray:
+    """The fused map after each view, with the inputs the log holds (the method takes what it needs); `method`
+    is a name, a spec, or a Fusion object (one fitted on training scenes, loaded from a checkpoint)."""
+    if isinstance(method, Fusion):
+        fusion, method = method, fusion_name(method)
+    elif ":" in method:  # a spec with its prior (a wide-area mission's fusion, e.g. bayes:0.5)
         fusion = fusion_from_spec(method)
     else:
         check_names(fusion=method)
@@ -196,6 +200,19 @@ def _fuse_all(method: str, p, valid, area=None, scores=None, labels=None) -> np.
         return None if x is None else torch.as_tensor(np.asarray(x))
     views = FusionViews(t(np.asarray(p, float)), t(np.asarray(valid, bool)), t(area), scores=t(scores), labels=labels)
     return np.asarray(fusion.prefixes(views), dtype=float)
+
+
+def _checkpoint_fusion(header: dict) -> Fusion | None:
+    """The fusion a learned wide-area policy's flight fused with: the one saved in the mission's checkpoint
+    (fitted on training scenes, so no spec rebuilds it); None for every other flight."""
+    if header.get("policy") != WIDE_POLICY:
+        return None
+    try:
+        path = mission_from_dict(header["mission"], header.get("mission_file")).checkpoint_path
+        return load_search_model(path).fusion
+    except (UavsearchError, KeyError) as e:
+        raise LogError(f"the flight fused with its policy's checkpoint, which cannot be loaded: {e} (give "
+                       "--fusion to re-fuse with another method)") from None
 
 
 def _track_from_tlog(path: Path, origin: GeodeticOrigin):
@@ -229,7 +246,7 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
     method = fusion or h["fusion"]
     p, valid, area = log.array("p_occ"), log.array("valid") > 0.5, log.array("cell_area_px")
     scores = None if any(s.scores is None for s in log.steps) else log.array("scores")
-    maps = _fuse_all(method, p, valid, area, scores, labels)
+    maps = _fuse_all(fusion or _checkpoint_fusion(h) or method, p, valid, area, scores, labels)
     images, poses = [], []
     for s in log.steps:
         img = cv2.imread(str(run_dir / s.image), cv2.IMREAD_COLOR)
@@ -360,6 +377,18 @@ def _vehicle_color(sysid: int | None) -> str:
     return ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")[(int(sysid) - 1) % 6]
 
 
+ALTITUDE_LAYER_TOL_M = 5.0  # views within this of a layer's altitude were taken at it (reported altitudes wander)
+
+
+def _altitude_layers(alts) -> list[float]:
+    """The altitudes the views were taken at, highest first: one per cluster of reported altitudes."""
+    layers: list[float] = []
+    for a in sorted(np.asarray(alts, float).tolist(), reverse=True):
+        if not layers or layers[-1] - a >= ALTITUDE_LAYER_TOL_M:
+            layers.append(a)
+    return layers
+
+
 def _draw_track(ax, d: ReplayData, upto: int | None = None) -> None:
     if d.spec is not None:
         draw_topdown(d.spec, ax=ax)
@@ -381,13 +410,19 @@ def _draw_track(ax, d: ReplayData, upto: int | None = None) -> None:
             ax.plot(part[:, 0], part[:, 1], "-", color=_vehicle_color(sid), lw=2.0, zorder=4,
                     label="flown track (telemetry)" if sid is None else f"vehicle {sid}: track and views")
     pos = d.positions_enu[:n]
-    if team:
-        for sid in sorted(set(d.view_sys.tolist())):
-            mine = d.view_sys[:n] == sid
-            ax.plot(pos[mine, 0], pos[mine, 1], "o", color=_vehicle_color(sid), ms=7, mec="white", zorder=5)
-    else:
-        ax.plot(pos[:, 0], pos[:, 1], "o", color="tab:red", ms=7, mec="white", label="views (reported pose)",
-                zorder=5)
+    layers = _altitude_layers(d.positions_enu[:, 2])  # a wide-area search's 70 m and 40 m views differ in marker
+    for k, alt in enumerate(layers):
+        at = np.abs(pos[:, 2] - alt) < ALTITUDE_LAYER_TOL_M
+        marker, ms = ("o", 7) if k == 0 else ("v", 9)
+        where = f" at {alt:.0f} m" if len(layers) > 1 else ""
+        if team:
+            for sid in sorted(set(d.view_sys.tolist())):
+                mine = at & (d.view_sys[:n] == sid)
+                ax.plot(pos[mine, 0], pos[mine, 1], marker, color=_vehicle_color(sid), ms=ms, mec="white", zorder=5,
+                        label=f"views{where}" if where and sid == min(d.view_sys.tolist()) else None)
+        else:
+            ax.plot(pos[at, 0], pos[at, 1], marker, color="tab:red", ms=ms, mec="white",
+                    label=f"views{where} (reported pose)", zorder=5)
     for i, q in enumerate(pos):
         ax.annotate(str(i + 1), (q[0], q[1]), textcoords="offset points", xytext=(5, 5), color="white",
                     fontsize=9, weight="bold", zorder=7)

@@ -192,6 +192,33 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
                        f"{fusion} fusion + {policy} policy")
 
 
+def load_wide_agent(path, config: SearchConfig, error: type[UavsearchError] = UavsearchError,
+                    where: str = "") -> Agent | None:
+    """The learned wide-area policy of a checkpoint (map_policy.MapPolicyNet) as an agent: its most likely
+    viewpoint, with the fusion it was trained with (saved beside it). None where the file is missing; a
+    checkpoint of another kind, or one trained for another lattice, grid or budget than `config`, is a one-line
+    error (Table III and a wide mission both load it here)."""
+    from uavsearch.paths import display_path
+
+    if not Path(path).is_file():
+        return None
+    fusion, net, _ = load_search_model(path)
+    if net.KIND != "map":
+        raise error(f"{where}{display_path(path)} holds a {net.KIND!r} policy, not the wide family's map policy")
+    trained = net.cfg.search_config()
+    if not same_lattice(trained, config) or trained.grid != config.grid:
+        raise error(f"{where}{display_path(path)} was trained for another viewpoint lattice or grid than this search's")
+    if trained.budget_s != config.budget_s or (trained.budget_s is None and trained.budget_T != config.budget_T):
+        raise error(f"{where}{display_path(path)} was trained for {budget_text(trained)}, this search has "
+                    f"{budget_text(config)}")
+    return Agent(fusion, ArgmaxPolicy(net))
+
+
+def budget_text(config: SearchConfig) -> str:
+    """'T = 8 views' or '240 s of flight': the budget a wide-area policy was trained for."""
+    return f"T = {config.budget_T} views" if config.budget_s is None else f"{config.budget_s:g} s of flight"
+
+
 def new_agent(fusion: str, config: SearchConfig, global_dim: int, cell_dim: int, extras: bool = True) -> Agent:
     """A fresh agent for stage 2 to train: a policy net and a fresh fusion (its weights untrained)."""
     check_names(fusion)
@@ -201,5 +228,5 @@ def new_agent(fusion: str, config: SearchConfig, global_dim: int, cell_dim: int,
     return Agent(FUSIONS[fusion].new(cell_dim), policy)
 
 
-__all__ = ["FUSIONS", "POLICIES", "LoadedAgent", "PolicyKind", "build_agent", "check_names",
-           "checkpoint_path", "loads_checkpoint", "new_agent", "same_lattice", "trained_fusion"]
+__all__ = ["FUSIONS", "POLICIES", "LoadedAgent", "PolicyKind", "budget_text", "build_agent", "check_names",
+           "checkpoint_path", "load_wide_agent", "loads_checkpoint", "new_agent", "same_lattice", "trained_fusion"]

@@ -491,6 +491,11 @@ def calibrated_candidates(train, gammas=CALIBRATED_GAMMAS) -> list[Fusion]:
     return [CalibratedFusion(fitted.coef, fitted.prior, g) for g in gammas]
 
 
+def fusion_name(fusion: Fusion) -> str:
+    """The spec that names a fusion object ("calibrated:0.75", "bayes:0.1"): what tables and logs print."""
+    return getattr(fusion, "spec", None) or f"{fusion.name}:{fusion.prior:g}"
+
+
 def make_fusion(spec: str, train=None) -> Fusion:
     """A fusion from a spec: fusion_from_spec's ("name" or "name:prior"), or "calibrated[:GAMMA]" fitted on the
     training view cache `train` (Table III's --wide-fusion, a wide mission's fusion, the map policy's)."""

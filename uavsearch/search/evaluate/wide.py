@@ -36,15 +36,15 @@ import torch
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor
 from uavsearch.paths import display_path
+from uavsearch.viz import pyplot, save_figure
 from uavsearch.world.settings import setting_params
 
-from ..agents import build_agent, same_lattice
+from ..agents import build_agent, load_wide_agent
 from ..config import SearchConfig, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
-from ..fusion import Fusion, OracleFusion, calibrated_candidates, calibrated_gamma, make_fusion
+from ..fusion import Fusion, OracleFusion, calibrated_candidates, calibrated_gamma, fusion_name, make_fusion
 from ..map_policy import BUDGETS, wide_checkpoint
 from ..perception import load_perception, shipped_perception
-from ..policy import ArgmaxPolicy, load_search_model
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
 from ..wide_policies import RoutePolicy, choose_rule, greedy_view_set, label_routes, rule_policy
@@ -89,7 +89,7 @@ def run_rows(cache: ViewCache, config: SearchConfig, agents: dict[str, tuple[Age
     out = {}
     for key, (agent, episodes) in agents.items():
         rows = np.repeat(np.arange(cache.num_scenes), episodes)
-        acc, f1, views, flight = [], [], [], []
+        acc, f1, views, flight, by_view, by_s = [], [], [], [], [], []
         for s in range(seeds if episodes > 1 else 1):
             ep = run_search(CachedViews(cache, rows, config), agent, generator=torch.Generator().manual_seed(s))
             sc = score_episode(ep)
@@ -97,9 +97,30 @@ def run_rows(cache: ViewCache, config: SearchConfig, agents: dict[str, tuple[Age
             f1.append(sc.f1[:, -1:])
             views.append(ep.taken.sum(1).numpy() if ep.taken is not None else np.full(len(rows), ep.maps.shape[1]))
             flight.append(ep.flight_s.numpy() if ep.flight_s is not None else flight_seconds(config, ep.lattice_idx))
+            by_view.append(sc.f1.mean(0))
+            by_s.append(f1_by_seconds(config, ep.lattice_idx, sc.f1, curve_seconds(config)).mean(0))
         out[key] = {"acc": np.stack(acc), "f1": np.stack(f1), "views": np.concatenate(views),
-                    "flight_s": np.concatenate(flight), "scenes": cache.num_scenes}
+                    "flight_s": np.concatenate(flight), "scenes": cache.num_scenes,
+                    "f1_by_view": np.mean(by_view, 0), "f1_by_s": np.mean(by_s, 0)}
     return out
+
+
+CURVE_STEP_S = 5.0  # Fig. 6's time axis: the map's F1 every 5 s of flight
+
+
+def curve_seconds(config: SearchConfig) -> np.ndarray:
+    """Fig. 6's time axis: 0 to the time budget (or 300 s of flight without one)."""
+    return np.arange(0.0, float(config.budget_s or 300.0) + 1e-9, CURVE_STEP_S)
+
+
+def f1_by_seconds(config: SearchConfig, lattice_idx: torch.Tensor, f1: np.ndarray, seconds: np.ndarray) -> np.ndarray:
+    """(B, len(seconds)) each episode's F1 after the views it had taken by each time (an ended episode's later
+    columns repeat its last viewpoint, so its clock stops there)."""
+    t = config.lattice.flight_time_s
+    idx = lattice_idx.numpy()
+    arrive = np.concatenate([np.zeros((len(idx), 1)), t[idx[:, :-1], idx[:, 1:]].cumsum(1)], 1)  # (B, T')
+    last = (arrive[:, None, :] <= seconds[None, :, None] + 1e-9).sum(-1) - 1  # (B, len(seconds)), >= 0: view 0 at 0 s
+    return np.take_along_axis(f1, last, 1)
 
 
 def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarray:
@@ -107,10 +128,6 @@ def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarra
     t = config.lattice.flight_time_s
     idx = lattice_idx.numpy()
     return t[idx[:, :-1], idx[:, 1:]].sum(1) if idx.shape[1] > 1 else np.zeros(len(idx))
-
-
-def fusion_name(fusion: Fusion) -> str:
-    return getattr(fusion, "spec", None) or f"{fusion.name}:{fusion.prior:g}"
 
 
 # What `--wide-fusion auto` chooses among on the validation scenes. Bayes' prior is the p a view must exceed to
@@ -152,21 +169,6 @@ def fixed_agents(config: SearchConfig, fusion: Fusion, train: ViewCache) -> tupl
 
 def rule_agent(fusion: Fusion, config: SearchConfig, variant: str) -> Agent:
     return Agent(fusion, rule_policy(config, variant))
-
-
-def learned_agent(path: Path, config: SearchConfig) -> Agent | None:
-    """The learned wide-area policy of a checkpoint (its argmax viewpoints, with the fusion it was trained
-    with), or None where the file is missing; a checkpoint made for another search is a one-line error."""
-    if not Path(path).is_file():
-        return None
-    fusion, net, extra = load_search_model(path)
-    if net.KIND != "map":
-        raise UavsearchError(f"{display_path(path)} holds a {net.KIND!r} policy, not the wide family's map policy")
-    trained = net.cfg.search_config()
-    if not same_lattice(trained, config) or trained.budget_s != config.budget_s or trained.grid != config.grid:
-        raise UavsearchError(f"{display_path(path)} was trained for another search (lattice, grid or budget) than "
-                             f"this Table III condition")
-    return Agent(fusion, ArgmaxPolicy(net))
 
 
 def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusion: Fusion, episodes: int,
@@ -274,10 +276,47 @@ def write_table3(out: Path, rows: list[dict], paired: list[dict], lines: list[st
             f"Fusion {meta['fusion']} for every row but the oracle ones; perception {meta['perception']} (tag "
             f"{meta['tag']}, {meta['altitudes']}); random: {meta['episodes']} episodes per scene x {meta['seeds']} "
             f"seeds. Δ: per-scene final AF1 minus the reference's, mean over scenes [95% bootstrap interval over "
-            f"scenes]. Views and flight: means per episode (the start view is free).", ""]
+            f"scenes]. Views and flight: means per episode (the start view is free). Fig. 6 (`fig6.png` beside this "
+            "file): mean AF1 against views under the view budget and against seconds of flight under the time "
+            "budget, for the best fixed route, the rule, ours, entropy per second, random and the hindsight bound.",
+            ""]
     md = out / "table3.md"
     md.write_text("\n".join(head + lines + [f"{meta['seconds']:.0f} s"]) + "\n")
     return md
+
+
+FIG6_ROWS = ("best_fixed", RULE, LEARNED, "entropy_per_s", "random", "hindsight")
+FIG6_SHORT = {RULE: "the rule", LEARNED: "ours (learned)", "entropy_per_s": "entropy per second",
+              "random": "random", "hindsight": "hindsight-best (bound)"}
+
+
+def fig6(conds: dict, out: Path) -> Path:
+    """Fig. 6 for the wide families: mean test AF1 against views under the view budget and against seconds of
+    flight under the time budget, one row of panels per family (the curves run_rows keeps)."""
+    plt = pyplot()
+    fams = sorted({f for f, _ in conds}, key=[f for f, _ in conds].index)
+    fig, axes = plt.subplots(len(fams), 2, figsize=(11, 4.2 * len(fams)), squeeze=False, layout="constrained")
+    colours = dict(zip(FIG6_ROWS, ("tab:gray", "tab:blue", "tab:red", "tab:green", "tab:olive", "black")))
+    for i, fam in enumerate(fams):
+        for j, (name, cond) in enumerate((n, c) for (f, n), c in conds.items() if f == fam):
+            ax, res = axes[i, j % 2], cond["results"]
+            timed = cond["config"].budget_s is not None
+            for key in FIG6_ROWS:
+                row = cond["best_fixed"] if key == "best_fixed" else key
+                if row not in res:
+                    continue
+                y = res[row]["f1_by_s"] if timed else res[row]["f1_by_view"]
+                x = curve_seconds(cond["config"]) if timed else np.arange(1, len(y) + 1)
+                label = f"best fixed: {LABELS[row]}" if key == "best_fixed" else FIG6_SHORT[key]
+                ax.plot(x, y, "--" if key == "hindsight" else "-", color=colours[key], lw=2.2 if key in (RULE, LEARNED)
+                        else 1.4, marker=None if timed else "o", ms=4, label=label)
+            ax.set_xlabel("seconds of flight" if timed else "views (the first is the start view)")
+            ax.set_ylabel("AF1 (mean over test scenes)")
+            ax.set_title(f"{fam}, {name}: {cond['scenes']['test']} test scenes", fontsize=10)
+            ax.set_ylim(0, 1)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8, loc="upper left")
+    return save_figure(fig, Path(out) / "fig6.png")
 
 
 def perception_of(args, family: str) -> str:
@@ -315,12 +354,12 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
             else:
                 chosen, scores = make_fusion(args.wide_fusion, cs["train"]), {}
             path = wide_checkpoint(BUDGETS[list(wide_budgets(config)).index(name)], getattr(args, "wide_policy_dir", None))
-            learned = learned_agent(path, cfg)
+            learned = load_wide_agent(path, cfg)
             cond = evaluate_condition(cs, cfg, chosen, args.episodes, args.seeds, args.bootstrap,
                                       args.bootstrap_seed, learned)
             cond.update(fusion=fusion_name(chosen), fusion_scores=scores,
                         learned=f"{display_path(path)} ({fusion_name(learned.fusion)})" if learned else None)
-            conds[(fam, name)] = cond
+            conds[(fam, name)] = {**cond, "config": cfg}
             r = table_rows(fam, name, cond)
             rows += r
             paired += [{"setting": fam, "budget": name, **p} for p in cond["paired"]]
@@ -333,8 +372,10 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
             else args.wide_fusion, "perception": display_path(perception_of(args, families[0])), "tag": tag,
             "episodes": args.episodes, "seeds": args.seeds, "seconds": time.perf_counter() - t0}
     md = write_table3(Path(args.out), rows, paired, lines, meta)
+    fig = fig6(conds, Path(args.out))
     print(md.read_text())
-    return {"rows": rows, "paired": paired, "conditions": conds, "table": md}
+    print(f"wrote {display_path(md)} and {display_path(fig)}")
+    return {"rows": rows, "paired": paired, "conditions": conds, "table": md, "figure": fig}
 
 
 __all__ = ["eval_wide", "evaluate_condition", "oracle_perception", "run_rows", "table_rows"]

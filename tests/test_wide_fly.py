@@ -1,0 +1,117 @@
+"""`uavsearch fly --mission missions/wide.yaml`: the learned wide-area policy flies one simulated vehicle (its own
+`uavsearch sitl` process, real UDP on 127.0.0.1, lockstep) over a `wide` scene for its 240 s of flight, at 70 m
+and 40 m, fusing with the fusion saved in its checkpoint; the flight log holds every decision, and replay
+re-fuses and draws it."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from uavsearch.errors import UavsearchError
+from uavsearch.fly.missions import load_mission, mission_from_dict
+from uavsearch.logs.flight_log import read_flight_log
+from uavsearch.paths import MISSIONS_DIR, MODELS_DIR
+from uavsearch.replay.replay import replay_run_dir, trajectory_figure
+from uavsearch.search.search_loop import Observation
+from uavsearch.search.team import run_team
+from uavsearch.testing.clean_env import clean_env
+
+WIDE = MISSIONS_DIR / "wide.yaml"
+
+
+@pytest.fixture(scope="module")
+def flown(tmp_path_factory):
+    run = tmp_path_factory.mktemp("wide") / "run"
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(WIDE), "--out", str(run),
+                        "--gcs-port", "0"], capture_output=True, text=True, timeout=300, env=clean_env())
+    return r, run
+
+
+class LoggedViews:
+    """run_team's view source from a flight log: each view's logged perception outputs, in the order flown."""
+
+    def __init__(self, log, config):
+        self.steps, self.config, self.batch_size, self.k = log.steps, config, 1, 0
+        self.labels = torch.as_tensor(np.asarray(log.labels)).bool().reshape(1, -1)
+        self.asked = []
+
+    def observe(self, idx):
+        s = self.steps[self.k]
+        self.k += 1
+        self.asked.append(int(idx[0]))
+        p = torch.as_tensor(np.asarray(s.p_occ), dtype=torch.float32).clamp(1e-7, 1 - 1e-7)[None]
+        return Observation(torch.stack([torch.log1p(-p), torch.log(p)], -1), None, torch.zeros(1, 0),
+                           torch.as_tensor(np.asarray(s.cell_area_px), dtype=torch.float32)[None],
+                           torch.as_tensor(np.asarray(s.valid)).bool()[None])
+
+
+def test_the_learned_policy_flies_its_time_and_lands(flown):
+    r, run = flown
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "vehicle 1: landed" in r.stdout and "learned wide-area policy" in r.stdout
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["status"] == "completed" and summary["vehicles"] == 1
+    log = read_flight_log(run)
+    assert log.header["fusion"].startswith("calibrated:") and log.header["policy"] == "map"
+    views = [s.lattice_idx for s in log.steps]
+    assert len(views) == len(set(views)) >= 10  # 240 s buys well over ten views, none twice
+    mission = load_mission(WIDE)
+    config = mission.search_config()
+    flight_s = sum(config.lattice.flight_time_s[a, b] for a, b in zip(views, views[1:]))
+    assert flight_s <= 240.0 + 1e-6  # the budget counted in the lattice's flight times
+    alts = {round(float(config.lattice.positions_enu[v, 2])) for v in views}
+    assert alts <= {70, 40} and 70 in alts
+    for s in log.steps:  # each view taken where the policy sent the vehicle, at its altitude
+        assert np.linalg.norm(np.subtract(s.reported_position_enu, s.waypoint_enu)) < 1.5
+    assert summary["f1"] == pytest.approx(log.steps[-1].f1, abs=1e-6)
+
+
+def test_the_flown_route_is_the_policys_choice_on_what_each_view_saw(flown):
+    """The policy, given the flight's own logged perception outputs, picks exactly the viewpoints flown."""
+    r, run = flown
+    assert r.returncode == 0
+    log = read_flight_log(run)
+    mission = load_mission(WIDE)
+    config = mission.search_config()
+    method = mission.team_method(config)
+    source = LoggedViews(log, config)
+    ep = run_team(source, method.fusion, method.planner, 1, float(config.budget_s))
+    assert source.asked == [s.lattice_idx for s in log.steps]
+    assert np.allclose(ep.maps[0, -1].numpy(), log.steps[-1].fused, atol=1e-4)
+
+
+def test_replay_refuses_with_the_checkpoints_fusion_and_draws_both_altitudes(flown):
+    r, run = flown
+    assert r.returncode == 0
+    d = replay_run_dir(run)
+    assert d.fusion.startswith("calibrated:")
+    assert np.allclose(d.maps[-1], d.logged_maps[-1], atol=1e-5)  # re-fused from the log: the same map
+    labels = [t.get_text() for t in trajectory_figure(d).axes[0].get_legend().get_texts()]
+    layers = {round(float(z)) for z in d.positions_enu[:, 2]}
+    if len({round(z / 10) for z in layers}) > 1:
+        assert any("at 40 m" in t for t in labels) and any("at 70 m" in t for t in labels)
+
+
+def test_wide_policy_mission_errors_are_one_line(tmp_path):
+    base = load_mission(WIDE).model_dump(mode="json")
+    for change, words in (
+            ({"team": {"vehicles": 3, "mission_time_s": 240}}, "flies one vehicle"),
+            ({"fusion": "bayes:0.5"}, "fusion saved in its checkpoint"),
+            ({"policy": "rule", "checkpoint": "models/search_wide_240s_map.pt"}, "fusion"),
+            ({"policy": "rule", "fusion": "bayes:0.5", "checkpoint": "x.pt"}, "only the learned wide-area policy")):
+        with pytest.raises(UavsearchError, match=words) as e:
+            mission_from_dict({**base, **change}, "x.yaml")
+        assert "\n" not in str(e.value)
+    # a checkpoint trained for the view budget, flown under the time budget (and the reverse)
+    wrong = mission_from_dict({**base, "checkpoint": str(MODELS_DIR / "search_wide_T8_map.pt")}, "x.yaml")
+    with pytest.raises(UavsearchError, match="trained for T = 8 views, this search has 240 s of flight"):
+        wrong.team_method()
+    views = mission_from_dict({**base, "team": {"vehicles": 1, "mission_time_s": 600, "max_views": 8}}, "x.yaml")
+    assert views.checkpoint_path.name == "search_wide_T8_map.pt" and "T = 8 views" in views.team_method().description
+    missing = mission_from_dict({**base, "checkpoint": str(tmp_path / "none.pt")}, "x.yaml")
+    with pytest.raises(UavsearchError, match="no file"):
+        missing.team_method()
