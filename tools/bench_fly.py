@@ -96,7 +96,8 @@ def main() -> int:
             rows.append(dict(scene=seed, **fly_once(path, Path(tmp) / f"run{seed}")))
         torch_wall2, _ = import_torch_s()
     torch_wall = (torch_wall + torch_wall2) / 2
-    print(f"\nflown missions: {base.name}, T = {base.search.budget_T}, speed {base.flight.speed}, "
+    budget = f"T = {base.search.budget_T}" if base.family is None else f"{base.search_config().budget_s:g} s"
+    print(f"\nflown missions: {base.name}, {budget}, speed {base.flight.speed}, "
           f"{base.fusion} fusion + {base.policy} policy; load average {load0:.2f} at start, "
           f"{os.getloadavg()[0]:.2f} at end ({os.cpu_count()} CPUs)")
     print(f"limit: `import torch` in a fresh process {torch_wall:.2f} s wall (mean of one before and one after the "

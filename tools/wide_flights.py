@@ -64,12 +64,14 @@ def main() -> int:
             m = mission.with_overrides(**{"scene.seed": seed})
             r = fly_team(m, out=Path(tmp) / f"run{seed}", progress=lambda line: None, gcs_port=0)
             flown = [s.lattice_idx for s in read_flight_log(r.run_dir).steps]
+            mission_s = json.loads((r.run_dir / "summary.json").read_text()).get("mission_time_s") or float("nan")
             tf1, tele = teleport(cache, i, mission, config)
             same = next((k for k, (a, b) in enumerate(zip(flown, tele)) if a != b), min(len(flown), len(tele)))
             rows.append(dict(seed=int(seed), status=r.status, f1=r.f1 or 0.0, tf1=tf1, views=len(flown),
                              tviews=len(tele), low=int(low[flown].sum()), tlow=int(low[tele].sum()),
                              common=len(set(flown) & set(tele)), same_prefix=same, wall=r.wall_s,
-                             flight_wall=r.flight_wall_s, sim=r.sim_time_s or float("nan"), flown=flown, teleport=tele))
+                             flight_wall=r.flight_wall_s, sim=r.sim_time_s or float("nan"), mission_s=mission_s,
+                             flown=flown, teleport=tele))
     d = np.array([r["f1"] - r["tf1"] for r in rows])
     mean, lo, hi = bootstrap_ci(d)
     method = mission.team_method(config).description
@@ -81,13 +83,16 @@ def main() -> int:
              f"{budget}, {method})", "",
              f"The first {len(rows)} {mission.family} test scenes, flown over MAVLink at --speed {mission.flight.speed} "
              "in lockstep (vehicle seed 0) against `run_team` on the same scenes' cached views (teleport: the "
-             f"nominal poses). Regenerate: `{cmd}`.", "",
+             "nominal poses, the lattice's flight times). Mission time flown: the last view's time since the start "
+             "view on the vehicle's clock, which the flight counts its budget in (simulated: the whole flight, "
+             f"take-off and landing included). Regenerate: `{cmd}`.", "",
              "| scene | status | flown AF1 | teleport AF1 | views flown / teleport | of them at 40 m | viewpoints in "
-             "common | same first views | wall (s) | of it flying (s) | simulated (s) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "common | same first views | mission time flown (s) | wall (s) | of it flying (s) | simulated (s) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['seed']} | {r['status']} | {r['f1']:.3f} | {r['tf1']:.3f} | {r['views']} / {r['tviews']} | "
-                     f"{r['low']} / {r['tlow']} | {r['common']} | {r['same_prefix']} | {r['wall']:.1f} | "
+                     f"{r['low']} / {r['tlow']} | {r['common']} | {r['same_prefix']} | {r['mission_s']:.1f} | "
+                     f"{r['wall']:.1f} | "
                      f"{r['flight_wall']:.1f} | {r['sim']:.1f} |")
     walls = np.array([r["wall"] for r in rows])
     lines += ["", f"Flown AF1 {np.mean([r['f1'] for r in rows]):.3f}, teleport {np.mean([r['tf1'] for r in rows]):.3f}: "

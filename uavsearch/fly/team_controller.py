@@ -10,8 +10,9 @@ arrivals. What a flight adds:
   controller waits for one vehicle the others fly on and their telemetry is read on the same connection;
 - take-off together (every vehicle is sent up, then one wait for all), each next viewpoint sent the moment
   the planner chooses it (`dispatch`), the capture when the vehicle has arrived and settled (`observe`),
-  landing together; the separation rule holds because the planner never gives two vehicles one viewpoint
-  and the simulated vehicles refuse a goto within SIM_SEP_DIST of another vehicle;
+  the mission time read from the vehicles' clock at each capture (`mission_time_s`), landing together; the
+  separation rule holds because the planner never gives two vehicles one viewpoint and the simulated vehicles
+  refuse a goto within SIM_SEP_DIST of another vehicle;
 - recording: one StepRecord per view with the system id that took it (`vehicle`), so replay draws every track.
 """
 
@@ -49,6 +50,7 @@ class LiveTeamViews:
         self.labels = torch.as_tensor(np.asarray(labels)).bool().reshape(1, -1)
         self._lattice = config.lattice.positions_enu
         self.last = None  # (vehicle index, Observation) of the last capture
+        self._t0 = None  # the start view's capture time (vehicle clock)
 
     def observe(self, lattice_idx, vehicle):
         from ..search.search_loop import observe_view
@@ -63,6 +65,16 @@ class LiveTeamViews:
         o = observe_view(self.perception, view)
         self.last = (v, o)
         return o
+
+    def mission_time_s(self, vehicle):
+        """(1,) seconds since the start view on the vehicles' shared simulated clock, at the capture just taken
+        (the time run_team counts the budget in)."""
+        import torch
+
+        t = self.vehicles[int(vehicle.reshape(-1)[0])].last_capture.time_boot_s
+        if self._t0 is None:  # the start view
+            self._t0 = t
+        return torch.tensor([t - self._t0], dtype=torch.float64)
 
     def dispatch(self, vehicle, next_idx) -> None:
         v, n = int(vehicle.reshape(-1)[0]), int(next_idx.reshape(-1)[0])
@@ -161,12 +173,14 @@ def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_
         progress(f"models    {mission.perception_path.name}, {method.description}, mission time {config.budget_s:g} s"
                  f"{f', at most {max_views} views' if max_views else ''}")
         perception, _ = load_perception(mission.perception_path)
+        phases["agent_s"] = time.monotonic() - wall0
         vehicles = [MavlinkVehicle(None, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
                                    progress=progress, system_id=i + 1, connection=conn) for i in range(n)]
         for v in vehicles:
             v.watch(_watch(sitl))
         spec = load_scene(sitl.wait_file(SCENE_FILE))
         labels = np.asarray(spec.occupancy_array(), dtype=bool)
+        phases["scene_s"] = time.monotonic() - wall0
         log.header(mission=mission.model_dump(mode="json"), mission_file=mission.source, connect=None,
                    scene={"seed": spec.seed, "setting": mission.family, "occupied_cells": int(labels.sum())},
                    labels=labels.astype(int), grid={"n": config.grid.n, "cell_m": config.grid.cell_m},
@@ -230,6 +244,7 @@ def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_
     summary = dict(status=status, end=end, steps=result.steps, acc=acc, f1=f1, fused=fused,
                    labels=lab.astype(int), positions=result.positions, sim_time_s=result.sim_time_s,
                    wall_s=result.wall_s, flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
+                   mission_time_s=(records[-1].sim_time_s - records[0].sim_time_s) if records else None,
                    vehicles=n, views_per_vehicle={str(i + 1): sum(r.vehicle == i + 1 for r in records)
                                                   for i in range(n)},
                    scene_seed=mission.scene.seed, occupied_cells=int(lab.sum()), speed=mission.flight.speed,

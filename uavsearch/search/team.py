@@ -15,7 +15,10 @@ time, because vehicles fly at once and arrive when their flights end, not in tur
 
 A flying team's source (fly/team_controller.py) has `per_vehicle = True`: `observe(idx, vehicle)` waits for
 that vehicle to arrive and captures, and `dispatch(vehicle, next_idx)` sends it on as soon as it is chosen,
-so the vehicles fly at once while events are taken in the order of their predicted arrivals.
+so the vehicles fly at once while events are taken in the order of their predicted arrivals; its
+`mission_time_s(vehicle)` is the capture's time on the vehicles' own (lockstepped) clock since the start view,
+so a flown mission counts its budget in the seconds the vehicles really flew (the lattice's flight times only
+predict which viewpoints are still reachable).
 
 Planners (`TeamPlanner.choose(inp, vehicle, generator) -> (B,) viewpoint or -1`) read a PolicyInput whose
 `allowed` already excludes taken, claimed and unreachable viewpoints and whose `lattice_idx` is the deciding
@@ -122,6 +125,9 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
                 probs.append(o.log_probs[..., 1].exp())
                 valids.append(o.valid)
                 last_obs = o
+                clock = getattr(source, "mission_time_s", None)
+                if clock is not None:  # a flying team: the time the vehicle's own clock says, not the prediction
+                    now = torch.where(cap, clock(v).to(now.dtype), now)
             capture[ar, v] = False
             # the deciding vehicle's choices: nothing taken, claimed by another vehicle, or out of reach
             claimed = torch.zeros(B, P, dtype=torch.bool)
