@@ -162,3 +162,33 @@ def test_the_rule_can_be_the_teacher(tmp_path):
     assert float(rows[-1]["losses/imitation"]) < float(rows[0]["losses/imitation"])
     with pytest.raises(UavsearchError, match="teacher"):
         train(Args(teacher="oracle"), caches=(wide_cache(2), wide_cache(2)))
+
+
+def test_route_measures_count_views_near_found_groups_and_empty_40m_views():
+    """tools/wide_routes.py's measures on a hand-made route: a group found at view 1, a 40 m look above it that
+    adds nothing (near, empty), then a far 40 m look (not near, empty)."""
+    import sys
+
+    from uavsearch.paths import REPO_ROOT
+
+    sys.path.insert(0, str(REPO_ROOT / "tools"))
+    from wide_routes import route_stats
+
+    pos = TIMED.lattice.positions_enu
+    top, low = pos[:, 2] == pos[:, 2].max(), pos[:, 2] == pos[:, 2].min()
+    a = int(np.flatnonzero(top)[0])
+    below = int(np.flatnonzero(low & (np.abs(pos[:, :2] - pos[a, :2]).sum(1) < 1e-6))[0])
+    far = int(np.flatnonzero(low)[np.argmax(np.hypot(*(pos[low][:, :2] - pos[a, :2]).T))])
+    n = TIMED.grid.num_cells
+    cell = 17
+    labels = np.zeros(n, bool)
+    labels[cell] = True
+    maps = np.zeros((4, n))
+    maps[1:, cell] = 0.9  # found by view 1 and kept
+    idx = np.array([TIMED.lattice.start_index, a, below, far])
+    r = route_stats(TIMED, idx, maps, labels, np.array([pos[a, :2]]), [np.array([cell])])
+    assert r["views"] == 4 and r["low"] == 2
+    assert r["near_found"] == pytest.approx(1 / 3)  # view 1: nothing found yet; view 2: above the group; view 3: far
+    assert r["empty_low"] == 1.0 and r["f1"] == 1.0
+    t = TIMED.lattice.flight_time_s
+    assert r["flight_s"] == pytest.approx(t[idx[0], a] + t[a, below] + t[below, far])

@@ -82,8 +82,9 @@ def episodes(cache, agent: Agent, config) -> list[tuple[np.ndarray, np.ndarray]]
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", type=int, default=100, help="wide test scenes (default all 100)")
-    ap.add_argument("--val-scenes", type=int, default=50, help="validation scenes the rule's variant is chosen on")
+    ap.add_argument("--scenes", type=int, default=None, help="the first N wide test scenes (default all 100)")
+    ap.add_argument("--val-scenes", type=int, default=None,
+                    help="the first N validation scenes, where the rule's variant is chosen (default all 50)")
     ap.add_argument("--policy-dir", type=Path, default=None, help="where the map checkpoints are (default models/)")
     ap.add_argument("--out", type=Path, default=None, help="markdown table to write")
     args = ap.parse_args()
