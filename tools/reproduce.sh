@@ -59,8 +59,11 @@
 #                     on 20 training scenes. measured: see docs/results.md.
 #     team            teams of 1, 2, 3 vehicles on the 100 wide test scenes: AF1 against mission time, planners
 #                     and fusions chosen on 50 validation scenes (results/team_wide/), and 3-vehicle flights of
-#                     the wide mission on 5 test scenes against teleport (results/team_wide/flights.md).
+#                     the team mission on 5 test scenes against teleport (results/team_wide/flights.md).
 #                     measured: see docs/results.md.
+#     map_flights     the learned wide-area policy's mission (missions/wide.yaml) flown on the first 10 wide test
+#                     scenes against teleport (results/map_policy/flights.md), and its routes against the rule's on
+#                     the 100 test scenes (results/map_policy/routes.md). measured: see docs/results.md.
 #     flight          flight vs teleport, settings 1-3, the 10 paper test scenes each, missions/default.yaml
 #                     (vehicle seed 0, policy acting greedily), lockstep at speed max. measured: 652 s
 #                     (load 6-7; ~5 min idle at ~10 s per flown mission). Every Aacc, F1 and route is the
@@ -159,7 +162,9 @@ add perception_wide full "the wide net against its targets per altitude (test vi
 add wide full "Table III: wide (100 test scenes) and wide-uniform (50), models/perception_wide.pt -> results/search_wide/, results/search_wide_uniform/" \
   "$UAV eval search --setting wide --wide-train-scenes 20 --episodes 10 --seeds 2 --no-progress --out results/search_wide && $UAV eval search --setting wide-uniform --wide-test-scenes 50 --wide-val-scenes 20 --wide-train-scenes 20 --episodes 10 --seeds 2 --no-progress --out results/search_wide_uniform"
 add team full "teams of 1-3 vehicles on the wide test scenes, flown 3-vehicle missions vs teleport -> results/team_wide/" \
-  "$UAV eval team --setting wide --wide-val-scenes 50 --no-progress --out results/team_wide && $PY tools/team_flights.py --scenes 5 --out results/team_wide/flights.md"
+  "$UAV eval team --setting wide --wide-val-scenes 50 --no-progress --out results/team_wide && $PY tools/wide_flights.py --mission missions/wide_team.yaml --scenes 5 --out results/team_wide/flights.md"
+add map_flights full "the learned wide-area policy flown (missions/wide.yaml) on 10 wide test scenes against teleport, and its routes against the rule's -> results/map_policy/" \
+  "$PY tools/wide_flights.py --scenes 10 --out results/map_policy/flights.md && $PY tools/wide_routes.py --out results/map_policy/routes.md"
 FLIGHT_CMD=""
 for s in $SETTINGS; do
   FLIGHT_CMD+="rm -rf $RUN/flight_s$s && $UAV eval search --vehicle mavlink --setting $s --split paper --speed max --no-progress --out $RUN/flight_s$s && mkdir -p results/flight && cp $RUN/flight_s$s/flight_vs_teleport.md results/flight/flight_vs_teleport_s$s.md && "
