@@ -10,6 +10,7 @@ back to a default). A bad file gives ONE line naming the field and the problem:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, NamedTuple
@@ -19,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationIn
 
 from ..errors import MissionError, UavsearchError, format_validation_error, read_user_file
 from ..geometry import CameraIntrinsics, GeodeticOrigin
-from ..paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT
+from ..paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT, display_path
 from ..search.config import ACTIONS, SearchConfig
 from ..world.scene import generate_scene, load_scene
 from ..world.settings import SETTINGS
@@ -210,7 +211,8 @@ class TeamSection(_Strict):
     """A scene family's mission: how many vehicles search it together, for how long."""
 
     vehicles: int = Field(1, ge=1, le=16)  # `uavsearch fly --vehicles N` overrides it
-    mission_time_s: float = Field(240.0, gt=0, le=3600)  # simulated seconds of flight, by the lattice's flight times
+    # simulated seconds of flight: on the vehicles' own clock when flown, the lattice's flight times in teleport
+    mission_time_s: float = Field(240.0, gt=0, le=3600)
     max_views: int | None = Field(None, ge=1, le=72)  # a view budget too (Table III's T = 8); None: views until the time
 
 
@@ -383,8 +385,6 @@ class Mission(_Strict):
     def search_config(self) -> SearchConfig:
         s = self.search
         if self.family is not None:  # the family's lattice and camera; views until the mission time is flown
-            import dataclasses
-
             from ..search.config import setting_config
 
             cfg = setting_config(self.family)
@@ -439,10 +439,7 @@ class Mission(_Strict):
         if self.policy != WIDE_POLICY:
             return TeamMethod(make_fusion(self.fusion), make_planner(self.policy, config),
                               f"{self.fusion} fusion + {self.policy} team planner")
-        import dataclasses
-
         from ..search.agents import budget_text, load_wide_agent
-        from ..paths import display_path
 
         views = self.team.max_views if self.team is not None else None
         budget = dataclasses.replace(config, budget_s=None) if views else \

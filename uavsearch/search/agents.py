@@ -23,7 +23,7 @@ from typing import Callable, NamedTuple
 from torch import nn
 
 from uavsearch.errors import UavsearchError
-from uavsearch.paths import MODELS_DIR
+from uavsearch.paths import MODELS_DIR, display_path
 
 from .config import SearchConfig, config_from_dict
 from .fusion import FUSIONS, Fusion, check_buildable
@@ -198,8 +198,6 @@ def load_wide_agent(path, config: SearchConfig, error: type[UavsearchError] = Ua
     viewpoint, with the fusion it was trained with (saved beside it). None where the file is missing; a
     checkpoint of another kind, or one trained for another lattice, grid or budget than `config`, is a one-line
     error (Table III and a wide mission both load it here)."""
-    from uavsearch.paths import display_path
-
     if not Path(path).is_file():
         return None
     fusion, net, _ = load_search_model(path)
