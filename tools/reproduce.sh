@@ -44,13 +44,13 @@
 #                     (results/perception/). measured: 12 s (after view_caches).
 #     search_large    Table II + Fig. 6 on the large split's 100 test scenes per setting (seeds 0-4).
 #                     estimate: ~8 min rendering 7500 views the first time (shipped perception), 35 s after.
-#     wide_renders    every viewpoint (73) of the wide families' scenes: wide 50 val + 100 train + 100 test,
+#     wide_renders    every viewpoint (73) of the wide families' scenes: wide 50 val + 300 train + 100 test,
 #                     wide-uniform 50 test + 20 val + 20 train. measured: 7-11 s wall per scene (2 workers,
 #                     shared machine at load 4-6), 3.6 MB per scene.
 #     train_perception_wide  stage 1 across altitudes: the paper's net fine-tuned on the 7,300 views of 100
 #                     wide training scenes (seed 1, 1500 steps). measured: see docs/results.md.
 #     train_map_wide  the wide family's learned policy (uavsearch train map), T = 8 and 240 s, seed 0, on the
-#                     first 100 training scenes. measured: see docs/results.md.
+#                     first 300 training scenes. measured: see docs/learning.md.
 #     perception_wide the wide net's targets per altitude on the 100 wide test scenes
 #                     (results/perception_wide/), against the paper's net on the same views.
 #     wide            Table III: wide on 100 test scenes (results/search_wide/), wide-uniform on 50
@@ -111,7 +111,7 @@ UAV="$PY -m uavsearch"
 NEWPERC=$RUN/perception.pt
 NEWPERC_WIDE=$RUN/perception_wide.pt   # the wide families' (trained across 70 m and 40 m)
 # the learned wide-area policy's training (docs/learning.md), the same for both budgets
-MAP_TRAIN="--train-scenes 100 --threads 1 --seed 0 --no-progress"
+MAP_TRAIN="--train-scenes 300 --threads 1 --seed 0 --no-progress"
 
 # ---------------------------------------------------------------------------------------------------
 # Steps: name | mode (quick = also in --quick, full = full mode only, ship = --ship only) | what | command
@@ -141,12 +141,12 @@ for seed in $SEEDS; do for s in $SETTINGS; do
 done; done
 add train_reactive full "the reactive policy: settings 1-3 x training seeds 0-2 -> $RUN/seed<S>/ ($JOBS in parallel)" \
   "printf '%s' \"\$REACTIVE_CMDS\" | xargs -P $JOBS -I{} sh -c '{}'"
-add wide_renders full "every viewpoint of the wide families' scenes (wide: 50 val, 100 train, 100 test; wide-uniform: 50 test, 20 val, 20 train; resumable)" \
-  "$PY tools/render_wide.py --families wide --parts val --workers 2 && $PY tools/render_wide.py --families wide --parts train --scenes 100 --workers 2 && $PY tools/render_wide.py --families wide --parts test --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts test --scenes 50 --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts val,train --scenes 20 --workers 2"
+add wide_renders full "every viewpoint of the wide families' scenes (wide: 50 val, 300 train, 100 test; wide-uniform: 50 test, 20 val, 20 train; resumable)" \
+  "$PY tools/render_wide.py --families wide --parts val --workers 2 && $PY tools/render_wide.py --families wide --parts train --scenes 300 --workers 2 && $PY tools/render_wide.py --families wide --parts test --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts test --scenes 50 --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts val,train --scenes 20 --workers 2"
 add train_perception_wide full "stage 1 across altitudes: the paper's net fine-tuned (seed 1, 1500 steps) on every viewpoint of 100 wide training scenes -> $NEWPERC_WIDE" \
   "$UAV train perception --settings wide --train-scenes 100 --val-scenes 4 --altitude-feature --init models/perception.pt --lr 1e-3 --steps 1500 --eval-every 300 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 2 --runs-dir $RUN --out $NEWPERC_WIDE --no-progress"
-add train_map_wide full "the wide family's learned policy, one per budget (DAgger from the rule + REINFORCE, seed 0, 100 training scenes) on $NEWPERC_WIDE -> $RUN/search_wide_*_map.pt" \
-  "$UAV train map --budget 8 --fusion calibrated:0.5 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_T8_map.pt && $UAV train map --budget 240 --fusion calibrated:0.75 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_240s_map.pt"
+add train_map_wide full "the wide family's learned policy, one per budget (DAgger from the rule + REINFORCE, seed 0, 300 training scenes) on $NEWPERC_WIDE -> $RUN/search_wide_*_map.pt" \
+  "$UAV train map --budget 8 --fusion calibrated:0.5 --pg-iterations 300 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_T8_map.pt && $UAV train map --budget 240 --fusion calibrated:0.75 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_240s_map.pt"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE, $RUN/seed0/search_s*_*.pt and $RUN/search_wide_*_map.pt into models/" \
   "cp $NEWPERC models/perception.pt && cp $NEWPERC_WIDE models/perception_wide.pt && cp $RUN/seed0/search_s*_*.pt $RUN/search_wide_*_map.pt models/"
 add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \
