@@ -29,6 +29,7 @@ from uavsearch.search.agents import load_wide_agent
 from uavsearch.search.config import wide_budgets
 from uavsearch.search.data.view_cache import get_view_cache
 from uavsearch.search.evaluate.bounds import bootstrap_ci
+from uavsearch.search.evaluate.wide import flight_seconds
 from uavsearch.search.map_policy import BUDGETS, wide_checkpoint
 from uavsearch.search.metrics import map_f1
 from uavsearch.search.perception import load_perception, shipped_perception
@@ -62,8 +63,7 @@ def route_stats(config, idx: np.ndarray, maps: np.ndarray, labels: np.ndarray, c
         near.append(bool(d) and min(d) <= spacing + 1e-6)
         if low[idx[t]]:
             empty_low.append(tp[t] <= tp[t - 1])
-    t_s = config.lattice.flight_time_s
-    return dict(views=len(idx), low=int(low[idx].sum()), flight_s=float(t_s[idx[:-1], idx[1:]].sum()),
+    return dict(views=len(idx), low=int(low[idx].sum()), flight_s=float(flight_seconds(config, idx[None])[0]),
                 near_found=float(np.mean(near)) if near else 0.0,
                 empty_low=float(np.mean(empty_low)) if empty_low else float("nan"),
                 f1=float(map_f1(maps[-1:], labels[None])[0]))

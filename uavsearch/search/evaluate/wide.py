@@ -113,21 +113,24 @@ def curve_seconds(config: SearchConfig) -> np.ndarray:
     return np.arange(0.0, float(config.budget_s or 300.0) + 1e-9, CURVE_STEP_S)
 
 
+def arrival_seconds(config: SearchConfig, lattice_idx) -> np.ndarray:
+    """(B, T') seconds of flight before each view of each episode (0 for the start view; an ended episode's
+    later columns repeat its last viewpoint, so its clock stops there)."""
+    idx = np.asarray(lattice_idx)
+    legs = config.lattice.flight_time_s[idx[:, :-1], idx[:, 1:]]
+    return np.concatenate([np.zeros((len(idx), 1)), legs.cumsum(1)], 1)
+
+
 def f1_by_seconds(config: SearchConfig, lattice_idx: torch.Tensor, f1: np.ndarray, seconds: np.ndarray) -> np.ndarray:
-    """(B, len(seconds)) each episode's F1 after the views it had taken by each time (an ended episode's later
-    columns repeat its last viewpoint, so its clock stops there)."""
-    t = config.lattice.flight_time_s
-    idx = lattice_idx.numpy()
-    arrive = np.concatenate([np.zeros((len(idx), 1)), t[idx[:, :-1], idx[:, 1:]].cumsum(1)], 1)  # (B, T')
+    """(B, len(seconds)) each episode's F1 after the views it had taken by each time."""
+    arrive = arrival_seconds(config, lattice_idx)
     last = (arrive[:, None, :] <= seconds[None, :, None] + 1e-9).sum(-1) - 1  # (B, len(seconds)), >= 0: view 0 at 0 s
     return np.take_along_axis(f1, last, 1)
 
 
-def flight_seconds(config: SearchConfig, lattice_idx: torch.Tensor) -> np.ndarray:
+def flight_seconds(config: SearchConfig, lattice_idx) -> np.ndarray:
     """(B,) seconds of flight of each episode's views."""
-    t = config.lattice.flight_time_s
-    idx = lattice_idx.numpy()
-    return t[idx[:, :-1], idx[:, 1:]].sum(1) if idx.shape[1] > 1 else np.zeros(len(idx))
+    return arrival_seconds(config, lattice_idx)[:, -1]
 
 
 # What `--wide-fusion auto` chooses among on the validation scenes. Bayes' prior is the p a view must exceed to
@@ -294,12 +297,12 @@ def fig6(conds: dict, out: Path) -> Path:
     """Fig. 6 for the wide families: mean test AF1 against views under the view budget and against seconds of
     flight under the time budget, one row of panels per family (the curves run_rows keeps)."""
     plt = pyplot()
-    fams = sorted({f for f, _ in conds}, key=[f for f, _ in conds].index)
+    fams = list(dict.fromkeys(f for f, _ in conds))
     fig, axes = plt.subplots(len(fams), 2, figsize=(11, 4.2 * len(fams)), squeeze=False, layout="constrained")
     colours = dict(zip(FIG6_ROWS, ("tab:gray", "tab:blue", "tab:red", "tab:green", "tab:olive", "black")))
     for i, fam in enumerate(fams):
         for j, (name, cond) in enumerate((n, c) for (f, n), c in conds.items() if f == fam):
-            ax, res = axes[i, j % 2], cond["results"]
+            ax, res = axes[i, j], cond["results"]
             timed = cond["config"].budget_s is not None
             for key in FIG6_ROWS:
                 row = cond["best_fixed"] if key == "best_fixed" else key
