@@ -3,9 +3,11 @@ process, and on a 2-node Ray cluster on loopback; shard manifests make a resumed
 
 import csv
 import io
+import ipaddress
 import json
 import os
 import socket
+import subprocess
 import sys
 import zipfile
 
@@ -15,6 +17,7 @@ import torch
 
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, Store, map_scenes, npz_bytes
+from uavsearch.testing.clean_env import clean_env
 from uavsearch.search.data.dataset import (
     ViewSetSpec,
     generate_views,
@@ -118,7 +121,7 @@ def test_ray_asked_for_without_the_extra_is_a_one_line_error(monkeypatch):
     before = dict(os.environ)
     with pytest.raises(UavsearchError, match=r"pip install 'uavsearch\[ray\]'"):
         map_scenes(abs, [1], Executor("ray"), progress=False)
-    assert dict(os.environ) == before  # Ray's settings were set for its import only, not left for what follows
+    assert dict(os.environ) == before  # nothing of Ray's is set in this process
     assert Executor.from_args(type("A", (), {"ray_address": "auto", "workers": 3})()) == Executor("ray", 3, "auto")
 
 
@@ -130,6 +133,43 @@ def test_an_unreachable_ray_address_is_a_one_line_error_not_a_wait():
     for address, match in ((f"127.0.0.1:{port}", "cannot reach the Ray cluster"), ("nohost", "HOST:PORT")):
         with pytest.raises(UavsearchError, match=match):
             map_scenes(abs, [1], Executor("ray", address=address), progress=False)
+
+
+# A child that runs map_scenes on a Ray it starts itself, and reports what that Ray is: the results, the
+# addresses its nodes and processes listen on, whether its own environment changed, and the head's processes.
+LOCAL_RAY_CHILD = """
+import json, os, ray
+import psutil  # Ray's own copy (ray/thirdparty_files), on the path once ray is imported
+from uavsearch.parallel import Executor, map_scenes
+def magnitude(x):  # a function, as ray.remote needs (a builtin is not one)
+    return abs(x)
+env = dict(os.environ)
+out = map_scenes(magnitude, [-3, 1, -2, 5], Executor("ray", 2), progress=False)
+head = [p for p in psutil.Process().children() if "ray.scripts.scripts" in " ".join(p.cmdline())]
+procs = [q for h in head for q in [h] + h.children(recursive=True)]
+listen = sorted({c.laddr.ip for q in procs for c in q.net_connections("tcp") if c.status == psutil.CONN_LISTEN})
+print(json.dumps({"out": out, "nodes": [n["NodeManagerAddress"] for n in ray.nodes()], "listen": listen,
+                  "env_same": dict(os.environ) == env, "pids": [q.pid for q in procs]}))
+"""
+
+
+@pytest.mark.slow  # starts a Ray head (the ray extra): `make test-all` runs it
+@pytest.mark.timeout(300)
+def test_a_local_ray_listens_on_loopback_only_and_stops_with_its_driver(tmp_path):
+    pytest.importorskip("ray", reason="needs the ray extra")
+    psutil = pytest.importorskip("psutil")
+    child = subprocess.run([sys.executable, "-c", LOCAL_RAY_CHILD], env=clean_env(), cwd=tmp_path,
+                           capture_output=True, text=True, timeout=240)
+    assert child.returncode == 0, child.stderr[-2000:]
+    got = json.loads(child.stdout.strip().splitlines()[-1])
+    assert got["out"] == [3, 1, 2, 5]
+    assert got["nodes"] == ["127.0.0.1"] and got["listen"]
+    for ip in map(ipaddress.ip_address, got["listen"]):  # 127.0.0.1, or it mapped into IPv6 (::ffff:127.0.0.1)
+        assert (getattr(ip, "ipv4_mapped", None) or ip).is_loopback, got["listen"]
+    assert got["env_same"]
+    assert len(got["pids"]) > 2  # the head, its GCS and raylet at least
+    alive = [p for p in got["pids"] if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
+    assert alive == []  # the driver's exit stopped the head and everything it started
 
 
 def test_map_scenes_keeps_the_order_of_its_items():

@@ -19,15 +19,21 @@ are equal bytes and a local run and a Ray run can be compared file by file.
 
 from __future__ import annotations
 
+import atexit
 import hashlib
 import io
 import json
 import multiprocessing as mp
 import os
+import signal
 import socket
+import subprocess
+import sys
+import tempfile
+import time
 import uuid
 import zipfile
-from contextlib import contextmanager
+from contextlib import suppress
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -38,9 +44,6 @@ from .cli_args import opt
 from .errors import UavsearchError
 
 EXECUTORS = ("local", "ray")
-# A Ray started or joined here never phones home (usage statistics); one started here also serves no
-# dashboard and listens on loopback only (_init_ray).
-RAY_QUIET_ENV = {"RAY_USAGE_STATS_ENABLED": "0"}
 
 
 @dataclass
@@ -92,45 +95,85 @@ def _check_reachable(address: str, timeout_s: float = 10.0) -> None:
         raise UavsearchError(f"cannot reach the Ray cluster at {address}: {e.strerror or e}") from None
 
 
-@contextmanager
-def _environ(extra: dict[str, str]):
-    """`extra` in os.environ (where unset) while Ray is imported and starts its processes (it reads them then,
-    and its processes inherit them), and gone afterwards: nothing later in this process sees them."""
-    added = {k: v for k, v in extra.items() if k not in os.environ}
-    os.environ.update(added)
-    try:
-        yield
-    finally:
-        for k in added:
-            os.environ.pop(k, None)
+# A Ray started here: its head runs in a child process with these settings in the child's own environment.
+# RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0 is what keeps Ray from replacing --node-ip-address 127.0.0.1 (and any
+# loopback address) by the machine's address; usage statistics are off by --disable-usage-stats.
+LOCAL_RAY_ENV = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_USAGE_STATS_ENABLED": "0"}
+LOCAL_RAY_START_TIMEOUT_S = 120.0
+
+
+def _free_loopback_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _start_local_ray(cpus: int) -> str:
+    """Start a Ray head of this machine alone and return the Ray Client address to join it by.
+
+    `ray start --head --block` in a child process: it listens on loopback only, serves no dashboard and
+    sends no usage statistics, and nothing of that is set in this process's environment. The driver joins
+    it through Ray Client (ray://127.0.0.1:PORT), an address Ray takes as given, where a GCS address on
+    127.0.0.1 would be rewritten to the machine's. The head is stopped when this process exits (SIGTERM: it
+    drains and ends its own processes)."""
+    gcs_port, client_port = _free_loopback_port(), _free_loopback_port()
+    log = tempfile.NamedTemporaryFile("w+", prefix="uavsearch-ray-", suffix=".log", delete=False)
+    cmd = [sys.executable, "-m", "ray.scripts.scripts", "start", "--head", "--block", "--disable-usage-stats",
+           "--include-dashboard", "false", "--node-ip-address", "127.0.0.1", "--port", str(gcs_port),
+           "--ray-client-server-port", str(client_port), "--num-cpus", str(int(cpus))]
+    head = subprocess.Popen(cmd, env={**os.environ, **LOCAL_RAY_ENV}, stdin=subprocess.DEVNULL, stdout=log,
+                            stderr=subprocess.STDOUT, start_new_session=True)
+    atexit.register(_stop_local_ray, head, log.name)
+    deadline = time.monotonic() + LOCAL_RAY_START_TIMEOUT_S
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", client_port), timeout=1.0).close()
+            return f"ray://127.0.0.1:{client_port}"
+        except OSError:
+            pass
+        if head.poll() is not None or time.monotonic() > deadline:
+            log.seek(0)
+            lines = [ln.strip() for ln in log.read().splitlines() if ln.strip()]
+            why = lines[-1] if lines else f"exit status {head.returncode}"
+            raise UavsearchError(f"cannot start a local Ray (its log: {log.name}): {why}")
+        time.sleep(0.2)
+
+
+def _stop_local_ray(head: subprocess.Popen, log_path: str) -> None:
+    """Leave the head (a driver still joined would block its drain), then stop it and its processes."""
+    ray = sys.modules.get("ray")
+    if ray is not None and ray.is_initialized():
+        ray.shutdown()
+    if head.poll() is None:
+        head.terminate()
+        try:
+            head.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+            head.wait()
+    with suppress(OSError):
+        os.remove(log_path)
 
 
 def _init_ray(executor: Executor):
-    """Import Ray (the optional extra) and connect, once per process."""
-    env = dict(RAY_QUIET_ENV)
-    if not executor.address:  # a Ray of this machine alone listens on loopback only (read at import)
-        env["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
-    with _environ(env):
-        return _import_and_connect(executor)
-
-
-def _import_and_connect(executor: Executor):
+    """Import Ray (the optional extra) and connect, once per process: to the cluster at executor.address,
+    or to a head started here (_start_local_ray)."""
     try:
         import ray
     except ImportError:
         raise UavsearchError("--ray needs the ray extra: pip install 'uavsearch[ray]'") from None
-    if not ray.is_initialized():
-        if executor.address:
-            _check_reachable(executor.address)
-        try:
-            if executor.address:
-                ray.init(address=executor.address, log_to_driver=False, configure_logging=False)
-            else:
-                ray.init(num_cpus=int(executor.jobs), include_dashboard=False, log_to_driver=False,
-                         configure_logging=False)
-        except (ConnectionError, RuntimeError, ValueError) as e:
-            where = f"the Ray cluster at {executor.address}" if executor.address else "a local Ray"
-            raise UavsearchError(f"cannot start or join {where}: {str(e).splitlines()[0] if str(e) else e!r}") from None
+    if ray.is_initialized():
+        return ray
+    if executor.address:
+        _check_reachable(executor.address)
+        address = executor.address
+    else:
+        address = _start_local_ray(int(executor.jobs))
+    try:
+        ray.init(address=address, log_to_driver=False, configure_logging=False)
+    except (ConnectionError, RuntimeError, ValueError) as e:
+        where = f"the Ray cluster at {executor.address}" if executor.address else "a local Ray"
+        raise UavsearchError(f"cannot start or join {where}: {str(e).splitlines()[0] if str(e) else e!r}") from None
     return ray
 
 
