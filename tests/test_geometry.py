@@ -19,6 +19,7 @@ from uavsearch.geometry import (
     euler_from_quaternion,
     nadir_camera_pose,
     ned_to_enu,
+    polygon_area,
     project_points,
     quaternion_from_euler,
 )
@@ -47,6 +48,17 @@ def test_nadir_cell_area_matches_analytic_value():
     side_px = GRID.cell_m * INTR.fx / 70.0
     # a nadir camera at 70 m with a 60 deg FOV sees the whole 50 m grid: every cell is whole
     assert areas == pytest.approx(np.full(100, side_px**2), rel=1e-9)
+
+
+def test_cell_areas_at_once_are_the_areas_of_the_clipped_polygons():
+    """cell_pixel_areas takes the whole cells' areas in one batch: the same numbers as polygon_area of each
+    cell's clipped polygon, on a 30 x 30 grid seen whole, in part, tilted and from beyond its edge."""
+    grid = Grid(30, 5.0)
+    poses = [nadir_camera_pose([x, y, z]) for x, y, z in ((0, 0, 70), (-62.5, 37.5, 40), (37.5, -12.5, 70), (200, 0, 40))]
+    poses.append(camera_pose_from_vehicle([10.0, -20.0, 55.0], 0.2, -0.15, 0.7, gimbal_stabilised=False))
+    for pose in poses:
+        expected = np.array([polygon_area(p) for p in cell_image_polygons(grid, INTR, pose)])
+        np.testing.assert_allclose(cell_pixel_areas(grid, INTR, pose), expected, rtol=1e-12, atol=1e-9)
 
 
 def test_mask_pixel_counts_match_polygon_areas():

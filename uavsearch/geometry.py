@@ -335,14 +335,9 @@ def _clip_to_view(pc: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
     return uv if len(uv) >= 3 else np.zeros((0, 2))
 
 
-def cell_image_polygons(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> list[np.ndarray]:
-    """Each cell's image polygon, clipped to the camera's near plane and the image (never wrapped).
-
-    Returns one (k, 2) array of pixel coordinates per cell (k = 0 when the cell is out of view).
-    Cells wholly in front of the camera and inside the image skip the clipping, and so do those wholly
-    beyond one image edge (empty: what the clipping would return). On a wide grid most cells are one or
-    the other, so only the cells the image border crosses are clipped one by one.
-    """
+def _project_cells(grid: Grid, intr: CameraIntrinsics, pose: CameraPose):
+    """Every cell's corners in the camera frame (cells, 4, 3) and in pixels (cells, 4, 2), and which cells lie
+    wholly in front of the camera and inside the image, and which wholly beyond one image edge."""
     pc = pose.world_to_camera(grid.all_corners_enu)  # (cells, 4, 3)
     z = pc[..., 2]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -352,13 +347,43 @@ def cell_image_polygons(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) ->
     whole = front & np.all((u >= 0) & (u <= intr.width_px), axis=1) & np.all((v >= 0) & (v <= intr.height_px), axis=1)
     beyond = front & (np.all(u < 0, axis=1) | np.all(u > intr.width_px, axis=1)
                       | np.all(v < 0, axis=1) | np.all(v > intr.height_px, axis=1))
+    return pc, uv, whole, beyond
+
+
+def cell_image_polygons(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> list[np.ndarray]:
+    """Each cell's image polygon, clipped to the camera's near plane and the image (never wrapped).
+
+    Returns one (k, 2) array of pixel coordinates per cell (k = 0 when the cell is out of view).
+    Cells wholly in front of the camera and inside the image skip the clipping, and so do those wholly
+    beyond one image edge (empty: what the clipping would return). On a wide grid most cells are one or
+    the other, so only the cells the image border crosses are clipped one by one.
+    """
+    pc, uv, whole, beyond = _project_cells(grid, intr, pose)
     empty = np.zeros((0, 2))
     return [uv[i] if whole[i] else empty if beyond[i] else _clip_to_view(pc[i], intr) for i in range(grid.num_cells)]
 
 
+def quad_areas(quads: np.ndarray) -> np.ndarray:
+    """Shoelace areas of (n, 4, 2) quadrilaterals at once: polygon_area of each, to the last bit on this
+    machine (the products are summed in pairs, in the order np.dot sums four)."""
+    x, y = quads[..., 0], quads[..., 1]
+    xn, yn = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    a = (x[:, 0] * yn[:, 0] + x[:, 2] * yn[:, 2]) + (x[:, 1] * yn[:, 1] + x[:, 3] * yn[:, 3])
+    b = (y[:, 0] * xn[:, 0] + y[:, 2] * xn[:, 2]) + (y[:, 1] * xn[:, 1] + y[:, 3] * xn[:, 3])
+    return 0.5 * np.abs(a - b)
+
+
 def cell_pixel_areas(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> np.ndarray:
-    """F_size of every cell: the area in pixels of its clipped image polygon, (num_cells,)."""
-    return np.array([polygon_area(p) for p in cell_image_polygons(grid, intr, pose)])
+    """F_size of every cell: the area in pixels of its clipped image polygon, (num_cells,).
+
+    The cells wholly in the image at once (quad_areas); only those the image border crosses are clipped one
+    by one (a lattice of 73 viewpoints over 900 cells: 0.1 s, not 3 s cell by cell)."""
+    pc, uv, whole, beyond = _project_cells(grid, intr, pose)
+    areas = np.zeros(grid.num_cells)
+    areas[whole] = quad_areas(uv[whole])
+    for i in np.flatnonzero(~whole & ~beyond):
+        areas[i] = polygon_area(_clip_to_view(pc[i], intr))
+    return areas
 
 
 def cell_label_image(grid: Grid, intr: CameraIntrinsics, pose: CameraPose) -> np.ndarray:
