@@ -48,7 +48,8 @@
 #                     wide-uniform 50 test + 20 val + 20 train. measured: 7-11 s wall per scene (2 workers,
 #                     shared machine at load 4-6), 3.6 MB per scene.
 #     train_perception_wide  stage 1 across altitudes: the paper's net fine-tuned on the 7,300 views of 100
-#                     wide training scenes (seed 1, 1500 steps). measured: see docs/results.md.
+#                     wide training scenes (seed 1, 1500 steps), then on the 21,900 of 300 (2000 steps, lower
+#                     learning rate). measured: see docs/results.md.
 #     train_map_wide  the wide family's learned policy (uavsearch train map), T = 8 and 240 s, seed 0, on the
 #                     first 300 training scenes. measured: see docs/learning.md.
 #     perception_wide the wide net's targets per altitude on the 100 wide test scenes
@@ -143,10 +144,10 @@ add train_reactive full "the reactive policy: settings 1-3 x training seeds 0-2 
   "printf '%s' \"\$REACTIVE_CMDS\" | xargs -P $JOBS -I{} sh -c '{}'"
 add wide_renders full "every viewpoint of the wide families' scenes (wide: 50 val, 300 train, 100 test; wide-uniform: 50 test, 20 val, 20 train; resumable)" \
   "$PY tools/render_wide.py --families wide --parts val --workers 2 && $PY tools/render_wide.py --families wide --parts train --scenes 300 --workers 2 && $PY tools/render_wide.py --families wide --parts test --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts test --scenes 50 --workers 2 && $PY tools/render_wide.py --families wide-uniform --parts val,train --scenes 20 --workers 2"
-add train_perception_wide full "stage 1 across altitudes: the paper's net fine-tuned (seed 1, 1500 steps) on every viewpoint of 100 wide training scenes -> $NEWPERC_WIDE" \
-  "$UAV train perception --settings wide --train-scenes 100 --val-scenes 4 --altitude-feature --init models/perception.pt --lr 1e-3 --steps 1500 --eval-every 300 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 2 --runs-dir $RUN --out $NEWPERC_WIDE --no-progress"
+add train_perception_wide full "stage 1 across altitudes in two fine-tunings (seed 1): the paper's net on every viewpoint of 100 wide training scenes (1500 steps, lr 1e-3), then that net on 300 (2000 steps, lr 3e-4) -> $NEWPERC_WIDE" \
+  "$UAV train perception --settings wide --train-scenes 100 --val-scenes 4 --altitude-feature --init models/perception.pt --lr 1e-3 --steps 1500 --eval-every 300 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 2 --runs-dir $RUN --out $RUN/perception_wide_100.pt --no-progress && $UAV train perception --settings wide --train-scenes 300 --val-scenes 10 --altitude-feature --init $RUN/perception_wide_100.pt --lr 3e-4 --steps 2000 --eval-every 250 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 1 --runs-dir $RUN --out $NEWPERC_WIDE --no-progress"
 add train_map_wide full "the wide family's learned policy, one per budget (DAgger from the rule + REINFORCE, seed 0, 300 training scenes) on $NEWPERC_WIDE -> $RUN/search_wide_*_map.pt" \
-  "$UAV train map --budget 8 --fusion calibrated:0.5 --pg-iterations 300 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_T8_map.pt && $UAV train map --budget 240 --fusion calibrated:0.75 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_240s_map.pt"
+  "$UAV train map --budget 8 --fusion calibrated:0.25 --pg-iterations 300 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_T8_map.pt && $UAV train map --budget 240 --fusion calibrated:0.75 --pg-iterations 100 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_240s_map.pt"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE, $RUN/seed0/search_s*_*.pt and $RUN/search_wide_*_map.pt into models/" \
   "cp $NEWPERC models/perception.pt && cp $NEWPERC_WIDE models/perception_wide.pt && cp $RUN/seed0/search_s*_*.pt $RUN/search_wide_*_map.pt models/"
 add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \
