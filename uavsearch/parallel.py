@@ -123,15 +123,16 @@ def _start_local_ray(cpus: int) -> str:
            "--ray-client-server-port", str(client_port), "--num-cpus", str(int(cpus))]
     head = subprocess.Popen(cmd, env={**os.environ, **LOCAL_RAY_ENV}, stdin=subprocess.DEVNULL, stdout=log,
                             stderr=subprocess.STDOUT, start_new_session=True)
-    atexit.register(_stop_local_ray, head, log.name)
     deadline = time.monotonic() + LOCAL_RAY_START_TIMEOUT_S
     while True:
         try:
             socket.create_connection(("127.0.0.1", client_port), timeout=1.0).close()
+            atexit.register(_stop_local_ray, head, log.name)
             return f"ray://127.0.0.1:{client_port}"
         except OSError:
             pass
         if head.poll() is not None or time.monotonic() > deadline:
+            _stop_local_ray(head, None)  # a head that came up too late goes too; its log stays for the reader
             log.seek(0)
             lines = [ln.strip() for ln in log.read().splitlines() if ln.strip()]
             why = lines[-1] if lines else f"exit status {head.returncode}"
@@ -139,8 +140,9 @@ def _start_local_ray(cpus: int) -> str:
         time.sleep(0.2)
 
 
-def _stop_local_ray(head: subprocess.Popen, log_path: str) -> None:
-    """Leave the head (a driver still joined would block its drain), then stop it and its processes."""
+def _stop_local_ray(head: subprocess.Popen, log_path: str | None) -> None:
+    """Leave the head (a driver still joined would block its drain), then stop it and its processes; remove
+    its log (None: keep it)."""
     ray = sys.modules.get("ray")
     if ray is not None and ray.is_initialized():
         ray.shutdown()
@@ -151,8 +153,13 @@ def _stop_local_ray(head: subprocess.Popen, log_path: str) -> None:
         except subprocess.TimeoutExpired:
             os.killpg(head.pid, signal.SIGKILL)
             head.wait()
-    with suppress(OSError):
-        os.remove(log_path)
+    # What outlives the head in its process group (workers of a raylet it has just ended exit on their own,
+    # but not at once on a busy machine) ends with it.
+    with suppress(ProcessLookupError, PermissionError):
+        os.killpg(head.pid, signal.SIGTERM)
+    if log_path is not None:
+        with suppress(OSError):
+            os.remove(log_path)
 
 
 def _init_ray(executor: Executor):
