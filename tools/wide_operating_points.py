@@ -59,8 +59,8 @@ def main() -> int:
         rows, tag = operating_points(path, args.part, args.scenes, args.altitude)
         ok = [r["recall_8px"] for r in rows if r["fa"] <= FA_TARGET]
         cells = " | ".join(f"{r['recall_8px']:.3f} / {r['fa']:.4f}" for r in rows)
-        lines.append(f"| {display_path(path)} ({tag}) | {rows[0]['ap']:.3f} | {cells} | "
-                     f"{max(ok):.3f} |" if ok else f"| {display_path(path)} ({tag}) | {rows[0]['ap']:.3f} | {cells} | none |")
+        best = f"{max(ok):.3f}" if ok else "none"
+        lines.append(f"| {display_path(path)} ({tag}) | {rows[0]['ap']:.3f} | {cells} | {best} |")
     lines += ["", "Each cell: recall at >= 8 px / false alarms per cell-view."]
     text = "\n".join(lines) + "\n"
     print(text)
