@@ -12,13 +12,18 @@ CachedViews).
    of views that flip no cell; per second of flight under a time budget. `--teacher rule`: the rule's variant
    chosen on validation, a warm start at the rule) with probability beta (1, then times `beta_decay`), else
    the net (sampled); keep every (state, teacher move); fit the net by cross-entropy on the aggregate.
+   `--imitate gains` (label teacher only) fits instead the net's score of every allowed viewpoint to the
+   teacher's gain for it (least squares, the gains over their spread on the first aggregate), and the net
+   rolls out its argmax: the label teacher's move hangs on labels no state shows, so its argmax is hard to
+   imitate (13% agreement), but the gain's mean given the state is what least squares learns, and the argmax
+   of that expected gain is the greedy policy that does not peek.
 2. REINFORCE (`pg_iterations`), reward per view: the change of N_tp - N_fp of the fused map (its sum is the
    final map's N_tp - N_fp, what F1 counts). Each move's return to go is baselined by the mean return to go of
    the OTHER episodes of the same scene in the batch at the same step (leave-one-out: scenes differ far more
    than moves, and a fixed route's return would not know how this episode got here). Advantages normalised;
    an entropy bonus decays linearly; an imitation term keeps the teacher's lessons.
-3. Selection: after DAgger and every `eval_every` iterations, the net's argmax viewpoints on the validation
-   scenes; the checkpoint kept has the best AF1 minus the rule's (wide_policies.DescendRule, its variant chosen on
+3. Selection: after every DAgger iteration and every `eval_every` REINFORCE iterations, the net's argmax
+   viewpoints on the validation scenes; the checkpoint kept has the best AF1 minus the rule's (wide_policies.DescendRule, its variant chosen on
    the same validation scenes as Table III chooses it). The same margin on `train_eval_scenes` training scenes
    is logged beside it: a net that memorises its scenes shows a training margin its validation one lacks.
 
@@ -48,7 +53,7 @@ from uavsearch.viz import pyplot
 from ..config import SearchConfig, config_to_dict, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
 from ..fusion import Fusion, make_fusion
-from ..map_policy import BUDGETS, MapPolicyConfig, MapPolicyNet, wide_checkpoint
+from ..map_policy import BUDGETS, MASKED, MapPolicyConfig, MapPolicyNet, wide_checkpoint
 from ..perception import load_perception, shipped_perception
 from ..policy import ArgmaxPolicy, save_search_model
 from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward, run_search, step_rewards
@@ -56,6 +61,9 @@ from ..scoring import evaluate_agent
 from ..wide_policies import argmax_allowed, candidates, choose_rule, route_views, rule_policy
 from .runs import (MetricsCsv, RunArgs, copy_checkpoint, finish_curves, fit_minibatches, imitation_panel, start_run,
                    start_training)
+
+IMITATE = ("moves", "gains")
+
 
 def budget_config(config: SearchConfig, budget: str) -> SearchConfig:
     """The family's config under one of Table III's budgets (evaluate.wide.conditions, by its short name)."""
@@ -80,6 +88,9 @@ class Args(RunArgs):
     teacher: str = opt("rule", "DAgger's teacher: labels (LabelLookahead: peeks at the labels) or rule (the rule's "
                                  "variant chosen on validation: a warm start at the rule for REINFORCE to improve)",
                        choices=("labels", "rule"))
+    imitate: str = opt("moves", "what DAgger fits: moves (cross-entropy on the teacher's viewpoint) or gains (the "
+                                "label teacher's gain of every viewpoint, least squares; --teacher labels)",
+                       choices=IMITATE)
     dagger_iterations: int = opt(4, "DAgger iterations (rollout, aggregate, fit)")
     dagger_episodes: int = opt(128, "episodes rolled out per DAgger iteration (scenes drawn with replacement)")
     beta_decay: float = opt(0.5, "teacher probability: 1 in the first iteration, times this per iteration")
@@ -123,6 +134,10 @@ def check_args(args: Args) -> None:
         raise UavsearchError(f"--beta-decay must lie in [0, 1], got {args.beta_decay}")
     if args.teacher not in ("labels", "rule"):
         raise UavsearchError(f"--teacher must be labels or rule, got {args.teacher!r}")
+    if args.imitate not in IMITATE:
+        raise UavsearchError(f"--imitate must be one of {', '.join(IMITATE)}, got {args.imitate!r}")
+    if args.imitate == "gains" and args.teacher != "labels":
+        raise UavsearchError("--imitate gains fits the label teacher's gains: it needs --teacher labels")
     if args.budget not in BUDGETS:
         raise UavsearchError(f"--budget must be one of {', '.join(BUDGETS)}")
 
@@ -190,25 +205,34 @@ class LabelLookahead:
             gain = gain / self.cost[inp.lattice_idx].clamp(min=1.0)
         return torch.where(allowed, gain, torch.full_like(gain, -np.inf))
 
+    def choose(self, gains: torch.Tensor, inp: PolicyInput) -> torch.Tensor:
+        """The teacher's move given its gains: the highest, ties to the nearer."""
+        return argmax_allowed(gains - 1e-6 * self.cost[inp.lattice_idx], candidates(inp))
+
     @torch.no_grad()
     def act(self, inp: PolicyInput, generator=None):
-        key = self.gains(inp) - 1e-6 * self.cost[inp.lattice_idx]  # ties: the nearer
-        return argmax_allowed(key, candidates(inp)), None, None
+        return self.choose(self.gains(inp), inp), None, None
 
 
 class DaggerMixture:
-    """DAgger's rollout policy; records every (state, mask, teacher move) it passes."""
+    """DAgger's rollout policy; records every (state, mask, teacher target) it passes: the teacher's move, or
+    (`gains`) its gain of every viewpoint (-inf where none may be taken), and then the net rolls out its argmax."""
 
-    def __init__(self, net: MapPolicyNet, teacher: LabelLookahead, beta: float, generator):
-        self.net, self.teacher, self.beta, self.gen = net, teacher, beta, generator
+    def __init__(self, net: MapPolicyNet, teacher, beta: float, generator, gains: bool = False):
+        self.net, self.teacher, self.beta, self.gen, self.fit_gains = net, teacher, beta, generator, gains
         self.planes, self.vps, self.masks, self.targets = [], [], [], []
 
     @torch.no_grad()
     def act(self, inp, generator=None):
         planes, vp = self.net.state(inp)
         mask = self.net.mask(inp)
-        a_teacher = self.teacher.act(inp)[0]
-        a_net = torch.multinomial(torch.softmax(self.net(planes, vp, mask), -1), 1, generator=self.gen).squeeze(-1)
+        logits = self.net(planes, vp, mask)
+        if self.fit_gains:
+            gains = self.teacher.gains(inp)
+            a_teacher, a_net = self.teacher.choose(gains, inp), logits.argmax(-1)
+        else:
+            a_teacher = self.teacher.act(inp)[0]
+            a_net = torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen).squeeze(-1)
         use_teacher = torch.rand(len(a_net), generator=self.gen) < self.beta
         # an episode with nothing left to take has ended, and a teacher's move the net may not make (the rule
         # flies its survey by step, also over a viewpoint the net visited): nothing to learn there
@@ -216,14 +240,22 @@ class DaggerMixture:
         self.planes.append(planes[live].half())
         self.vps.append(vp[live])
         self.masks.append(mask[live])
-        self.targets.append(a_teacher[live])
+        self.targets.append(gains[live] if self.fit_gains else a_teacher[live])
         return torch.where(use_teacher, a_teacher, a_net), None, None
 
 
-def imitation_loss(net: MapPolicyNet, planes, vps, masks, targets) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cross-entropy of the net's masked logits against the teacher's viewpoints, and the agreement (argmax)."""
+def imitation_loss(net: MapPolicyNet, planes, vps, masks, targets, gain_scale: float | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The net against its teacher, and their agreement (the same argmax). Targets (B,) the teacher's moves:
+    cross-entropy of the masked logits. Targets (B, P) the teacher's gains (-inf: not allowed): mean squared
+    error of the scores of the allowed viewpoints against the gains / gain_scale."""
     logits = net(planes.float(), vps, masks)
-    return F.cross_entropy(logits, targets), (logits.argmax(-1) == targets).float().mean()
+    if targets.dim() == 1:
+        return F.cross_entropy(logits, targets), (logits.argmax(-1) == targets).float().mean()
+    ok = torch.isfinite(targets)
+    loss = F.mse_loss(logits[ok], targets[ok] / gain_scale)
+    agree = logits.masked_fill(~ok, MASKED).argmax(-1) == targets.argmax(-1)
+    return loss, agree.float().mean()
 
 
 def returns_to_go(ep) -> torch.Tensor:
@@ -299,6 +331,7 @@ def train(args: Args, caches=None) -> TrainResult:
     opt_il = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     opt_pg = torch.optim.Adam(net.parameters(), lr=args.lr_pg, weight_decay=args.weight_decay)
     agg: list[list[torch.Tensor]] = [[], [], [], []]  # planes, viewpoint features, masks, targets
+    gain_scale = None  # --imitate gains: the spread of the first aggregate's gains
     best, best_key = {}, -float("inf")
     ckpt = run_dir / "model.pt"
     metrics = MetricsCsv(run_dir / "metrics.csv")
@@ -334,7 +367,7 @@ def train(args: Args, caches=None) -> TrainResult:
         beta = args.beta_decay ** i
         rows_b = torch.randint(S, (args.dagger_episodes,), generator=gen)
         teacher = LabelLookahead(train_cache, rows_b, fusion, config) if args.teacher == "labels" else rule.policy
-        mix = DaggerMixture(net, teacher, beta, gen)
+        mix = DaggerMixture(net, teacher, beta, gen, gains=args.imitate == "gains")
         t0 = time.perf_counter()
         with torch.no_grad():
             run_search(CachedViews(train_cache, rows_b, config), Agent(fusion, mix), generator=gen)
@@ -342,13 +375,15 @@ def train(args: Args, caches=None) -> TrainResult:
         for store, new in zip(agg, (mix.planes, mix.vps, mix.masks, mix.targets)):
             store.append(torch.cat(new))
         X, V, M, Y = (torch.cat(a) for a in agg)
+        if args.imitate == "gains" and gain_scale is None:
+            gain_scale = float(Y[torch.isfinite(Y)].std()) or 1.0  # the scores' unit: the gains' spread
+            meta["gain_scale"] = gain_scale
         loss, agree = fit_minibatches(opt_il, len(Y), args.dagger_epochs, args.batch_size, gen,
-                                      lambda b: imitation_loss(net, X[b], V[b], M[b], Y[b]))
+                                      lambda b: imitation_loss(net, X[b], V[b], M[b], Y[b], gain_scale))
         row = blank(it, "dagger")
         row.update({"losses/imitation": loss, "charts/teacher_agreement": agree, "charts/beta": beta,
                     "charts/aggregate": len(Y), "charts/steps_per_s": steps_s})
-        if i == args.dagger_iterations - 1:
-            validate(row, it)
+        validate(row, it)
         log(row)
         bar.update()
         bar.set_postfix(il_loss=f"{row['losses/imitation']:.3f}")
@@ -374,7 +409,7 @@ def train(args: Args, caches=None) -> TrainResult:
         loss_il = agreement = None
         if have_agg and args.imitation_coef > 0:
             b = torch.randint(len(Y), (args.batch_size,), generator=gen)
-            loss_il, agreement = imitation_loss(net, X[b], V[b], M[b], Y[b])
+            loss_il, agreement = imitation_loss(net, X[b], V[b], M[b], Y[b], gain_scale)
             loss = loss + args.imitation_coef * loss_il
         opt_pg.zero_grad()
         loss.backward()
