@@ -14,7 +14,8 @@ from uavsearch.flight.control import (
     RateControl,
     attitude_from_thrust,
 )
-from uavsearch.flight.estimator import NavigationEkf, quat_to_euler, quat_to_matrix
+from uavsearch.flight.estimator import NavigationEkf
+from uavsearch.flight.quaternion import quat_to_euler, quat_to_matrix
 from uavsearch.flight.fdm import QUADX
 from uavsearch.flight.land_detector import LandDetector
 from uavsearch.flight.multicopter import MC_PARAMS, _check_rates

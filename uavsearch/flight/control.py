@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from .estimator import quat_multiply
+from .quaternion import quat_multiply
 from .params import ParamDef
 
 # Minimum / maximum are PX4's own (mc_pos_control, mc_att_control, mc_rate_control parameter metadata), so a

@@ -28,7 +28,8 @@ from ..errors import UavsearchError
 from ..geometry import GeodeticOrigin
 from .battery import BATTERY_PARAMS, Battery
 from .control import CONTROL_PARAMS, AttitudeControl, PositionControl, QuadXMixer, RateControl
-from .estimator import EKF_PARAMS, NavigationEkf, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_euler
+from .estimator import EKF_PARAMS, NavigationEkf
+from .quaternion import quat_from_rotvec, quat_multiply, quat_normalize, quat_to_euler
 from .fdm import QUADX, QuadFdm
 from .land_detector import LAND_PARAMS, LandDetector
 from .messages import (

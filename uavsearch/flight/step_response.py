@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..geometry import GeodeticOrigin
-from .estimator import quat_to_euler
+from .quaternion import quat_to_euler
 from .messages import TrajectorySetpoint
 from .multicopter import MC_PARAMS, Multicopter
 from .params import ParamStore
