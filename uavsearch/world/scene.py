@@ -563,13 +563,56 @@ def _person(b: _Builder, x, y, cell: int, group: int = -1) -> None:
 
 
 def _sample_point(rng, weights: np.ndarray, raster: Raster) -> tuple[float, float]:
-    flat = weights.ravel()
-    nz = np.flatnonzero(flat > 0)
-    cum = np.cumsum(flat[nz], dtype=np.float64)
-    i = int(nz[min(int(np.searchsorted(cum, rng.uniform(0.0, cum[-1]), side="right")), len(nz) - 1)])
-    row, col = divmod(i, weights.shape[1])
-    xy = raster.to_m(col + rng.uniform(-0.5, 0.5), row + rng.uniform(-0.5, 0.5))
-    return float(xy[0]), float(xy[1])
+    """A point drawn by weight: a pixel (by the running sum of the positive weights in row-major order), then a
+    uniform offset within it."""
+    return _PointSampler(weights, raster).draw(rng)
+
+
+class _PointSampler:
+    """_sample_point's running sum, kept between draws.
+
+    `origin` (row, col): `weights` is the box of a larger raster starting at that pixel, holding every positive
+    weight of it (the same positive weights in the same order, so the same draw from a smaller array).
+    `rows_changed`: the weights (a whole raster, written in place) lost positive pixels (zeroed where a drawn
+    person now stands). A pixel that left keeps its place in the sum with weight 0 (never drawn: the sum does
+    not rise there) and the sum is taken again from the first such pixel, on from the kept sum before it: the
+    sums at the pixels still positive are those _sample_point would take on the weights as they are then, so
+    every draw is the same."""
+
+    def __init__(self, weights: np.ndarray, raster: Raster, origin: tuple[int, int] = (0, 0)):
+        self.raster, self.origin, self.width = raster, origin, weights.shape[1]
+        self.flat = weights.reshape(-1)  # a view of a contiguous array: in-place writes show through
+        self.nz = np.flatnonzero(self.flat > 0)
+        self.cum = np.cumsum(self.flat[self.nz], dtype=np.float64)
+        self.alive = np.ones(len(self.nz), dtype=bool)
+
+    def draw(self, rng) -> tuple[float, float]:
+        cum, nz = self.cum, self.nz
+        k = min(int(np.searchsorted(cum, rng.uniform(0.0, cum[-1]), side="right")), len(nz) - 1)
+        while self.flat[nz[k]] <= 0:  # only where the draw hit the very top of the sum: the last pixel still in
+            k -= 1
+        row, col = divmod(int(nz[k]), self.width)
+        r0, c0 = self.origin
+        xy = self.raster.to_m(c0 + col + rng.uniform(-0.5, 0.5), r0 + row + rng.uniform(-0.5, 0.5))
+        return float(xy[0]), float(xy[1])
+
+    def rows_changed(self, row_lo: int, row_hi: int) -> None:
+        """Pixels of rows [row_lo, row_hi) may have dropped to zero."""
+        lo, hi = np.searchsorted(self.nz, [max(row_lo, 0) * self.width, max(row_hi, 0) * self.width])
+        left = self.flat[self.nz[lo:hi]] <= 0
+        gone = np.flatnonzero(left & self.alive[lo:hi])
+        if len(gone) == 0:
+            return
+        self.alive[lo:hi] &= ~left
+        j = lo + int(gone[0])  # the first pixel that left now: the sums before it stand
+        start = self.cum[j - 1:j] if j > 0 else np.zeros(1)
+        self.cum[j:] = np.cumsum(np.concatenate([start, self.flat[self.nz[j:]]]))[1:]
+
+
+def _mask_box(mask: np.ndarray) -> tuple[slice, slice]:
+    """The bounding box (rows, cols) of a mask's True pixels (it has some)."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    return slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1)
 
 
 def generate_scene(
@@ -637,23 +680,29 @@ def generate_scene(
     extra = {cell: int(rng.integers(lo, hi + 1)) - 1 for cell in occupied}
     # One person per occupied cell first (so every chosen cell is occupied), then the extra ones.
     for cell in occupied + [c for c in occupied for _ in range(extra[c])]:
-        in_cell = cell_img == cell
-        w = np.where(in_cell & _free(blocked, raster, p.person_clearance_m), surface, 0.0)
+        box = _mask_box(cell_img == cell)  # the cell's pixels: its weights drawn from as from the whole raster
+        in_cell = cell_img[box] == cell
+        w = np.where(in_cell & _free(blocked, raster, p.person_clearance_m)[box], surface[box], 0.0)
         if w.sum() <= 0:
             if any(o.kind == "person" and o.cell == cell for o in b.solids):
                 continue  # no room left for an extra person
-            w = np.where(in_cell & obstacles_only, surface, 0.0)  # crowded: may stand close to someone
-        x, y = _sample_point(rng, w, raster)
+            w = np.where(in_cell & obstacles_only[box], surface[box], 0.0)  # crowded: may stand close to someone
+        x, y = _PointSampler(np.ascontiguousarray(w), raster, (box[0].start, box[1].start)).draw(rng)
         _person(b, x, y, cell, group_of.get(cell, -1))
         raster.disk(blocked, (x, y), 0.3, 1)
     outside = _cell_raster(grid, raster, -p.outside_margin_m) < -1  # outside the grid grown by the margin
     walk_area_m2 = float((surface > 0)[outside].sum()) * raster.m_per_px**2
     free = _free(blocked, raster, p.person_clearance_m)
     wout = np.where(outside & free, surface, 0.0)
+    sampler = _PointSampler(wout, raster)
     for _ in range(rng.poisson(p.background_people_per_100m2 * walk_area_m2 / 100.0 * 0.5)):
-        x, y = _sample_point(rng, wout, raster)
+        x, y = sampler.draw(rng)
         _person(b, x, y, -1)
-        raster.disk(wout, (x, y), p.person_clearance_m + 0.3, 0.0)
+        radius_m = p.person_clearance_m + 0.3
+        raster.disk(wout, (x, y), radius_m, 0.0)
+        row = float(raster.to_px((x, y))[1])
+        reach = radius_m / raster.m_per_px + 2.0  # the disk's rows, with room for its sub-pixel rounding
+        sampler.rows_changed(int(math.floor(row - reach)), int(math.ceil(row + reach)) + 1)
 
     occ = np.zeros(grid.num_cells, np.int8)
     for o in b.solids:
@@ -674,15 +723,16 @@ def generate_scene(
 def _cell_raster(grid: Grid, raster: Raster, margin_m: float) -> np.ndarray:
     """int16 raster of cell indices (-1 outside); a positive margin shrinks every cell, a negative one
     grows the grid (then -1 marks the grown border and -2 the outside)."""
-    cols, rows = np.meshgrid(np.arange(raster.n), np.arange(raster.n))
-    xy = raster.to_m(cols, rows)
+    line = np.arange(raster.n)
+    x = raster.to_m(line, line)[:, 0][None, :]  # a pixel's x depends on its column only, y on its row:
+    y = raster.to_m(line, line)[:, 1][:, None]  # one row and one column, broadcast (the same floats)
     if margin_m >= 0:
-        idx = grid.cell_of_points(xy[..., 0], xy[..., 1])
-        fx = np.mod(xy[..., 0] + grid.half_m, grid.cell_m)
-        fy = np.mod(xy[..., 1] + grid.half_m, grid.cell_m)
+        idx = grid.cell_of_points(x, y)
+        fx = np.mod(x + grid.half_m, grid.cell_m)
+        fy = np.mod(y + grid.half_m, grid.cell_m)
         inner = (fx >= margin_m) & (fx <= grid.cell_m - margin_m) & (fy >= margin_m) & (fy <= grid.cell_m - margin_m)
         return np.where(inner, idx, -1).astype(np.int16)
-    grown = (np.abs(xy[..., 0]) <= grid.half_m - margin_m) & (np.abs(xy[..., 1]) <= grid.half_m - margin_m)
+    grown = (np.abs(x) <= grid.half_m - margin_m) & (np.abs(y) <= grid.half_m - margin_m)
     return np.where(grown, -1, -2).astype(np.int16)
 
 

@@ -13,10 +13,11 @@ CachedViews).
    chosen on validation, a warm start at the rule) with probability beta (1, then times `beta_decay`), else
    the net (sampled); keep every (state, teacher move); fit the net by cross-entropy on the aggregate.
    `--imitate gains` (label teacher only) fits instead the net's score of every allowed viewpoint to the
-   teacher's gain for it (least squares, the gains over their spread on the first aggregate), and the net
-   rolls out its argmax: the label teacher's move hangs on labels no state shows, so its argmax is hard to
-   imitate (13% agreement), but the gain's mean given the state is what least squares learns, and the argmax
-   of that expected gain is the greedy policy that does not peek.
+   teacher's gain for it (least squares on both less their mean over the state's viewpoints, the gains over
+   their spread on the first aggregate), and the net rolls out its argmax: the label teacher's move hangs on
+   labels no state shows, so its argmax is hard to imitate (13% agreement), but the gain's mean given the
+   state is what least squares learns, and the argmax of that expected gain is the greedy policy that does
+   not peek.
 2. REINFORCE (`pg_iterations`), reward per view: the change of N_tp - N_fp of the fused map (its sum is the
    final map's N_tp - N_fp, what F1 counts). Each move's return to go is baselined by the mean return to go of
    the OTHER episodes of the same scene in the batch at the same step (leave-one-out: scenes differ far more
@@ -248,12 +249,20 @@ def imitation_loss(net: MapPolicyNet, planes, vps, masks, targets, gain_scale: f
                    ) -> tuple[torch.Tensor, torch.Tensor]:
     """The net against its teacher, and their agreement (the same argmax). Targets (B,) the teacher's moves:
     cross-entropy of the masked logits. Targets (B, P) the teacher's gains (-inf: not allowed): mean squared
-    error of the scores of the allowed viewpoints against the gains / gain_scale."""
+    error of the allowed viewpoints' scores against the gains / gain_scale, both less their mean over the
+    state's allowed viewpoints (what a state is worth as a whole, e.g. late in an episode, decides no move;
+    without it the fit spends itself there and ranks the best views no better than chance)."""
     logits = net(planes.float(), vps, masks)
     if targets.dim() == 1:
         return F.cross_entropy(logits, targets), (logits.argmax(-1) == targets).float().mean()
     ok = torch.isfinite(targets)
-    loss = F.mse_loss(logits[ok], targets[ok] / gain_scale)
+    n = ok.sum(1, keepdim=True).clamp(min=1)
+
+    def centred(x):
+        x = torch.where(ok, x, torch.zeros_like(x))
+        return x - x.sum(1, keepdim=True) / n
+
+    loss = F.mse_loss(centred(logits)[ok], centred(targets / gain_scale)[ok])
     agree = logits.masked_fill(~ok, MASKED).argmax(-1) == targets.argmax(-1)
     return loss, agree.float().mean()
 
