@@ -162,3 +162,27 @@ def test_bad_settings_are_one_line_errors(args, match):
     with pytest.raises(SceneError, match=match) as e:
         scene_seeds(*args)
     assert "\n" not in str(e.value)
+
+
+def test_the_kept_running_sum_draws_what_a_fresh_one_would_as_people_take_their_places():
+    from uavsearch.world.scene import Raster, _PointSampler, _sample_point
+
+    raster = Raster(20.0, 0.2)
+    weights = np.random.default_rng(0).random((raster.n, raster.n)).astype(np.float32)
+    weights[weights < 0.3] = 0.0
+    kept, fresh = weights.copy(), weights.copy()
+    sampler = _PointSampler(kept, raster)
+    a, b = np.random.default_rng(1), np.random.default_rng(1)
+    for _ in range(40):
+        got, want = sampler.draw(a), _sample_point(b, fresh, raster)
+        assert got == want
+        for w in (kept, fresh):
+            raster.disk(w, got, 1.5, 0.0)
+        row = float(raster.to_px(got)[1])
+        sampler.rows_changed(int(row) - 10, int(row) + 10)
+    # a box of a raster holding all its positive weights draws the same point as the whole raster
+    sparse = np.zeros_like(weights)
+    sparse[50:60, 70:85] = weights[50:60, 70:85]
+    box = np.ascontiguousarray(sparse[45:62, 66:90])
+    assert _PointSampler(box, raster, (45, 66)).draw(np.random.default_rng(2)) == \
+        _sample_point(np.random.default_rng(2), sparse, raster)
