@@ -92,7 +92,8 @@ class System:
                    moving: bool = True, tick_s: float | None = None, status=None, say=None):
         """Until cond() is truthy (returned); FlightError (StepFailed for sim-time outs) naming `what` otherwise.
 
-        `moving`: the condition needs simulation time (lockstep grants it, `tick_s` at a time); otherwise it
+        `moving`: the condition needs simulation time (lockstep grants it, `tick_s` at a time, or as much as a
+        callable `tick_s()` says before each grant); otherwise it
         is an answer the vehicle sends at once, and in lockstep no time may pass while waiting for it.
         `status(elapsed)` (simulation seconds when moving, else wall seconds) is a progress line given to
         `say` while the wait lasts (PROGRESS_FIRST_S, then every PROGRESS_EVERY_S of wall clock)."""
@@ -119,7 +120,7 @@ class System:
                     and clock.sim_time_s - sim0 > sim_timeout_s:
                 raise StepFailed(f"{what}: not done after {sim_timeout_s:g} s of flight")
             if moving:
-                self.advance(tick_s if self.lockstep.enabled else None)
+                self.advance((tick_s() if callable(tick_s) else tick_s) if self.lockstep.enabled else None)
             else:
                 self.pump()
 

@@ -43,6 +43,11 @@ from .system import PROGRESS_EVERY_S, PROGRESS_FIRST_S
 from .telemetry import HEALTH_BITS, MODE_HOLD, MODE_LAND, MODE_RTL, MODE_TAKEOFF, STREAM_RATES_HZ
 
 
+# Faster than any reported motion can be: the autopilot's speed limits at the top of their ranges allow 20 m/s
+# horizontally and 8 m/s up (MPC_XY_VEL_MAX, MPC_Z_VEL_MAX_UP), and the estimate follows the vehicle.
+APPROACH_SPEED_BOUND_M_S = 30.0
+
+
 @dataclass(frozen=True)
 class FlightSettings:
     """How the client flies: arrival thresholds and time-outs (mission parameters)."""
@@ -353,11 +358,29 @@ class MavlinkVehicle:
     def arrived(self) -> bool:
         return self._settle is not None and self._settle.done_at is not None
 
+    def _approach_tick(self) -> float:
+        """The next lockstep grant while a goto flies: the ticks that end before the goto could have settled.
+
+        From its last report the vehicle needs the distance beyond the radius at no more than
+        APPROACH_SPEED_BOUND_M_S, then settle_s of reports, to settle: no tick before then can see it arrived,
+        so granting them at once judges the arrival at the same tick, and flies the same flight, with fewer
+        round trips (a 25 m leg: ~10 grants instead of ~80)."""
+        tick, s, sys = self.settings.lockstep_tick_s, self._settle, self.system
+        p, t = self.position_enu(), self.sim_time_s
+        if s is None or p is None or t is None or not sys.lockstep.enabled:
+            return tick
+        gap_m = float(np.linalg.norm(p - s.target)) - s.radius_m
+        if gap_m <= 0:  # inside: its settling may have begun with an earlier report
+            return tick
+        earliest_s = t + gap_m / APPROACH_SPEED_BOUND_M_S + s.settle_s
+        ticks = math.floor((earliest_s - sys.lockstep.clock_ms / 1000.0) / tick + 1e-9)
+        return tick * max(1, ticks)
+
     def wait_arrived(self) -> float:
         """Until the goto of begin_goto has arrived and settled; the simulation seconds it took."""
         st, target = self.settings, self._settle.target
         self._wait(self.arrived, st.wall_timeout_s, f"goto {np.round(target, 1).tolist()}",
-                   sim_timeout_s=st.step_timeout_s,
+                   sim_timeout_s=st.step_timeout_s, tick_s=self._approach_tick,
                    status=lambda el: f"flying    {self._where(el)}  (to E {target[0]:.1f} N {target[1]:.1f}, "
                                      f"{self._distance_to(target):.1f} m to go)")
         took = self._settle.done_at - self._goto_t0
