@@ -206,6 +206,45 @@ def test_ekf_static_convergence_with_noisy_gps(params):
     assert ekf.accel_bias[2] == pytest.approx(0.15, abs=0.05)
 
 
+def test_the_ekf_is_filterpy_s_extended_kalman_filter_to_the_bit(params):
+    """The written-out covariance algebra against filterpy's own EKF on the same inputs (a flight's worth of
+    IMU periods, GPS, baro and heading, manoeuvring so every term moves): the same states and covariances."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    class Filterpy(ExtendedKalmanFilter):
+        def __init__(self, ekf):
+            super().__init__(dim_x=NavigationEkf.N, dim_z=1)
+            self.ekf = ekf
+
+        def predict_x(self, u=0):
+            self.ekf._propagate_nominal(*u)
+
+        def update(self, z, H, hx, R):  # the _Ekf signature onto filterpy's
+            super().update(z, lambda _x: H, hx, R=R)
+
+    ours, theirs = NavigationEkf(params, gravity_m_s2=G), NavigationEkf(params, gravity_m_s2=G)
+    fp = Filterpy(theirs)
+    fp.F, fp.Q = theirs.kf.F, theirs.kf.Q
+    theirs.kf = fp
+    rng = np.random.default_rng(5)
+    for ekf in (ours, theirs):
+        ekf.initialize((1.0, 2.0, -3.0), (0.5, 0.0, 0.0), (0.1, -0.2, -G), (0.21, 0.02, 0.42))
+    for k in range(600):
+        gyro, accel = rng.normal(0, 0.3, 3), np.array([0.0, 0.0, -G]) + rng.normal(0, 1.0, 3)
+        gps, vel, baro = rng.normal(0, 5.0, 3), rng.normal(0, 2.0, 3), rng.normal(3.0, 0.5)
+        mag = (0.21 + rng.normal(0, 0.02), rng.normal(0, 0.05), 0.42)
+        for ekf in (ours, theirs):
+            ekf.predict(gyro, accel, 0.02)
+            if k % 10 == 0:
+                ekf.fuse_all(gps, vel, baro, mag)
+            elif k % 5 == 0:
+                ekf.fuse_baro_heading(baro, mag)
+            elif k % 7 == 0:
+                ekf.fuse_gps(gps, vel)
+        assert np.array_equal(ours.kf.x, theirs.kf.x) and np.array_equal(ours.kf.P, theirs.kf.P)
+        assert ours.q == theirs.q
+
+
 def test_battery_drains_faster_with_more_thrust(params):
     hover, climb = Battery(params), Battery(params)
     for _ in range(600):

@@ -97,10 +97,10 @@ def test_read_without_the_registry_imports_no_torch_and_checks_names_later(tmp_p
                          env=clean_env()).stdout.split()
     assert out == ["4", "False", "False", "False"]
     # a family's search config (its flight speeds are the autopilot's parameter defaults) leaves the vehicle's
-    # estimator (filterpy, scipy.stats: ~1.7 s) to the vehicle process
+    # estimator and scipy to the vehicle process
     code = ("import sys; from uavsearch.fly.missions import load_mission; "
             "m = load_mission(sys.argv[1], check_registry=False); c = m.search_config(); "
-            "print(c.lattice.num_positions, 'filterpy' in sys.modules, 'scipy.stats' in sys.modules)")
+            "print(c.lattice.num_positions, 'uavsearch.flight.estimator' in sys.modules, 'scipy' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code, str(MISSIONS_DIR / "wide.yaml")], capture_output=True, text=True,
                          check=True, env=clean_env()).stdout.split()
     assert out == ["73", "False", "False"]

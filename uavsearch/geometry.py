@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -80,8 +81,16 @@ def _rotation():
     return Rotation
 
 
+def import_rotation_in_background() -> None:
+    """Import scipy's Rotation in a daemon thread: a process that will need it (a flight's first view) and
+    mostly waits meanwhile (on its vehicle) takes the 0.3-0.9 s of import while it waits."""
+    threading.Thread(target=_rotation, name="import-scipy-rotation", daemon=True).start()
+
+
 def rotation_ned_from_body(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
     """Body FRD -> NED rotation matrix (aerospace ZYX Euler angles)."""
+    if roll_rad == 0.0 and pitch_rad == 0.0 and yaw_rad == 0.0:  # the lattice's poses: scipy's exact identity,
+        return np.eye(3)  # without importing it (a learned wide policy's footprints at load, 0.9 s)
     return _rotation().from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_matrix()
 
 

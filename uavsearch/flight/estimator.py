@@ -1,4 +1,4 @@
-"""The navigation filter: a 15-state error-state EKF on filterpy fusing IMU, GPS, baro and magnetometer.
+"""The navigation filter: a 15-state error-state EKF fusing IMU, GPS, baro and magnetometer.
 
 Why this shape: a multicopter's accelerometer does not see gravity's direction in flight (it reads the
 thrust axis), so tilt is not measured directly; as in PX4's EKF2 it becomes observable through GPS
@@ -6,9 +6,13 @@ velocity, which an INS-style filter gets for free. The attitude lives in a nomin
 filter carries only its small world-frame error (3 states), folded back after every update, so no
 Euler singularity and small matrices.
 
-State x (filterpy column vector): position NED (3), velocity NED (3), attitude error NED (3, zero
+State x (column vector): position NED (3), velocity NED (3), attitude error NED (3, zero
 between updates), gyro bias FRD (3), accelerometer bias FRD (3). The IMU is the prediction input,
 averaged over each filter period (delta angle / delta velocity, as EKF2 does).
+
+The covariance algebra is filterpy's ExtendedKalmanFilter written out (`_Ekf`, the same operations in the
+same order, so the same flights to the bit): importing filterpy imports scipy.stats for the likelihoods
+this filter never asks for, 1.4 s of every vehicle's start, where its equations are ten lines.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
+from scipy.linalg import inv
 
 from .params import ParamDef
 from .quaternion import quat_from_euler, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_euler, quat_to_matrix
@@ -48,15 +52,29 @@ def mag_heading(mag_frd, roll: float, pitch: float) -> float:
     return -math.atan2(y1, x2)
 
 
-class _FilterpyEkf(ExtendedKalmanFilter):
-    """filterpy's EKF with the nominal-state propagation of an INS in place of x = Fx + Bu."""
+class _Ekf:
+    """filterpy's ExtendedKalmanFilter predict (the nominal state by `propagate`, then P = F P F' + Q) and
+    update (gain through scipy's inverse, Joseph-form covariance), term for term."""
 
-    def __init__(self, owner: "NavigationEkf"):
-        super().__init__(dim_x=NavigationEkf.N, dim_z=1)
-        self._owner = owner
+    def __init__(self, n: int, propagate):
+        self.x = np.zeros((n, 1))
+        self.P = np.eye(n)
+        self.F = np.eye(n)
+        self.Q = np.eye(n)
+        self._I = np.eye(n)
+        self._propagate = propagate
 
-    def predict_x(self, u=0):
-        self._owner._propagate_nominal(*u)
+    def predict(self, u) -> None:
+        self._propagate(*u)
+        self.P = np.dot(self.F, self.P).dot(self.F.T) + self.Q
+
+    def update(self, z, H, hx, R) -> None:
+        """z (m, 1), H (m, n), hx(x) -> the measurement the state predicts, R (m, m)."""
+        PHT = np.dot(self.P, H.T)
+        K = PHT.dot(inv(np.dot(H, PHT) + R))
+        self.x = self.x + np.dot(K, np.subtract(z, hx(self.x)))
+        I_KH = self._I - np.dot(K, H)
+        self.P = np.dot(I_KH, self.P).dot(I_KH.T) + np.dot(K, R).dot(K.T)
 
 
 class NavigationEkf:
@@ -67,7 +85,7 @@ class NavigationEkf:
     def __init__(self, params, gravity_m_s2: float = 9.80665):
         self.params = params
         self.g = gravity_m_s2
-        self.kf = _FilterpyEkf(self)
+        self.kf = _Ekf(self.N, self._propagate_nominal)
         self.q = (1.0, 0.0, 0.0, 0.0)  # nominal attitude, body FRD -> NED
         self.initialized = False
         self.kf.F = np.eye(self.N)
@@ -125,7 +143,7 @@ class NavigationEkf:
         F[3:6, 12:15] = Rdt
         F[6:9, 9:12] = Rdt
         w = (gyro_frd[0] - xl[9], gyro_frd[1] - xl[10], gyro_frd[2] - xl[11])
-        kf.predict(u=(xl, w, (ax, ay, az + self.g), dt))  # nominal state via predict_x, then P = F P F' + Q
+        kf.predict((xl, w, (ax, ay, az + self.g), dt))  # the nominal state, then P = F P F' + Q
 
     def _set_dt(self, dt: float) -> None:
         kf = self.kf
@@ -163,16 +181,16 @@ class NavigationEkf:
     def fuse_gps(self, position_ned, velocity_ned) -> None:
         z = np.array([[*position_ned, *velocity_ned]], dtype=float).T
         H = self._H_gps
-        self.kf.update(z, lambda _x: H, lambda x: x[0:6], R=self._R_gps)
+        self.kf.update(z, H, lambda x: x[0:6], self._R_gps)
         self._fold_attitude_error()
 
     def fuse_baro_heading(self, height_above_home_m: float, mag_frd) -> None:
-        """Baro height and magnetic heading in one update (one filterpy call instead of two)."""
+        """Baro height and magnetic heading in one update (one instead of two)."""
         innov = self._heading_innovation(mag_frd)
         # the heading residual is taken on the circle: z carries it and Hx is the zero attitude error
         z = np.array([[-height_above_home_m], [innov]])
         H = self._H_baro_head
-        self.kf.update(z, lambda _x: H, lambda x: np.array([[x[2, 0]], [x[8, 0]]]), R=self._R_baro_head)
+        self.kf.update(z, H, lambda x: np.array([[x[2, 0]], [x[8, 0]]]), self._R_baro_head)
         self._fold_attitude_error()
 
     def fuse_all(self, position_ned, velocity_ned, height_above_home_m: float, mag_frd) -> None:
@@ -188,7 +206,7 @@ class NavigationEkf:
             h[7, 0] = x[8, 0]
             return h
 
-        self.kf.update(z, lambda _x: H, hx, R=self._R_all)
+        self.kf.update(z, H, hx, self._R_all)
         self._fold_attitude_error()
 
     def _heading_innovation(self, mag_frd) -> float:

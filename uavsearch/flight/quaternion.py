@@ -1,7 +1,6 @@
 """Quaternions [w, x, y, z] (body FRD -> NED) as plain tuples: the attitude controller, the vehicle's
 integrator and the estimator share them. Their own module, so that importing the controller (whose
-parameter defaults every search config reads) does not import the estimator's filterpy and scipy.stats
-(about 1.7 s)."""
+parameter defaults every search config reads) does not import the estimator and its scipy.linalg."""
 
 from __future__ import annotations
 

@@ -32,6 +32,7 @@ import numpy as np
 from ..errors import MissionError
 from ..flight.camera import SCENE_FILE
 from ..flight.sitl_process import SitlProcess
+from ..geometry import import_rotation_in_background
 from ..logs.flight_log import FlightLogWriter
 from ..logs.step_record import StepRecord, TruePose
 from ..paths import RUNS_DIR
@@ -328,6 +329,7 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         torch.set_num_threads(int(torch_threads))
         mission = mission.check_registry()  # its names, if it was read without the registry (REGISTRY)
         loaded = mission.agent(config)
+        import_rotation_in_background()  # the first view's pose needs it; the vehicle's start and take-off hide it
         phases["agent_s"] = time.monotonic() - wall0
         spec = mission.scene_spec() if sitl is None else load_scene(sitl.wait_file(SCENE_FILE))
         labels = np.asarray(spec.occupancy_array(), dtype=bool)

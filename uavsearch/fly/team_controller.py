@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import MissionError
 from ..flight.camera import SCENE_FILE
 from ..flight.sitl_process import SitlProcess
+from ..geometry import import_rotation_in_background
 from ..logs.flight_log import FlightLogWriter
 from ..logs.step_record import StepRecord
 from ..search.metrics import map_accuracy, map_f1
@@ -173,6 +174,7 @@ def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_
         progress(f"models    {mission.perception_path.name}, {method.description}, mission time {config.budget_s:g} s"
                  f"{f', at most {max_views} views' if max_views else ''}")
         perception, _ = load_perception(mission.perception_path)
+        import_rotation_in_background()  # the first view's pose needs it; the vehicle's start and take-off hide it
         phases["agent_s"] = time.monotonic() - wall0
         vehicles = [MavlinkVehicle(None, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
                                    progress=progress, system_id=i + 1, connection=conn) for i in range(n)]

@@ -37,7 +37,7 @@ MOVE_SETS = ("steps", "any")
 
 def _autopilot_default(name: str) -> float:
     """The autopilot parameter's default (flight/control.py declares it once); imported here only when a
-    config is made, so reading a mission never loads the flight stack's estimator (filterpy, scipy)."""
+    config is made, so reading a mission never loads the flight stack."""
     from ..flight.control import CONTROL_PARAMS
 
     return float(next(p.default for p in CONTROL_PARAMS if p.name == name))
