@@ -12,7 +12,8 @@ import math
 import numpy as np
 from pymavlink.dialects.v20 import common as M
 
-from ...geometry import quaternion_from_euler
+from ..quaternion import quat_from_euler
+
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +163,7 @@ class Telemetry:
         """The simulator's true state (JSBSim), for logs that compare the estimate with the truth."""
         t = self.v("true_state")
         lat, lon, alt = self.cmd.origin.enu_to_geodetic(t.position_enu_m)
-        q = quaternion_from_euler(t.roll_rad, t.pitch_rad, t.yaw_rad)
+        q = quat_from_euler(t.roll_rad, t.pitch_rad, t.yaw_rad)  # the vehicle's own: no scipy in its process
         ve, vn, vu = (float(x) for x in t.velocity_enu_m_s)
         w = t.angular_velocity_frd_rad_s
         return M.MAVLink_sim_state_message(
