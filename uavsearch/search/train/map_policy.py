@@ -308,10 +308,13 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
     ax[1].axhline(0.0, color="k", lw=0.6)
     ax[1].set_title("AF1 - the rule's AF1 (argmax)")
     ax[1].legend(fontsize=8)
-    ax[2].plot([r["iteration"] for r in pg], [r["charts/return"] for r in pg], lw=0.8, label="return (N_tp - N_fp)")
-    ax[2].plot([r["iteration"] for r in pg], [r["charts/entropy"] for r in pg], lw=0.8, label="entropy (nats)")
     ax[2].set_title("REINFORCE")
-    ax[2].legend(fontsize=8)
+    if pg:
+        ax[2].plot([r["iteration"] for r in pg], [r["charts/return"] for r in pg], lw=0.8, label="return (N_tp - N_fp)")
+        ax[2].plot([r["iteration"] for r in pg], [r["charts/entropy"] for r in pg], lw=0.8, label="entropy (nats)")
+        ax[2].legend(fontsize=8)
+    else:
+        ax[2].text(0.5, 0.5, "no REINFORCE iterations", ha="center", va="center", transform=ax[2].transAxes)
     finish_curves(fig, ax, title, path)
 
 
