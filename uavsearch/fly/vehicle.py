@@ -364,7 +364,7 @@ class MavlinkVehicle:
         From its last report the vehicle needs the distance beyond the radius at no more than
         APPROACH_SPEED_BOUND_M_S, then settle_s of reports, to settle: no tick before then can see it arrived,
         so granting them at once judges the arrival at the same tick, and flies the same flight, with fewer
-        round trips (a 25 m leg: ~10 grants instead of ~80)."""
+        round trips (a wide mission: 747 grants instead of 2,682)."""
         tick, s, sys = self.settings.lockstep_tick_s, self._settle, self.system
         p, t = self.position_enu(), self.sim_time_s
         if s is None or p is None or t is None or not sys.lockstep.enabled:
