@@ -365,15 +365,15 @@ class MavlinkVehicle:
         APPROACH_SPEED_BOUND_M_S, then settle_s of reports, to settle: no tick before then can see it arrived,
         so granting them at once judges the arrival at the same tick, and flies the same flight, with fewer
         round trips (a wide mission: 747 grants instead of 2,682)."""
-        tick, s, sys = self.settings.lockstep_tick_s, self._settle, self.system
+        tick, s, system = self.settings.lockstep_tick_s, self._settle, self.system
         p, t = self.position_enu(), self.sim_time_s
-        if s is None or p is None or t is None or not sys.lockstep.enabled:
+        if s is None or p is None or t is None or not system.lockstep.enabled:
             return tick
         gap_m = float(np.linalg.norm(p - s.target)) - s.radius_m
         if gap_m <= 0:  # inside: its settling may have begun with an earlier report
             return tick
         earliest_s = t + gap_m / APPROACH_SPEED_BOUND_M_S + s.settle_s
-        ticks = math.floor((earliest_s - sys.lockstep.clock_ms / 1000.0) / tick + 1e-9)
+        ticks = math.floor((earliest_s - system.lockstep.clock_ms / 1000.0) / tick + 1e-9)
         return tick * max(1, ticks)
 
     def wait_arrived(self) -> float:
