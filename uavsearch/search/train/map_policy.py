@@ -24,9 +24,10 @@ CachedViews).
    than moves, and a fixed route's return would not know how this episode got here). Advantages normalised;
    an entropy bonus decays linearly; an imitation term keeps the teacher's lessons.
 3. Selection: after every DAgger iteration and every `eval_every` REINFORCE iterations, the net's argmax
-   viewpoints on the validation scenes; the checkpoint kept has the best AF1 minus the rule's (wide_policies.DescendRule, its variant chosen on
-   the same validation scenes as Table III chooses it). The same margin on `train_eval_scenes` training scenes
-   is logged beside it: a net that memorises its scenes shows a training margin its validation one lacks.
+   viewpoints on the validation scenes; the checkpoint kept has the best AF1 minus the rule's
+   (wide_policies.DescendRule, its variant chosen on the same validation scenes as Table III chooses it). The
+   same margin on `train_eval_scenes` training scenes is logged beside it: a net that memorises its scenes
+   shows a training margin its validation one lacks.
 
 Output: runs/<name>__<seed>__<unix time>/ with args.json, metrics.csv, learning_curve.png, model.pt (the net and
 its fusion) and summary.json. `--out PATH` or `--ship` (models/search_wide_<budget>_map.pt) copies it.
@@ -310,8 +311,9 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
     ax[1].legend(fontsize=8)
     ax[2].set_title("REINFORCE")
     if pg:
-        ax[2].plot([r["iteration"] for r in pg], [r["charts/return"] for r in pg], lw=0.8, label="return (N_tp - N_fp)")
-        ax[2].plot([r["iteration"] for r in pg], [r["charts/entropy"] for r in pg], lw=0.8, label="entropy (nats)")
+        its = [r["iteration"] for r in pg]
+        ax[2].plot(its, [r["charts/return"] for r in pg], lw=0.8, label="return (N_tp - N_fp)")
+        ax[2].plot(its, [r["charts/entropy"] for r in pg], lw=0.8, label="entropy (nats)")
         ax[2].legend(fontsize=8)
     else:
         ax[2].text(0.5, 0.5, "no REINFORCE iterations", ha="center", va="center", transform=ax[2].transAxes)
