@@ -102,15 +102,16 @@ def test_a_free_running_vehicle_refuses_grants(tmp_path):
 
 
 def _fly_a_leg(tmp_path, one_tick_per_grant: bool, monkeypatch) -> tuple[list, int]:
-    """Take off, fly 30 m north-east and 30 m down-range, as the mission controller does; the settled times and
-    reported positions of both legs, and the number of grants."""
+    """Take off, fly 30 m north-east and 30 m down-range, as the mission controller does; when the take-off ended
+    and both legs settled, where it reported itself then, and the number of grants."""
     import numpy as np
 
+    from uavsearch.fly import vehicle as vehicle_module
     from uavsearch.fly.lockstep import Lockstep
     from uavsearch.fly.vehicle import FlightSettings, MavlinkVehicle
 
     if one_tick_per_grant:
-        monkeypatch.setattr(MavlinkVehicle, "_approach_tick", lambda self: self.settings.lockstep_tick_s)
+        monkeypatch.setattr(vehicle_module, "ticks_until", lambda system, tick_s, earliest_s: tick_s)
     grants = []
     real = Lockstep.grant
     monkeypatch.setattr(Lockstep, "grant", lambda self, until_ms: grants.append(until_ms) or real(self, until_ms))
@@ -119,9 +120,9 @@ def _fly_a_leg(tmp_path, one_tick_per_grant: bool, monkeypatch) -> tuple[list, i
                     env=clean_env())
     try:
         v.connect()
-        v.take_off()
         n0 = len(grants)
-        legs = []
+        v.take_off()
+        legs = [(round(v.sim_time_s, 3), np.round(v.position_enu(), 4).tolist())]
         for target in ([20.0, 22.0, 40.0], [-5.0, 0.0, 40.0]):
             v.begin_goto(np.array(target))
             took = v.wait_arrived()
@@ -133,9 +134,9 @@ def _fly_a_leg(tmp_path, one_tick_per_grant: bool, monkeypatch) -> tuple[list, i
 
 
 def test_a_goto_is_granted_the_ticks_it_cannot_settle_in_at_once_and_flies_the_same(tmp_path, monkeypatch):
-    """While a goto cannot have settled (too far to be in the radius a settle time ago, at any speed the
-    autopilot allows), the client grants those ticks in one: the arrival is judged at the same tick, the
-    flight is the same, and the round trips are a fraction."""
+    """While a take-off cannot be up or a goto cannot have settled (too far, at any speed the autopilot allows),
+    the client grants those ticks in one: the end is judged at the same tick, the flight is the same, and the
+    round trips are a fraction."""
     chunked, n_chunked = _fly_a_leg(tmp_path / "chunked", False, monkeypatch)
     monkeypatch.undo()
     ticked, n_ticked = _fly_a_leg(tmp_path / "ticked", True, monkeypatch)

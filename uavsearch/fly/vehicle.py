@@ -46,6 +46,18 @@ from .telemetry import HEALTH_BITS, MODE_HOLD, MODE_LAND, MODE_RTL, MODE_TAKEOFF
 # Faster than any reported motion can be: the autopilot's speed limits at the top of their ranges allow 20 m/s
 # horizontally and 8 m/s up (MPC_XY_VEL_MAX, MPC_Z_VEL_MAX_UP), and the estimate follows the vehicle.
 APPROACH_SPEED_BOUND_M_S = 30.0
+TAKEOFF_ALT_TOL_M = 1.0  # a take-off has arrived within this of its altitude (and in HOLD)
+
+
+def ticks_until(system, tick_s: float, earliest_s: float | None) -> float:
+    """A lockstep grant of whole ticks that ends no later than vehicle time `earliest_s`, before which the
+    awaited condition cannot hold (at least one tick; one when `earliest_s` is None: it may hold any moment).
+    No tick inside the grant could have seen the condition, so the wait ends at the same tick as with one
+    tick per grant, and the flight is the same."""
+    if earliest_s is None or not system.lockstep.enabled:
+        return tick_s
+    ticks = math.floor((earliest_s - system.lockstep.clock_ms / 1000.0) / tick_s + 1e-9)
+    return tick_s * max(1, ticks)
 
 
 @dataclass(frozen=True)
@@ -200,7 +212,7 @@ class MavlinkVehicle:
         at = "no position yet" if p is None else f"at E {p[0]:6.1f} N {p[1]:6.1f} U {p[2]:5.1f} m"
         return f"{at}  flew {elapsed_s:5.1f} s"
 
-    def _at_alt(self, alt_amsl: float, tol_m: float = 1.0) -> bool:
+    def _at_alt(self, alt_amsl: float, tol_m: float = TAKEOFF_ALT_TOL_M) -> bool:
         return abs(self.system.telemetry.altitude_amsl_m() - alt_amsl) < tol_m
 
     def _on_position(self, m) -> None:
@@ -303,6 +315,7 @@ class MavlinkVehicle:
         st = self.settings
         self.begin_take_off()
         self._wait(self.took_off, st.wall_timeout_s, "takeoff", sim_timeout_s=st.takeoff_timeout_s,
+                   tick_s=lambda: ticks_until(self.system, st.lockstep_tick_s, self._at_takeoff_alt_earliest_s()),
                    status=lambda el: f"take-off  {self._where(el)}  (to {self.config.altitude_m:.0f} m)")
 
     def _takeoff_alt_amsl(self) -> float:
@@ -364,17 +377,26 @@ class MavlinkVehicle:
         From its last report the vehicle needs the distance beyond the radius at no more than
         APPROACH_SPEED_BOUND_M_S, then settle_s of reports, to settle: no tick before then can see it arrived,
         so granting them at once judges the arrival at the same tick, and flies the same flight, with fewer
-        round trips (a wide mission: 747 grants instead of 2,682)."""
-        tick, s, system = self.settings.lockstep_tick_s, self._settle, self.system
-        p, t = self.position_enu(), self.sim_time_s
-        if s is None or p is None or t is None or not system.lockstep.enabled:
-            return tick
+        round trips (a wide mission, take-off included: 564 grants instead of 2,682)."""
+        return ticks_until(self.system, self.settings.lockstep_tick_s, self._settled_earliest_s())
+
+    def _settled_earliest_s(self) -> float | None:
+        """The earliest vehicle time the goto could report itself settled (None: any moment now)."""
+        s, p, t = self._settle, self.position_enu(), self.sim_time_s
+        if s is None or p is None or t is None:
+            return None
         gap_m = float(np.linalg.norm(p - s.target)) - s.radius_m
         if gap_m <= 0:  # inside: its settling may have begun with an earlier report
-            return tick
-        earliest_s = t + gap_m / APPROACH_SPEED_BOUND_M_S + s.settle_s
-        ticks = math.floor((earliest_s - system.lockstep.clock_ms / 1000.0) / tick + 1e-9)
-        return tick * max(1, ticks)
+            return None
+        return t + gap_m / APPROACH_SPEED_BOUND_M_S + s.settle_s
+
+    def _at_takeoff_alt_earliest_s(self) -> float | None:
+        """The earliest vehicle time its reports could put it at the take-off altitude (None: any moment now)."""
+        t, alt = self.sim_time_s, self.system.telemetry.altitude_amsl_m()
+        if t is None or not math.isfinite(alt):
+            return None
+        gap_m = abs(alt - self._takeoff_alt_amsl()) - TAKEOFF_ALT_TOL_M
+        return None if gap_m <= 0 else t + gap_m / APPROACH_SPEED_BOUND_M_S
 
     def wait_arrived(self) -> float:
         """Until the goto of begin_goto has arrived and settled; the simulation seconds it took."""
