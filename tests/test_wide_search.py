@@ -181,7 +181,7 @@ def test_table3_on_a_tiny_synthetic_family(tmp_path):
 
     timed_cfg = wide_budgets(WIDE)["240 s"]
     save_search_model(wide_checkpoint("240", tmp_path / "models"), FUSIONS["average"](),
-                      MapPolicyNet(MapPolicyConfig(config_to_dict(timed_cfg))), {})
+                      MapPolicyNet(MapPolicyConfig(config_to_dict(timed_cfg))), {"args": {"family": "wide-uniform"}})
     args = SimpleNamespace(out=str(tmp_path), wide_fusion="average", episodes=2, seeds=1, bootstrap=200,
                            bootstrap_seed=0, perception="models/perception.pt", progress=False,
                            wide_policy_dir=str(tmp_path / "models"))
@@ -201,7 +201,7 @@ def test_table3_on_a_tiny_synthetic_family(tmp_path):
     ours = [r for r in rows if r["key"] == "map_policy"]
     assert [r["budget"] for r in ours] == ["240 s"] and np.isfinite(ours[0]["vs_rule"])
     assert np.isfinite(ours[0]["vs_best_fixed"]) and text.count("ours: learned wide-area policy") == 1
-    assert "search_wide_240s_map.pt (average:0.1)" in text
+    assert "search_wide_240s_map.pt (average:0.1), trained on `wide-uniform`'s training scenes" in text
     # a checkpoint made for the other budget is refused in one line
     from uavsearch.search.agents import load_wide_agent
 

@@ -45,6 +45,7 @@ from ..data.view_cache import ViewCache, get_view_cache
 from ..fusion import Fusion, OracleFusion, calibrated_candidates, calibrated_gamma, fusion_name, make_fusion
 from ..map_policy import BUDGETS, wide_checkpoint
 from ..perception import load_perception, shipped_perception
+from ..policy import load_search_model
 from ..scoring import score_episode
 from ..search_loop import Agent, CachedViews, run_search
 from ..wide_policies import RoutePolicy, choose_rule, greedy_view_set, label_routes, rule_policy
@@ -217,6 +218,12 @@ def row_order(results: dict | None = None) -> list[str]:
     return [*FIXED, RULE, *learned, "entropy_per_s", "random", *BOUNDS]
 
 
+def _trained_family(path) -> str | None:
+    """The scene family a learned wide-area policy's checkpoint was trained on, as `wide`'s (None: not said)."""
+    fam = (load_search_model(path)[2].get("args") or {}).get("family")
+    return f"`{fam}`'s" if fam else None
+
+
 def table_rows(family: str, name: str, cond: dict) -> list[dict]:
     """table3.csv rows of one family and budget."""
     out = []
@@ -256,7 +263,7 @@ def table_lines(family: str, name: str, cond: dict, rows: list[dict]) -> list[st
                    f"weighs descents per second of flight, chosen on the validation scenes: **{cond['rule_variant']}** ("
                    + ", ".join(f"{k} {v:.3f}" for k, v in cond["rule_variant_af1"].items()) + ").")
     if cond.get("learned"):
-        chosen += f" The learned policy: {cond['learned']}, trained on the family's training scenes."
+        chosen += f" The learned policy: {cond['learned']}, trained on {cond.get('learned_on') or 'its'} training scenes."
     lines = [f"### {family}, {name}", "",
              f"{sc['test']} test scenes; fixed view sets searched on {sc['train']} training scenes, the best fixed route "
              f"chosen on {sc['val']} validation scenes: **{LABELS[cond['best_fixed']]}**.{chosen}", "",
@@ -361,7 +368,8 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
             cond = evaluate_condition(cs, cfg, chosen, args.episodes, args.seeds, args.bootstrap,
                                       args.bootstrap_seed, learned)
             cond.update(fusion=fusion_name(chosen), fusion_scores=scores,
-                        learned=f"{display_path(path)} ({fusion_name(learned.fusion)})" if learned else None)
+                        learned=f"{display_path(path)} ({fusion_name(learned.fusion)})" if learned else None,
+                        learned_on=_trained_family(path) if learned else None)
             conds[(fam, name)] = {**cond, "config": cfg}
             r = table_rows(fam, name, cond)
             rows += r
