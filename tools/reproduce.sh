@@ -52,9 +52,9 @@
 #                     learning rate). measured: see docs/results.md.
 #     train_map_wide  the wide family's learned policy (uavsearch train map), T = 8 and 240 s, seed 0, on the
 #                     first 300 training scenes. measured: see docs/learning.md.
-#     map_gains       the wide policy fitted to the label teacher's gains of every viewpoint (T = 8, 100 training
-#                     scenes, 5 DAgger iterations, seed 0) -> results/map_policy/gains_T8/ (curves, metrics).
-#                     measured: 653 s beside a benchmark.
+#     map_gains       the wide policy fitted to the label teacher's gains of every viewpoint (T = 8, 100 and 200
+#                     training scenes, 5 DAgger iterations, seed 0) -> results/map_policy/gains_T8/ and
+#                     gains_T8_200/ (curves, metrics). measured: 653 s and 669 s.
 #     perception_wide the wide net's targets per altitude on the 100 wide test scenes
 #                     (results/perception_wide/), against the paper's net on the same views.
 #     wide            Table III: wide on 100 test scenes (results/search_wide/), wide-uniform on 50
@@ -151,8 +151,8 @@ add train_perception_wide full "stage 1 across altitudes in two fine-tunings (se
   "$UAV train perception --settings wide --train-scenes 100 --val-scenes 4 --altitude-feature --init models/perception.pt --lr 1e-3 --steps 1500 --eval-every 300 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 2 --runs-dir $RUN --out $RUN/perception_wide_100.pt --no-progress && $UAV train perception --settings wide --train-scenes 300 --val-scenes 10 --altitude-feature --init $RUN/perception_wide_100.pt --lr 3e-4 --steps 2000 --eval-every 250 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 1 --runs-dir $RUN --out $NEWPERC_WIDE --no-progress"
 add train_map_wide full "the wide family's learned policy, one per budget (DAgger from the rule + REINFORCE, seed 0, 300 training scenes) on $NEWPERC_WIDE -> $RUN/search_wide_*_map.pt" \
   "$UAV train map --budget 8 --fusion calibrated:0.25 --pg-iterations 300 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_T8_map.pt && $UAV train map --budget 240 --fusion calibrated:0.75 --pg-iterations 100 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_240s_map.pt"
-add map_gains full "the wide policy fitted to the label teacher's gains (T = 8, 100 training scenes, seed 0) on $NEWPERC_WIDE -> results/map_policy/gains_T8/" \
-  "rm -rf $RUN/map_gains && $UAV train map --budget 8 --fusion calibrated:0.25 --train-scenes 100 --teacher labels --imitate gains --dagger-iterations 5 --pg-iterations 0 --threads 1 --seed 0 --name gainsT8 --perception $NEWPERC_WIDE --runs-dir $RUN/map_gains --no-progress && mkdir -p results/map_policy/gains_T8 && cp $RUN/map_gains/gainsT8__*/metrics.csv $RUN/map_gains/gainsT8__*/learning_curve.png $RUN/map_gains/gainsT8__*/summary.json results/map_policy/gains_T8/"
+add map_gains full "the wide policy fitted to the label teacher's gains (T = 8, 100 and 200 training scenes, seed 0) on $NEWPERC_WIDE -> results/map_policy/gains_T8*/" \
+  "for n in 100 200; do sfx=\$( [ \$n = 100 ] || echo _\$n ); rm -rf $RUN/map_gains_\$n && $UAV train map --budget 8 --fusion calibrated:0.25 --train-scenes \$n --teacher labels --imitate gains --dagger-iterations 5 --pg-iterations 0 --threads 1 --seed 0 --name gainsT8\$sfx --perception $NEWPERC_WIDE --runs-dir $RUN/map_gains_\$n --no-progress && mkdir -p results/map_policy/gains_T8\$sfx && cp $RUN/map_gains_\$n/*/metrics.csv $RUN/map_gains_\$n/*/learning_curve.png $RUN/map_gains_\$n/*/summary.json results/map_policy/gains_T8\$sfx/ || exit 1; done"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE, $RUN/seed0/search_s*_*.pt and $RUN/search_wide_*_map.pt into models/" \
   "cp $NEWPERC models/perception.pt && cp $NEWPERC_WIDE models/perception_wide.pt && cp $RUN/seed0/search_s*_*.pt $RUN/search_wide_*_map.pt models/"
 add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \
