@@ -54,7 +54,8 @@
 #                     first 300 training scenes. measured: see docs/learning.md.
 #     map_gains       the wide policy fitted to the label teacher's gains of every viewpoint (T = 8, 100 and 200
 #                     training scenes, 5 DAgger iterations, seed 0) -> results/map_policy/gains_T8/ and
-#                     gains_T8_200/ (curves, metrics). measured: 653 s and 669 s.
+#                     gains_T8_200/ (curves, metrics). measured: 653 s (beside a benchmark) and 669 s
+#                     (2 threads, building the 200 scenes' perception cache).
 #     perception_wide the wide net's targets per altitude on the 100 wide test scenes
 #                     (results/perception_wide/), against the paper's net on the same views.
 #     wide            Table III: wide on 100 test scenes (results/search_wide/), wide-uniform on 50
