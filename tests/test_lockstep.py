@@ -102,8 +102,8 @@ def test_a_free_running_vehicle_refuses_grants(tmp_path):
 
 
 def _fly_a_leg(tmp_path, one_tick_per_grant: bool, monkeypatch) -> tuple[list, int]:
-    """Take off, fly 30 m north-east and 30 m down-range, as the mission controller does; when the take-off ended
-    and both legs settled, where it reported itself then, and the number of grants."""
+    """Take off, fly to (20, 22) at 40 m and back to (-5, 0), as the mission controller does; when the take-off
+    ended and both legs settled, where it reported itself then, and the number of grants."""
     import numpy as np
 
     from uavsearch.fly import vehicle as vehicle_module

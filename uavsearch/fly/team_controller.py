@@ -35,7 +35,7 @@ from .connection import MavlinkConnection
 from .errors import FlightError, StepFailed, VehicleLost
 from .mission_controller import (VEHICLE_LOST, MissionResult, _discard, _log_failure, _watch, capture_fields,
                                   default_run_dir, disk_full, finish_log)
-from .vehicle import MavlinkVehicle, ticks_until
+from .vehicle import MavlinkVehicle, climb_grant
 
 
 class LiveTeamViews:
@@ -132,13 +132,6 @@ def _all(vehicles: list[MavlinkVehicle], cond, what: str, sim_timeout_s: float, 
                                   tick_s=tick_s, status=status, say=lead._say)
 
 
-def _climb_grant(vehicles: list[MavlinkVehicle]) -> float:
-    """The team's take-off grant (on the lead's clock): the ticks before the last vehicle could be up (all must)."""
-    lead = vehicles[0]
-    bounds = [t for t in (v._at_takeoff_alt_earliest_s() for v in vehicles) if t is not None]
-    return ticks_until(lead.system, lead.settings.lockstep_tick_s, max(bounds) if bounds else None)
-
-
 def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_port: int = 14550,
              torch_threads: int = 1) -> MissionResult:
     """Fly a scene family's mission with `mission.vehicles` vehicles (module docstring); the result scores the
@@ -211,7 +204,7 @@ def fly_team(mission, connect: str | None = None, out=None, progress=print, gcs_
             for v in vehicles:
                 v.begin_take_off()
             _all(vehicles, lambda: all(v.took_off() for v in vehicles), "take-off of the team",
-                 vehicles[0].settings.takeoff_timeout_s, tick_s=lambda: _climb_grant(vehicles))
+                 vehicles[0].settings.takeoff_timeout_s, tick_s=lambda: climb_grant(vehicles))
             phases["took_off_s"] = time.monotonic() - wall0
             with torch.no_grad():
                 run_team(views, method.fusion, method.planner, n, float(config.budget_s), max_views=max_views,

@@ -60,6 +60,14 @@ def ticks_until(system, tick_s: float, earliest_s: float | None) -> float:
     return tick_s * max(1, ticks)
 
 
+def climb_grant(vehicles: list[MavlinkVehicle]) -> float:
+    """The take-off's grant on the first vehicle's clock (in lockstep its grants run every vehicle): the ticks
+    before the last of them could be up (all must be)."""
+    lead = vehicles[0]
+    bounds = [t for t in (v._at_takeoff_alt_earliest_s() for v in vehicles) if t is not None]
+    return ticks_until(lead.system, lead.settings.lockstep_tick_s, max(bounds) if bounds else None)
+
+
 @dataclass(frozen=True)
 class FlightSettings:
     """How the client flies: arrival thresholds and time-outs (mission parameters)."""
@@ -315,7 +323,7 @@ class MavlinkVehicle:
         st = self.settings
         self.begin_take_off()
         self._wait(self.took_off, st.wall_timeout_s, "takeoff", sim_timeout_s=st.takeoff_timeout_s,
-                   tick_s=lambda: ticks_until(self.system, st.lockstep_tick_s, self._at_takeoff_alt_earliest_s()),
+                   tick_s=lambda: climb_grant([self]),
                    status=lambda el: f"take-off  {self._where(el)}  (to {self.config.altitude_m:.0f} m)")
 
     def _takeoff_alt_amsl(self) -> float:

@@ -14,7 +14,6 @@ from pymavlink.dialects.v20 import common as M
 
 from ..quaternion import quat_from_euler
 
-
 log = logging.getLogger(__name__)
 
 HEALTH_BITS = {
