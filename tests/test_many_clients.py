@@ -9,6 +9,7 @@ full disk) make failed captures, never a stopped vehicle, and a photo that canno
 
 import contextlib
 import math
+import socket
 import struct
 import subprocess
 import threading
@@ -23,7 +24,7 @@ from uavsearch.testing.mavlink_client import Client, PeerClient
 from uavsearch.testing.mavsdk_session import mavsdk_session
 from uavsearch.flight.mavlink.links import MAX_PEERS, PEER_TIMEOUT_S, Link, LinkConfig
 from uavsearch.flight.params import ParamStore
-from uavsearch.flight.sitl_process import SitlProcess
+from uavsearch.flight.sitl_process import RESERVED_FLOOR, SitlProcess, ephemeral_ports, free_udp_port, free_udp_ports
 
 M = mavutil.mavlink
 KEY = bytes(range(32))
@@ -272,6 +273,35 @@ def test_full_disk_makes_failed_captures_and_the_vehicle_keeps_answering(tmp_pat
         finally:
             code, out = sitl.stop()
         assert sitl.proc.returncode is not None and "Traceback" not in out
+
+
+def test_link_ports_are_never_ones_a_bind_to_port_0_can_take():
+    """A vehicle sends to its client's port before the client binds it; meanwhile every bind to port 0 (each
+    vehicle's own end of its links, on every test worker) draws from the kernel's ephemeral range. A link's
+    port from there could go to another vehicle, whose answers would then reach this client."""
+    low, high = ephemeral_ports()
+    if low - RESERVED_FLOOR < 1000:
+        pytest.skip(f"this kernel's ephemeral UDP ports start at {low}: no room below them")
+    for _ in range(50):
+        port = free_udp_port()
+        assert RESERVED_FLOOR <= port < low
+        base = free_udp_ports(4)
+        assert RESERVED_FLOOR <= base and base + 3 < low
+        socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(5)]
+        try:
+            for sock, p in zip(socks, (port, base, base + 1, base + 2, base + 3)):
+                sock.bind(("127.0.0.1", p))  # free when handed out
+        finally:
+            for sock in socks:
+                sock.close()
+    taken = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(20)]
+    try:
+        for sock in taken:
+            sock.bind(("127.0.0.1", 0))
+            assert low <= sock.getsockname()[1] <= high  # what the kernel hands out for port 0
+    finally:
+        for sock in taken:
+            sock.close()
 
 
 @pytest.fixture(scope="module")

@@ -24,18 +24,35 @@ class SitlStartError(UavsearchError):
     """The vehicle process exited or did not get ready."""
 
 
+EPHEMERAL_FALLBACK = (32768, 60999)  # Linux's default ip_local_port_range, where /proc does not say
+RESERVED_FLOOR = 10000  # below this are well-known and registered services' ports
+
+
+def ephemeral_ports() -> tuple[int, int]:
+    """The kernel's range for bind(port 0), inclusive (Linux: /proc/sys/net/ipv4/ip_local_port_range)."""
+    try:
+        low, high = (int(x) for x in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+        return low, high
+    except (OSError, ValueError):
+        return EPHEMERAL_FALLBACK
+
+
 def free_udp_port() -> int:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
+    """A free UDP port on 127.0.0.1 for a link whose two ends bind at different moments (a vehicle sends to it,
+    its client binds it later): free_udp_ports(1)."""
+    return free_udp_ports(1)
 
 
-def free_udp_ports(n: int, start: int = 20000, stop: int = 60000) -> int:
-    """The first of `n` consecutive free UDP ports on 127.0.0.1 (a team's API links: vehicle I on base + I)."""
+def free_udp_ports(n: int) -> int:
+    """The first of `n` consecutive free UDP ports on 127.0.0.1 (a team's API links: vehicle I on base + I), drawn
+    at random below the kernel's ephemeral range. Between choosing a port and binding it the port is free, and
+    any process binding port 0 meanwhile (every vehicle's own end of its links, pymavlink's clients) gets one
+    from the ephemeral range: a port from there could go to another vehicle, whose telemetry and command
+    answers would then reach this link's client (pymavlink binds with SO_REUSEADDR, so both binds succeed)."""
     import random
 
+    low = ephemeral_ports()[0]
+    start, stop = RESERVED_FLOOR, (low if low - RESERVED_FLOOR >= 1000 else 65536)  # no room below: anywhere
     rng = random.Random()  # not the caller's seed: which free ports there are says nothing about a flight
     for _ in range(200):
         base = rng.randrange(start, stop - n)
