@@ -23,6 +23,7 @@ from uavsearch.geometry import (
     project_points,
     quaternion_from_euler,
 )
+from uavsearch.geometry import _clip_polygon, _clip_to_view
 
 INTR = CameraIntrinsics(224, 224, 60.0)
 GRID = Grid(10, 5.0)
@@ -59,6 +60,26 @@ def test_cell_areas_at_once_are_the_areas_of_the_clipped_polygons():
     for pose in poses:
         expected = np.array([polygon_area(p) for p in cell_image_polygons(grid, INTR, pose)])
         np.testing.assert_allclose(cell_pixel_areas(grid, INTR, pose), expected, rtol=1e-12, atol=1e-9)
+
+
+def test_image_border_clip_on_floats_gives_the_bits_of_the_array_clip():
+    """_clip_to_view clips a projected cell to the image on plain floats; _clip_polygon (numpy arrays, which the
+    near plane still uses) must give the same vertices to the last bit, or every cell area would move."""
+    rng = np.random.default_rng(0)
+    W, H = float(INTR.width_px), float(INTR.height_px)
+    for _ in range(300):
+        centre = rng.uniform(-40.0, 264.0, 2)
+        square = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+        quad = centre + rng.uniform(5.0, 60.0) * square + rng.normal(0, 3, (4, 2))
+        depth = rng.uniform(20.0, 80.0)
+        pc = np.column_stack([(quad[:, 0] - INTR.cx) * depth / INTR.fx, (quad[:, 1] - INTR.cy) * depth / INTR.fy,
+                              np.full(4, depth)])
+        uv = np.stack([INTR.fx * pc[:, 0] / pc[:, 2] + INTR.cx, INTR.fy * pc[:, 1] / pc[:, 2] + INTR.cy], axis=-1)
+        for axis, bound, keep in ((0, 0.0, True), (0, W, False), (1, 0.0, True), (1, H, False)):
+            uv = _clip_polygon(uv, axis, bound, keep)
+        expected = uv if len(uv) >= 3 else np.zeros((0, 2))
+        got = _clip_to_view(pc, INTR)
+        assert got.shape == expected.shape and np.array_equal(got, expected)
 
 
 def test_mask_pixel_counts_match_polygon_areas():
