@@ -23,7 +23,7 @@ from uavsearch.geometry import (
     project_points,
     quaternion_from_euler,
 )
-from uavsearch.geometry import _clip_polygon, _clip_to_view
+from uavsearch.geometry import NEAR_PLANE_M, _clip_to_view
 
 INTR = CameraIntrinsics(224, 224, 60.0)
 GRID = Grid(10, 5.0)
@@ -62,22 +62,39 @@ def test_cell_areas_at_once_are_the_areas_of_the_clipped_polygons():
         np.testing.assert_allclose(cell_pixel_areas(grid, INTR, pose), expected, rtol=1e-12, atol=1e-9)
 
 
-def test_image_border_clip_on_floats_gives_the_bits_of_the_array_clip():
-    """_clip_to_view clips a projected cell to the image on plain floats; _clip_polygon (numpy arrays, which the
-    near plane still uses) must give the same vertices to the last bit, or every cell area would move."""
+def _array_clip(poly, axis, bound, keep_greater):
+    """Sutherland-Hodgman on numpy arrays, vertex by vertex: the reference the float clip must match."""
+    out = []
+    for k in range(len(poly)):
+        a, b = poly[k], poly[(k + 1) % len(poly)]
+        ina = a[axis] >= bound if keep_greater else a[axis] <= bound
+        inb = b[axis] >= bound if keep_greater else b[axis] <= bound
+        if ina:
+            out.append(a)
+        if ina != inb:
+            out.append(a + (bound - a[axis]) / (b[axis] - a[axis]) * (b - a))
+    return np.array(out) if out else np.zeros((0, poly.shape[1]))
+
+
+def test_clipping_on_floats_gives_the_bits_of_clipping_arrays():
+    """_clip_to_view clips a cell to the near plane and to the image on plain floats (for speed); clipping numpy
+    arrays must give the same vertices to the last bit, or every cell area would move."""
     rng = np.random.default_rng(0)
-    W, H = float(INTR.width_px), float(INTR.height_px)
-    for _ in range(300):
-        centre = rng.uniform(-40.0, 264.0, 2)
-        square = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
-        quad = centre + rng.uniform(5.0, 60.0) * square + rng.normal(0, 3, (4, 2))
-        depth = rng.uniform(20.0, 80.0)
+    square = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]])
+    for i in range(400):
+        quad = rng.uniform(-40.0, 264.0, 2) + rng.uniform(5.0, 60.0) * square + rng.normal(0, 3, (4, 2))
+        depth = rng.uniform(20.0, 80.0, 4) if i % 4 else rng.uniform(-5.0, 10.0, 4)  # a quarter cross the near plane
         pc = np.column_stack([(quad[:, 0] - INTR.cx) * depth / INTR.fx, (quad[:, 1] - INTR.cy) * depth / INTR.fy,
-                              np.full(4, depth)])
-        uv = np.stack([INTR.fx * pc[:, 0] / pc[:, 2] + INTR.cx, INTR.fy * pc[:, 1] / pc[:, 2] + INTR.cy], axis=-1)
-        for axis, bound, keep in ((0, 0.0, True), (0, W, False), (1, 0.0, True), (1, H, False)):
-            uv = _clip_polygon(uv, axis, bound, keep)
-        expected = uv if len(uv) >= 3 else np.zeros((0, 2))
+                              depth])
+        inside = pc if np.all(pc[:, 2] > NEAR_PLANE_M) else _array_clip(pc, 2, NEAR_PLANE_M, True)
+        expected = np.zeros((0, 2))
+        if len(inside) >= 3:
+            uv = np.stack([INTR.fx * inside[:, 0] / inside[:, 2] + INTR.cx,
+                           INTR.fy * inside[:, 1] / inside[:, 2] + INTR.cy], axis=-1)
+            for axis, bound, keep in ((0, 0.0, True), (0, float(INTR.width_px), False), (1, 0.0, True),
+                                      (1, float(INTR.height_px), False)):
+                uv = _array_clip(uv, axis, bound, keep)
+            expected = uv if len(uv) >= 3 else expected
         got = _clip_to_view(pc, INTR)
         assert got.shape == expected.shape and np.array_equal(got, expected)
 

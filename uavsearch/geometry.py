@@ -300,10 +300,10 @@ class Grid:
         return idx.astype(np.int64)
 
 
-def _clip_polygon(poly: np.ndarray, axis: int, bound: float, keep_greater: bool) -> np.ndarray:
-    """Sutherland-Hodgman: keep the part of a convex polygon on one side of coordinate axis = bound."""
-    if len(poly) == 0:
-        return poly
+def _clip_polygon(poly: list, axis: int, bound: float, keep_greater: bool) -> list:
+    """Sutherland-Hodgman: keep the part of a convex polygon (a list of coordinate tuples of floats) on one side
+    of coordinate axis = bound. Plain floats, not a numpy array per vertex: the same IEEE operations, and a wide
+    lattice clips about 2,500 cells the image border crosses."""
     out = []
     n = len(poly)
     for k in range(n):
@@ -314,8 +314,8 @@ def _clip_polygon(poly: np.ndarray, axis: int, bound: float, keep_greater: bool)
             out.append(a)
         if ina != inb:
             t = (bound - a[axis]) / (b[axis] - a[axis])
-            out.append(a + t * (b - a))
-    return np.array(out) if out else np.zeros((0, poly.shape[1]))
+            out.append(tuple(ai + t * (bi - ai) for ai, bi in zip(a, b)))
+    return out
 
 
 def polygon_area(poly: np.ndarray) -> float:
@@ -332,7 +332,10 @@ NEAR_PLANE_M = 0.05
 
 def _clip_to_view(pc: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
     """A camera-frame polygon clipped to the near plane, projected and clipped to the image."""
-    inside = pc if np.all(pc[:, 2] > NEAR_PLANE_M) else _clip_polygon(pc, 2, NEAR_PLANE_M, keep_greater=True)
+    inside = pc
+    if not np.all(pc[:, 2] > NEAR_PLANE_M):
+        kept = _clip_polygon([tuple(map(float, p)) for p in pc], 2, NEAR_PLANE_M, keep_greater=True)
+        inside = np.array(kept) if kept else np.zeros((0, 3))
     if len(inside) < 3:
         return np.zeros((0, 2))
     uv = np.stack(
@@ -341,25 +344,8 @@ def _clip_to_view(pc: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
     poly = [(float(u), float(v)) for u, v in uv]
     for axis, bound, keep_greater in ((0, 0.0, True), (0, float(intr.width_px), False), (1, 0.0, True),
                                       (1, float(intr.height_px), False)):
-        poly = _clip_points(poly, axis, bound, keep_greater)
+        poly = _clip_polygon(poly, axis, bound, keep_greater)
     return np.array(poly) if len(poly) >= 3 else np.zeros((0, 2))
-
-
-def _clip_points(poly: list, axis: int, bound: float, keep_greater: bool) -> list:
-    """_clip_polygon on a list of (u, v) floats: the same arithmetic, operation by operation, so the same bits,
-    without a numpy array per vertex (a wide lattice clips about 2,500 cells the image border crosses)."""
-    out = []
-    n = len(poly)
-    for k in range(n):
-        a, b = poly[k], poly[(k + 1) % n]
-        ina = a[axis] >= bound if keep_greater else a[axis] <= bound
-        inb = b[axis] >= bound if keep_greater else b[axis] <= bound
-        if ina:
-            out.append(a)
-        if ina != inb:
-            t = (bound - a[axis]) / (b[axis] - a[axis])
-            out.append((a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])))
-    return out
 
 
 def _project_cells(grid: Grid, intr: CameraIntrinsics, pose: CameraPose):
