@@ -16,6 +16,8 @@ survey first and differs only in how it picks the views after it:
   viewpoints that see it), on rule rollouts of the training scenes (30% random moves), then summed over each
   viewpoint's footprint: by a table over (fused p bin, views of the cell per layer) and by the map policy's
   convolutional trunk (MapPolicyNet) with a two-output head;
+- learned viewpoint gains: a ridge regression of the label teacher's gain of every viewpoint on a few
+  hand-made sums over its footprint (footprint_features), from the same rollouts: too few weights to memorise;
 - bounds that read the labels: the true per-cell gains summed the same way, and the label-peeking greedy.
 The feature probe fits a logistic regression of a cell-view's label on its calibrated log-odds and pixel area,
 then on those and the perception net's cell features, on training views, and reports the validation AUC.
@@ -55,13 +57,13 @@ FUSION = {"8": "calibrated:0.25", "240": "calibrated:0.75"}  # the learned polic
 
 
 class AfterSurvey:
-    """The rule's survey, then the viewpoint of the highest score(inp) (per second of flight plus the rule's
-    overhead under a time budget)."""
+    """The rule's survey, then the viewpoint of the highest score(inp) (under a time budget per second of flight
+    plus the rule's overhead, unless the score is per second already)."""
 
-    def __init__(self, rule: DescendRule, score, config):
+    def __init__(self, rule: DescendRule, score, config, per_second: bool = True):
         self.survey, self.score = rule.survey, score
         self.cost = config.lattice.flight_time_t.float()
-        self.timed = config.budget_s is not None
+        self.timed = per_second and config.budget_s is not None
 
     @torch.no_grad()
     def act(self, inp, generator=None):
@@ -133,7 +135,8 @@ class ExpectedGain:
         for c0 in range(0, len(self.area), chunk):
             cs = torch.arange(c0, min(c0 + chunk, len(self.area)))
             fc = self.foot[cs]
-            m = (((la[:, :, None] - self.la[cs][None, None]).abs() < SAME_SCALE) & v[:, :, None] & fc[None, None]).float()
+            same = (la[:, :, None] - self.la[cs][None, None]).abs() < SAME_SCALE
+            m = (same & v[:, :, None] & fc[None, None]).float()
             base = self.l0 + (ev[:, :, None] / (n_t[:, :, None] + m) ** g).sum(1)  # the earlier views, recounted
             scale = (1.0 + m.sum(1)) ** -g
             after = base[..., None, None] + (self.table[self.bin[cs]][None] - self.l0) * scale[..., None, None]
@@ -145,7 +148,8 @@ class ExpectedGain:
 
 class CellTargets:
     """Per cell and layer (0: the lowest, 1: the top): the change of the cell's N_tp - N_fp after a view from that
-    layer, averaged over the unvisited viewpoints of the layer that see it; reads the labels."""
+    layer, averaged over the unvisited viewpoints of the layer that see it; and per viewpoint, the change of the
+    map's N_tp - N_fp after its view (the label teacher's gain); reads the labels."""
 
     def __init__(self, cache, rows, fusion, config, chunk: int = 8):
         self.cache, self.fusion, self.chunk = cache, fusion, chunk
@@ -165,12 +169,14 @@ class CellTargets:
         now = (self.fused > 0.5).float() * sign
         B, P = inp.visited.shape
         total, count = torch.zeros(B, 2, now.shape[1]), torch.zeros(B, 2, now.shape[1])
+        self.view_gains = torch.zeros(B, P)
         for c0 in range(0, P, self.chunk):
             cs = torch.arange(c0, min(c0 + self.chunk, P))
             k = len(cs)
             _, fused = self.fusion.update(_repeat(self.state, k), route_views(
                 self.cache, self.rows.repeat_interleave(k), cs.repeat(B)[:, None]))
             d = ((fused > 0.5).float() * sign.repeat_interleave(k, 0)).reshape(B, k, -1) - now[:, None]
+            self.view_gains[:, cs] = d.sum(-1)
             w = self.foot[cs][None] * (~inp.visited[:, cs]).float()[..., None]  # (B, k, N)
             total.index_add_(1, self.layer[cs], d * w)
             count.index_add_(1, self.layer[cs], w)
@@ -218,7 +224,7 @@ def collect(train, fusion, config, rule, episodes: int, seed: int):
     rows = torch.randint(train.num_scenes, (episodes,), generator=gen)
     targets = CellTargets(train, rows, fusion, config)
     state = map_planes(config)
-    X, Y, M = [], [], []
+    X, Y, M, F, G, A = [], [], [], [], [], []
 
     class Recorder:
         def act(self, inp, generator=None):
@@ -226,6 +232,10 @@ def collect(train, fusion, config, rule, episodes: int, seed: int):
             y, m = targets(inp)
             live = candidates(inp).any(1)
             X.append(planes[live].half()), Y.append(y[live]), M.append(m[live])
+            if inp.step >= len(rule.survey):
+                F.append(footprint_features(inp, config))
+                G.append(targets.view_gains.clone())
+                A.append(candidates(inp))
             a = rule.act(inp)[0]
             w = candidates(inp).float()
             w[w.sum(1) == 0] = 1
@@ -234,7 +244,48 @@ def collect(train, fusion, config, rule, episodes: int, seed: int):
 
     with torch.no_grad():
         run_search(CachedViews(train, rows, config), Agent(fusion, Recorder()), generator=gen)
-    return torch.cat(X), torch.cat(Y), torch.cat(M)
+    return (torch.cat(X), torch.cat(Y), torch.cat(M)), (torch.cat(F), torch.cat(G), torch.cat(A))
+
+
+def footprint_features(inp, config) -> torch.Tensor:
+    """(B, P, 2f + 1) what a viewpoint's footprint holds: the two highest open p (open: no lowest-layer view has
+    measured the cell), the sum of open p and of its square, the open cells above p 0.1 / 0.3 / 0.5 / 0.7, the
+    cells above 0.5 measured from low and still open, the summed uncertainty 4p(1 - p), the cells no view has
+    seen, the summed highest p any view gave the open cells, the flight time to it; once for lowest-layer
+    viewpoints and once for the others, and which it is."""
+    foot = footprints(config).float()
+    alts = torch.tensor(config.lattice.positions_enu[:, 2])
+    low = (alts == alts.min()).float()
+    p, v = inp.fused.float(), inp.view_valid
+    open_ = (~((alts == alts.min())[inp.view_positions][..., None] & v).any(1)).float()
+    po = p * open_
+    top2 = (po[:, None] * foot[None]).topk(2, -1).values
+    maxp = torch.where(v, inp.view_probs.float(), torch.zeros_like(inp.view_probs.float())).amax(1)
+    f = [top2[..., 0], top2[..., 1], po @ foot.T, (po * po) @ foot.T]
+    f += [(po > th).float() @ foot.T for th in (0.1, 0.3, 0.5, 0.7)]
+    f += [((p > 0.5).float() * (1 - open_)) @ foot.T, ((p > 0.5).float() * open_) @ foot.T,
+          (4 * p * (1 - p)) @ foot.T, (1 - v.any(1).float()) @ foot.T, (maxp * open_) @ foot.T,
+          config.lattice.flight_time_t.float()[inp.lattice_idx] / 60]
+    x = torch.stack(f, -1)
+    is_low = low[None, :, None].expand(len(p), -1, 1)
+    return torch.cat([x * is_low, x * (1 - is_low), is_low], -1)
+
+
+RIDGE = 100.0  # fixed beforehand; 1 and 1e4 score alike on validation
+
+
+def fit_linear(F, G, A) -> torch.Tensor:
+    """Ridge regression of the label teacher's viewpoint gains on the footprint features (both less their mean
+    over the state's allowed viewpoints, as a ranking needs): weights over standardised features."""
+    n = A.sum(1, keepdim=True).clamp(min=1)
+    Fc = torch.where(A[..., None], F, torch.zeros_like(F))
+    Fc = (Fc - Fc.sum(1, keepdim=True) / n[..., None])[A].double()
+    Gc = torch.where(A, G, torch.zeros_like(G))
+    Gc = (Gc - Gc.sum(1, keepdim=True) / n)[A].double()
+    sd = Fc.std(0) + 1e-9
+    Z = Fc / sd
+    w = torch.linalg.solve(Z.T @ Z + RIDGE * torch.eye(Z.shape[1], dtype=torch.double), Z.T @ Gc)
+    return (w / sd).float()
 
 
 def fit_table(X, Y, M) -> torch.Tensor:
@@ -333,7 +384,7 @@ def main() -> None:
     def scores(policy) -> np.ndarray:
         return evaluate_agent(val, Agent(fusion, policy), 1, config=config).f1[:, -1]
 
-    bar = tqdm(total=9 + len(SHORTER_SURVEYS), desc="probes", unit="probe")
+    bar = tqdm(total=10 + len(SHORTER_SURVEYS), desc="probes", unit="probe")
     rule_f1 = scores(rule)
     rows = []
 
@@ -351,7 +402,7 @@ def main() -> None:
         row(f"the rule, descent score: {name}", DescentScore(rule, reduce))
     row("expected gain of one view (calibrated evidence model), after the survey",
         AfterSurvey(rule, ExpectedGain(train, fusion, config), config))
-    X, Y, M = collect(train, fusion, config, rule, args.episodes, args.seed)
+    (X, Y, M), (F, G, A) = collect(train, fusion, config, rule, args.episodes, args.seed)
     bar.update()
     tab = fit_table(X, Y, M)
     rule_state = map_planes(config)
@@ -360,11 +411,14 @@ def main() -> None:
     cell_net = fit_net(config, X, Y, M, args.seed)
     row(f"learned per-cell gains, conv net (the map policy's trunk; {len(X)} states)", AfterSurvey(
         rule, lambda inp: per_layer_sum(cell_net(rule_state(inp)), config), config))
+    w = fit_linear(F, G, A)
+    row(f"learned viewpoint gains, ridge regression on footprint features ({len(F)} states after the survey)",
+        AfterSurvey(rule, lambda inp: footprint_features(inp, config) @ w, config))
     targets = CellTargets(val, np.arange(val.num_scenes), fusion, config)
     row("true per-cell gains, summed the same way (reads the labels; bound)",
         AfterSurvey(rule, lambda inp: per_layer_sum(targets(inp)[0], config), config))
     greedy = LabelLookahead(val, torch.arange(val.num_scenes), fusion, config)
-    row("label-peeking greedy after the survey (bound)", AfterSurvey(rule, greedy.gains, config))
+    row("label-peeking greedy after the survey (bound)", AfterSurvey(rule, greedy.gains, config, per_second=False))
     bar.close()
     feats = feature_auc(net_p, args.family, args.feature_scenes, fusion)
     budget = "T = 8 views" if args.budget == "8" else f"{config.budget_s:g} s of flight"
