@@ -25,7 +25,7 @@ class SitlStartError(UavsearchError):
 
 
 EPHEMERAL_FALLBACK = (32768, 60999)  # Linux's default ip_local_port_range, where /proc does not say
-RESERVED_FLOOR = 10000  # below this are well-known and registered services' ports
+RESERVED_FLOOR = 20000  # below: well-known services and MAVLink's own (14540-14580 API/GCS links, 18570 SITL)
 
 
 def ephemeral_ports() -> tuple[int, int]:
