@@ -102,7 +102,7 @@ class ExpectedGain:
     """A view's expected change of N_tp - N_fp under the calibrated fusion (module docstring)."""
 
     def __init__(self, train, fusion, config, k: int = 32):
-        self.fusion, self.config = fusion, config
+        self.fusion = fusion
         self.area = config.lattice.cell_areas.float()
         self.la = self.area.clamp(min=1).log()
         self.foot = footprints(config)
@@ -218,12 +218,12 @@ def map_planes(config):
     return lambda inp: net.state(inp)[0]
 
 
-def collect(train, fusion, config, rule, episodes: int, seed: int):
-    """(planes, targets, mask) of every state of rule rollouts (30% random moves) on random training scenes."""
+def collect(train, fusion, config, rule, state, episodes: int, seed: int):
+    """(planes, targets, mask) of every state of rule rollouts (30% random moves) on random training scenes, and
+    (footprint features, viewpoint gains, allowed) of those after the survey; `state`: map_planes(config)."""
     gen = torch.Generator().manual_seed(seed)
     rows = torch.randint(train.num_scenes, (episodes,), generator=gen)
     targets = CellTargets(train, rows, fusion, config)
-    state = map_planes(config)
     X, Y, M, F, G, A = [], [], [], [], [], []
 
     class Recorder:
@@ -402,10 +402,10 @@ def main() -> None:
         row(f"the rule, descent score: {name}", DescentScore(rule, reduce))
     row("expected gain of one view (calibrated evidence model), after the survey",
         AfterSurvey(rule, ExpectedGain(train, fusion, config), config))
-    (X, Y, M), (F, G, A) = collect(train, fusion, config, rule, args.episodes, args.seed)
+    rule_state = map_planes(config)
+    (X, Y, M), (F, G, A) = collect(train, fusion, config, rule, rule_state, args.episodes, args.seed)
     bar.update()
     tab = fit_table(X, Y, M)
-    rule_state = map_planes(config)
     row(f"learned per-cell gains, table (fit on {len(X)} states)", AfterSurvey(rule, lambda inp: per_layer_sum(
         tab[:, table_keys(rule_state(inp))].permute(1, 0, 2), config), config))
     cell_net = fit_net(config, X, Y, M, args.seed)

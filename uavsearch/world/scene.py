@@ -695,13 +695,13 @@ def generate_scene(
     free = _free(blocked, raster, p.person_clearance_m)
     wout = np.where(outside & free, surface, 0.0)
     sampler = _PointSampler(wout, raster)
+    radius_m = p.person_clearance_m + 0.3
+    reach = radius_m / raster.m_per_px + 2.0  # the disk's rows, with room for its sub-pixel rounding
     for _ in range(rng.poisson(p.background_people_per_100m2 * walk_area_m2 / 100.0 * 0.5)):
         x, y = sampler.draw(rng)
         _person(b, x, y, -1)
-        radius_m = p.person_clearance_m + 0.3
         raster.disk(wout, (x, y), radius_m, 0.0)
         row = float(raster.to_px((x, y))[1])
-        reach = radius_m / raster.m_per_px + 2.0  # the disk's rows, with room for its sub-pixel rounding
         sampler.rows_changed(int(math.floor(row - reach)), int(math.ceil(row + reach)) + 1)
 
     occ = np.zeros(grid.num_cells, np.int8)
@@ -723,9 +723,8 @@ def generate_scene(
 def _cell_raster(grid: Grid, raster: Raster, margin_m: float) -> np.ndarray:
     """int16 raster of cell indices (-1 outside); a positive margin shrinks every cell, a negative one
     grows the grid (then -1 marks the grown border and -2 the outside)."""
-    line = np.arange(raster.n)
-    x = raster.to_m(line, line)[:, 0][None, :]  # a pixel's x depends on its column only, y on its row:
-    y = raster.to_m(line, line)[:, 1][:, None]  # one row and one column, broadcast (the same floats)
+    line = raster.to_m(np.arange(raster.n), np.arange(raster.n))  # a pixel's x depends on its column only, y on
+    x, y = line[:, 0][None, :], line[:, 1][:, None]  # its row: one row and one column, broadcast (the same floats)
     if margin_m >= 0:
         idx = grid.cell_of_points(x, y)
         fx = np.mod(x + grid.half_m, grid.cell_m)
