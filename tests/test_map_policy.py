@@ -217,3 +217,47 @@ def test_imitating_gains_fits_the_label_teachers_gain_of_every_viewpoint(tmp_pat
     assert np.corrcoef(s[ok].detach().numpy(), g[ok].numpy())[0, 1] > 0.5
     with pytest.raises(UavsearchError, match="--teacher labels"):
         train(Args(imitate="gains", teacher="rule"), caches=(train_c, val_c))
+
+
+def test_fusion_probe_planes_hold_each_cells_views_per_altitude():
+    """tools/wide_fusion_probe.py's per-cell planes, checked against the views of a route flown on a synthetic
+    wide cache: the fused log-odds, and per altitude layer the count and the highest, mean and lowest calibrated
+    log-odds of the cell's views; its symmetries of the square are the eight distinct ones."""
+    import sys
+
+    from uavsearch.paths import REPO_ROOT
+    from uavsearch.search.fusion import calibrated_logit
+    from uavsearch.search.wide_policies import RoutePolicy
+
+    sys.path.insert(0, str(REPO_ROOT / "tools"))
+    from wide_fusion_probe import cell_planes, dihedral
+
+    cache = wide_cache(2, k=3)
+    fusion = make_fusion("calibrated:0.25", cache)
+    config = wide_budgets(WIDE)["T = 8 views"]
+    pos = config.lattice.positions_enu
+    low = np.flatnonzero(pos[:, 2] == pos[:, 2].min())
+    route = [config.lattice.start_index, 0, int(low[0]), 1]
+    ep = run_search(CachedViews(cache, np.arange(2), config), Agent(fusion, RoutePolicy(route[1:])), budget_T=4)
+    assert ep.lattice_idx[0].tolist() == route
+    x = cell_planes(cache, np.arange(2), ep, fusion, config)
+    assert x.shape == (2, 11, 30, 30)
+    flat = x.view(2, 11, -1)
+    assert torch.allclose(flat[:, 0], torch.logit(ep.maps[:, -1].float().clamp(1e-5, 1 - 1e-5)))
+    for scene in range(2):
+        for layer, views in ((0, [int(low[0])]), (1, [config.lattice.start_index, 0, 1])):
+            v = cache.valid[scene, views]
+            c = calibrated_logit(cache.log_probs[scene, views, :, 1].exp().float(),
+                                 cache.cell_area_px[scene, views].float(), fusion.coef)
+            n = v.sum(0)
+            seen = n > 0
+            planes = flat[scene, 1 + 5 * layer: 6 + 5 * layer]
+            assert torch.equal(planes[0], n.clamp(max=4).float() / 4)
+            c_max = torch.where(v, c, torch.full_like(c, -20.0)).amax(0).clamp(min=-8)
+            assert torch.allclose(planes[1][seen], c_max[seen]) and (planes[1][~seen] == 0).all()
+            mean = (c * v).sum(0) / n.clamp(min=1)
+            assert torch.allclose(planes[2][seen], mean[seen], atol=1e-5)
+    m = torch.arange(16.0).view(4, 4)
+    images = [dihedral(m, k) for k in range(8)]
+    assert len({tuple(i.flatten().tolist()) for i in images}) == 8
+    assert torch.equal(dihedral(dihedral(m, 1), 3), m) and torch.equal(dihedral(dihedral(m, 4), 4), m)
