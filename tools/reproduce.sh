@@ -64,8 +64,9 @@
 #     fusion_probe    would a fusion that learns how a cell's views go together (and its neighbours') make better
 #                     final maps than the calibrated one: learned corrections fitted on rule rollouts of the first
 #                     300 wide training scenes, scored on the rule's 50 validation episodes, T = 8 and 240 s ->
-#                     results/map_policy/fusion_probe_T8.md and fusion_probe_240s.md. measured: see
-#                     docs/learning.md.
+#                     results/map_policy/fusion_probe_T8.md and fusion_probe_240s.md; and without the
+#                     square's symmetries on 100 scenes -> fusion_probe_T8_100_no_symmetries.md. measured: about
+#                     8 min each on the 2-core machine, after the 300 scenes' perception cache (5 min).
 #     perception_wide the wide net's targets per altitude on the 100 wide test scenes
 #                     (results/perception_wide/), against the paper's net on the same views.
 #     wide            Table III: wide on 100 test scenes (results/search_wide/), wide-uniform on 50
@@ -167,7 +168,7 @@ add map_gains full "the wide policy fitted to the label teacher's gains (T = 8, 
 add map_probes full "other ways of choosing the rule's descents, shorter surveys and label bounds against the rule (50 wide validation scenes, T = 8 and 240 s) -> results/map_policy/probes_*.md" \
   "$PY tools/wide_policy_probes.py --budget 8 --out results/map_policy/probes_T8.md && $PY tools/wide_policy_probes.py --budget 240 --out results/map_policy/probes_240s.md"
 add fusion_probe full "learned fusions over each cell's views and its neighbours against the calibrated one (rule episodes, 50 wide validation scenes, T = 8 and 240 s) -> results/map_policy/fusion_probe_*.md" \
-  "$PY tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --out results/map_policy/fusion_probe_T8.md && $PY tools/wide_fusion_probe.py --budget 240 --train-scenes 300 --out results/map_policy/fusion_probe_240s.md"
+  "$PY tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --out results/map_policy/fusion_probe_T8.md && $PY tools/wide_fusion_probe.py --budget 240 --train-scenes 300 --out results/map_policy/fusion_probe_240s.md && $PY tools/wide_fusion_probe.py --budget 8 --train-scenes 100 --epochs 60 --no-symmetries --out results/map_policy/fusion_probe_T8_100_no_symmetries.md"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE, $RUN/seed0/search_s*_*.pt and $RUN/search_wide_*_map.pt into models/" \
   "cp $NEWPERC models/perception.pt && cp $NEWPERC_WIDE models/perception_wide.pt && cp $RUN/seed0/search_s*_*.pt $RUN/search_wide_*_map.pt models/"
 add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \

@@ -13,12 +13,18 @@ the rule, the others with 30% random moves, seeded), its threshold (a log-odds s
 those same training maps, and scored on the final maps of the rule's episodes on the validation scenes, paired
 against the calibrated fusion's maps of the same episodes (95% bootstrap interval over scenes).
 
+During the search: a net with neighbours, fitted on maps after a few views of the same rollouts as well as
+their final ones, corrects the map after every view, so the policy reads the corrected map too. The rule and
+the shipped learned policy (trained on the calibrated fusion's maps) fly with it, each paired against the rule
+with the calibrated fusion, and against each other with the correction.
+
     python tools/wide_fusion_probe.py --budget 8 --out results/map_policy/fusion_probe_T8.md
 """
 
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -31,48 +37,29 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from uavsearch.paths import display_path  # noqa: E402
+from uavsearch.search.agents import load_wide_agent  # noqa: E402
 from uavsearch.search.data.view_cache import get_view_cache  # noqa: E402
 from uavsearch.search.evaluate.bounds import bootstrap_ci  # noqa: E402
 from uavsearch.search.fusion import calibrated_logit, make_fusion  # noqa: E402
+from uavsearch.search.map_policy import wide_checkpoint  # noqa: E402
 from uavsearch.search.metrics import map_f1  # noqa: E402
 from uavsearch.search.perception import load_perception, shipped_perception  # noqa: E402
 from uavsearch.search.search_loop import Agent, CachedViews, run_search  # noqa: E402
 from uavsearch.search.train.map_policy import budget_config  # noqa: E402
-from uavsearch.search.wide_policies import candidates, choose_rule, rule_policy  # noqa: E402
+from uavsearch.search.wide_policies import choose_rule, rule_policy  # noqa: E402
+from wide_policy_probes import FUSION, NoisyRule, write_markdown  # noqa: E402  (tools/, beside this file)
 
-FUSION = {"8": "calibrated:0.25", "240": "calibrated:0.75"}  # the learned policy's (docs/learning.md)
 SHIFTS = np.arange(-2.0, 2.01, 0.25)  # decision thresholds tried, as log-odds shifts
 
 
-class NoisyRule:
-    """The rule, with a share of its moves replaced by random allowed ones (varied states to fit on)."""
-
-    def __init__(self, rule, eps: float, gen: torch.Generator):
-        self.rule, self.eps, self.gen = rule, eps, gen
-
-    def act(self, inp, generator=None):
-        a = self.rule.act(inp)[0]
-        if not self.eps:
-            return a, None, None
-        w = candidates(inp).float()
-        w[w.sum(1) == 0] = 1
-        rnd = torch.multinomial(w, 1, generator=self.gen)[:, 0]
-        return torch.where(torch.rand(len(a), generator=self.gen) < self.eps, rnd, a), None, None
-
-
-def cell_planes(cache, rows, episode, fusion, config) -> torch.Tensor:
-    """(B, 11, rows, cols): the calibrated fusion's final log-odds, then per altitude layer (lowest first) the
-    cell's views: count (capped at 4, / 4), highest, mean and lowest calibrated log-odds, mean log pixel area."""
-    r = torch.as_tensor(rows)[:, None]
-    idx = episode.lattice_idx
-    taken = episode.taken if episode.taken is not None else torch.ones_like(idx, dtype=torch.bool)
-    p = cache.log_probs[r, idx, :, 1].exp().float()
-    v = cache.valid[r, idx] & taken[..., None]
-    area = cache.cell_area_px[r, idx].float()
-    c = calibrated_logit(p, area, fusion.coef)
+def view_planes(fused, p, v, area, idx, coef, config) -> torch.Tensor:
+    """(B, 11, rows, cols) from a map fused from views (B, T, N) taken at lattice positions idx (B, T): the fused
+    log-odds, then per altitude layer (lowest first) the cell's views: count (capped at 4, / 4), highest, mean and
+    lowest calibrated log-odds, mean log pixel area."""
+    c = calibrated_logit(p, area, coef)
     alts = torch.tensor(config.lattice.positions_enu[:, 2])
     low = alts == alts.min()
-    planes = [torch.logit(episode.maps[:, -1].float().clamp(1e-5, 1 - 1e-5))]
+    planes = [torch.logit(fused.float().clamp(1e-5, 1 - 1e-5))]
     for layer in (low, ~low):
         m = v & layer[idx][..., None]
         n = m.sum(1).float()
@@ -84,6 +71,44 @@ def cell_planes(cache, rows, episode, fusion, config) -> torch.Tensor:
                    torch.where(m, area.clamp(min=1).log(), torch.zeros_like(area)).sum(1) / n.clamp(min=1)]
     g = config.grid
     return torch.stack(planes, 1).view(len(idx), len(planes), g.n, g.n)
+
+
+def cell_planes(cache, rows, episode, fusion, config, step: int = -1) -> torch.Tensor:
+    """view_planes of an episode's map after view `step` (the last by default) and the views up to it."""
+    r = torch.as_tensor(rows)[:, None]
+    t = episode.lattice_idx.shape[1]
+    idx = episode.lattice_idx[:, :step % t + 1]
+    taken = episode.taken if episode.taken is not None else torch.ones_like(episode.lattice_idx, dtype=torch.bool)
+    v = cache.valid[r, idx] & taken[:, :idx.shape[1], None]
+    return view_planes(episode.maps[:, step], cache.log_probs[r, idx, :, 1].exp().float(), v,
+                       cache.cell_area_px[r, idx].float(), idx, fusion.coef, config)
+
+
+class CorrectedFusion:
+    """The calibrated fusion with its map corrected by a CorrectionNet after every view, so that the policy reads
+    the corrected map too (the search loop's fusion interface: init_state / update / view_scores)."""
+
+    name = "calibrated+correction"
+
+    def __init__(self, base, net, shift: float, config):
+        self.base, self.net, self.shift, self.config = base, net, shift, config
+        self.prior = base.prior
+
+    def init_state(self, batch_size: int, num_cells: int):
+        return None
+
+    def update(self, state, view):
+        base_state, hist = state if state is not None else (None, None)
+        base_state, fused = self.base.update(base_state, view)
+        now = (view.p.float(), view.valid.bool(), view.area_px.float(), view.viewpoints)
+        if hist is not None:
+            now = tuple(torch.cat([h, x], 1) for h, x in zip(hist, now))
+        with torch.no_grad():
+            z = self.net(view_planes(fused, *now, self.base.coef, self.config)).flatten(1) + self.shift
+        return (base_state, now), torch.sigmoid(z)
+
+    def view_scores(self, state):
+        return None
 
 
 class CorrectionNet(nn.Module):
@@ -107,7 +132,7 @@ def dihedral(x: torch.Tensor, k: int) -> torch.Tensor:
     return torch.flip(x, dims=(-1,)) if k >= 4 else x
 
 
-def fit_net(X, Y, kernel: int, seed: int, epochs: int) -> CorrectionNet:
+def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) -> CorrectionNet:
     """Cross-entropy fit, each batch under a random symmetry of the square (the maps of 100 scenes are few
     enough for a net that sees a neighbourhood to learn where each scene's clutter lies)."""
     torch.manual_seed(seed)
@@ -118,7 +143,7 @@ def fit_net(X, Y, kernel: int, seed: int, epochs: int) -> CorrectionNet:
         perm = torch.randperm(len(X), generator=gen)
         for j in range(0, len(X), 64):
             b = perm[j:j + 64]
-            k = int(torch.randint(8, (), generator=gen))
+            k = int(torch.randint(8, (), generator=gen)) if symmetries else 0
             loss = nn.functional.binary_cross_entropy_with_logits(net(dihedral(X[b], k)), dihedral(Y[b], k))
             opt.zero_grad()
             loss.backward()
@@ -137,6 +162,8 @@ def main() -> None:
     ap.add_argument("--train-scenes", type=int, default=100, help="training scenes the rollouts fly")
     ap.add_argument("--rollouts", type=int, default=10, help="rollouts per training scene (the first: the rule)")
     ap.add_argument("--epochs", type=int, default=20)
+    ap.add_argument("--no-symmetries", dest="symmetries", action="store_false",
+                    help="fit without the square's symmetries (the net with neighbours then memorises scenes)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds of the learned fusions")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", required=True, help="markdown file to write")
@@ -144,35 +171,39 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     net_p, _ = load_perception(str(shipped_perception(args.family)))
-    train = get_view_cache(net_p, args.family, "large", "train", features=False, limit=args.train_scenes,
-                           progress=False)
-    val = get_view_cache(net_p, args.family, "large", "val", features=False, progress=False)
+    train = get_view_cache(net_p, args.family, "large", "train", features=False, limit=args.train_scenes)
+    val = get_view_cache(net_p, args.family, "large", "val", features=False)  # a bar only while building
     config = budget_config(train.config, args.budget)
     fusion = make_fusion(FUSION[args.budget], train.subset(np.arange(min(20, train.num_scenes))))
     variant, _ = choose_rule(val, config, fusion)
     rule = rule_policy(config, variant)
 
-    def final_maps(cache, eps, seed):
-        rows = np.arange(cache.num_scenes)
-        gen = torch.Generator().manual_seed(seed)
+    def rollout(cache, agent):
         with torch.no_grad():
-            ep = run_search(CachedViews(cache, rows, config), Agent(fusion, NoisyRule(rule, eps, gen)),
-                            generator=gen)
-        return cell_planes(cache, rows, ep, fusion, config), cache.occupancy.float().view(-1, *X_SHAPE)
+            return run_search(CachedViews(cache, np.arange(cache.num_scenes), config), agent,
+                              generator=torch.Generator().manual_seed(0))
 
-    X_SHAPE = (config.grid.n, config.grid.n)
+    rows_tr = np.arange(train.num_scenes)
     fits = [(f"{'per cell' if k == 1 else 'with neighbours'}, seed {s}", k, s) for k in (1, 5) for s in args.seeds]
-    bar = tqdm(total=args.rollouts + 1 + len(fits), desc="fusion probe", unit="step")
-    Xs, Ys = [], []
+    bar = tqdm(total=args.rollouts + len(fits) + 6, desc="fusion probe", unit="step")
+    X, XS = [], []  # final maps; maps after a few steps of each rollout (for the in-search net)
     for k in range(args.rollouts):
-        x, y = final_maps(train, 0.0 if k == 0 else 0.3, k)
-        Xs.append(x), Ys.append(y)
+        gen = torch.Generator().manual_seed(k)
+        ep = rollout(train, Agent(fusion, NoisyRule(rule, 0.0 if k == 0 else 0.3, gen)))
+        last = ep.lattice_idx.shape[1] - 1
+        steps = {last} | set(torch.randint(last + 1, (2,), generator=gen).tolist())
+        X.append(cell_planes(train, rows_tr, ep, fusion, config))
+        XS += [cell_planes(train, rows_tr, ep, fusion, config, t) for t in sorted(steps)]
         bar.update()
-    X, Y = torch.cat(Xs), torch.cat(Ys)
-    Xv, Yv = final_maps(val, 0.0, 0)
+    grid = (config.grid.n, config.grid.n)
+    X, XS = torch.cat(X), torch.cat(XS)
+    Y = train.occupancy.float().view(-1, *grid).repeat(args.rollouts, 1, 1)
+    YS = train.occupancy.float().view(-1, *grid).repeat(len(XS) // train.num_scenes, 1, 1)
+    rule_ep = rollout(val, Agent(fusion, rule))
+    Xv = cell_planes(val, np.arange(val.num_scenes), rule_ep, fusion, config)
     bar.update()
     flat = lambda t: t.reshape(len(t), -1).numpy()  # noqa: E731
-    yt, yv = flat(Y), flat(Yv)
+    yt, yv = flat(Y), val.occupancy.numpy()
     base = map_f1(1 / (1 + np.exp(-flat(Xv[:, 0]))), yv)
     rows = []
 
@@ -184,28 +215,57 @@ def main() -> None:
 
     row("the calibrated fusion, threshold refitted", flat(X[:, 0]), flat(Xv[:, 0]))
     for name, kernel, seed in fits:
-        net = fit_net(X, Y, kernel, seed, args.epochs)
+        net = fit_net(X, Y, kernel, seed, args.epochs, args.symmetries)
         with torch.no_grad():
             row(f"learned correction, {name}", flat(net(X)), flat(net(Xv)))
         bar.update()
+
+    # during the search: a net with neighbours fitted on maps after every few views corrects each map the
+    # policy reads, the rule and the shipped learned policy alike
+    seed = args.seeds[0]
+    net = fit_net(XS, YS, 5, seed, args.epochs, args.symmetries)
+    with torch.no_grad():
+        shift = best_shift(flat(net(X)), yt)
+    bar.update()
+    ours = load_wide_agent(wide_checkpoint(args.budget), config)
+    agents = {"the rule, calibrated fusion": Agent(fusion, rule),
+              "the rule, learned correction during the search": Agent(CorrectedFusion(fusion, net, shift, config), rule),
+              "ours (shipped learned policy), its calibrated fusion": ours,
+              "ours, learned correction during the search": Agent(CorrectedFusion(ours.fusion, net, shift, config),
+                                                                 ours.policy)}
+    f1s = {}
+    for name, agent in agents.items():
+        f1s[name] = map_f1(rollout(val, agent).maps[:, -1].numpy(), yv)
+        bar.update()
     bar.close()
+    ref = f1s["the rule, calibrated fusion"]
+    search_rows = [(n, float(f.mean()), *bootstrap_ci(f - ref)) for n, f in f1s.items()]
+    both = bootstrap_ci(f1s["ours, learned correction during the search"]
+                        - f1s["the rule, learned correction during the search"])
     budget = "T = 8 views" if args.budget == "8" else f"{config.budget_s:g} s of flight"
     lines = [f"# A learned fusion over each cell's views: {args.family}, {budget}", "",
              f"Final maps of the rule ({variant}) on {val.num_scenes} validation scenes, fused by {FUSION[args.budget]} "
              f"(AF1 {base.mean():.3f}) and by learned corrections to it, fitted on {len(X)} final maps of "
              f"{args.rollouts} rollouts of the first {train.num_scenes} training scenes (the rule, then 30% random "
-             f"moves; seeds 0-{args.rollouts - 1}). Threshold: the log-odds shift with the best AF1 on those training "
+             f"moves; seeds 0-{args.rollouts - 1}), {args.epochs} epochs, "
+             f"{'every batch under a random symmetry of the square' if args.symmetries else 'no symmetries'}. "
+             f"Threshold: the log-odds shift with the best AF1 on those training "
              f"maps. Δ: per-scene final AF1 minus the calibrated fusion's, mean [95% bootstrap interval over scenes]. "
-             f"`python tools/wide_fusion_probe.py --budget {args.budget}`", "",
+             f"`python tools/wide_fusion_probe.py {shlex.join(sys.argv[1:])}`", "",
              "| fusion | shift | training AF1 | validation AF1 | Δ vs calibrated [95% CI] |", "|---|---|---|---|---|"]
     lines += [f"| {n} | {s:+.2f} | {tr:.3f} | {a:.3f} | {d:+.3f} [{lo:+.3f}, {hi:+.3f}] |"
               for n, s, tr, a, d, lo, hi in rows]
-    lines += ["", f"{time.perf_counter() - t0:.0f} s"]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    print(f"wrote {display_path(out)}")
+    lines += ["", f"**During the search.** A net with neighbours (seed {seed}) fitted on {len(XS)} maps of the same "
+              "rollouts, each after its last view and after two views drawn at random (seeded by the rollout), "
+              f"threshold shift {shift:+.2f} chosen on the final training maps, corrects the map after every view, "
+              "so the policy reads the corrected map. The shipped learned policy "
+              f"(`{display_path(wide_checkpoint(args.budget))}`) was trained on the calibrated fusion's maps. "
+              f"Δ: per-scene final AF1 minus the rule's with the calibrated fusion ({val.num_scenes} validation "
+              "scenes).", "", "| agent | AF1 | Δ vs the rule, calibrated [95% CI] |", "|---|---|---|"]
+    lines += [f"| {n} | {a:.3f} | {d:+.3f} [{lo:+.3f}, {hi:+.3f}] |" for n, a, d, lo, hi in search_rows]
+    lines += ["", "Ours against the rule, both with the learned correction during the search: "
+              f"{both[0]:+.3f} [{both[1]:+.3f}, {both[2]:+.3f}].", "", f"{time.perf_counter() - t0:.0f} s"]
+    write_markdown(args.out, lines)
 
 
 if __name__ == "__main__":

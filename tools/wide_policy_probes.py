@@ -218,6 +218,22 @@ def map_planes(config):
     return lambda inp: net.state(inp)[0]
 
 
+class NoisyRule:
+    """The rule, with a share of its moves replaced by random allowed ones (varied states to fit on)."""
+
+    def __init__(self, rule, eps: float, gen: torch.Generator):
+        self.rule, self.eps, self.gen = rule, eps, gen
+
+    def act(self, inp, generator=None):
+        a = self.rule.act(inp)[0]
+        if not self.eps:
+            return a, None, None
+        w = candidates(inp).float()
+        w[w.sum(1) == 0] = 1
+        rnd = torch.multinomial(w, 1, generator=self.gen)[:, 0]
+        return torch.where(torch.rand(len(a), generator=self.gen) < self.eps, rnd, a), None, None
+
+
 def collect(train, fusion, config, rule, state, episodes: int, seed: int):
     """(planes, targets, mask) of every state of rule rollouts (30% random moves) on random training scenes, and
     (footprint features, viewpoint gains, allowed) of those after the survey; `state`: map_planes(config)."""
@@ -225,6 +241,8 @@ def collect(train, fusion, config, rule, state, episodes: int, seed: int):
     rows = torch.randint(train.num_scenes, (episodes,), generator=gen)
     targets = CellTargets(train, rows, fusion, config)
     X, Y, M, F, G, A = [], [], [], [], [], []
+
+    noisy = NoisyRule(rule, 0.3, gen)
 
     class Recorder:
         def act(self, inp, generator=None):
@@ -236,11 +254,7 @@ def collect(train, fusion, config, rule, state, episodes: int, seed: int):
                 F.append(footprint_features(inp, config))
                 G.append(targets.view_gains.clone())
                 A.append(candidates(inp))
-            a = rule.act(inp)[0]
-            w = candidates(inp).float()
-            w[w.sum(1) == 0] = 1
-            rnd = torch.multinomial(w, 1, generator=gen)[:, 0]
-            return torch.where(torch.rand(len(a), generator=gen) < 0.3, rnd, a), None, None
+            return noisy.act(inp)
 
     with torch.no_grad():
         run_search(CachedViews(train, rows, config), Agent(fusion, Recorder()), generator=gen)
@@ -435,7 +449,12 @@ def main() -> None:
               "scenes' views:", "", "| cell-views | calibrated log-odds + area | + cell features |", "|---|---|---|"]
     lines += [f"| {n} | {a:.3f} | {b:.3f} |" for n, a, b in feats]
     lines += ["", f"{time.perf_counter() - t0:.0f} s"]
-    out = Path(args.out)
+    write_markdown(args.out, lines)
+
+
+def write_markdown(path, lines: list[str]) -> None:
+    """Write a probe's report and print it."""
+    out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
