@@ -23,7 +23,6 @@ with the calibrated fusion, and against each other with the correction.
 
 from __future__ import annotations
 
-import argparse
 import shlex
 import sys
 import time
@@ -38,16 +37,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from uavsearch.paths import display_path  # noqa: E402
 from uavsearch.search.agents import load_wide_agent  # noqa: E402
-from uavsearch.search.data.view_cache import get_view_cache  # noqa: E402
 from uavsearch.search.evaluate.bounds import bootstrap_ci  # noqa: E402
-from uavsearch.search.fusion import calibrated_logit, make_fusion  # noqa: E402
+from uavsearch.search.fusion import calibrated_logit  # noqa: E402
 from uavsearch.search.map_policy import wide_checkpoint  # noqa: E402
 from uavsearch.search.metrics import map_f1  # noqa: E402
-from uavsearch.search.perception import load_perception, shipped_perception  # noqa: E402
 from uavsearch.search.search_loop import Agent, CachedViews, run_search  # noqa: E402
-from uavsearch.search.train.map_policy import budget_config  # noqa: E402
-from uavsearch.search.wide_policies import choose_rule, rule_policy  # noqa: E402
-from wide_policy_probes import FUSION, NoisyRule, write_markdown  # noqa: E402  (tools/, beside this file)
+from wide_policy_probes import FUSION, NoisyRule, fit_minibatches, probe_parser, probe_setting, write_markdown  # noqa: E402  (tools/, beside this file)
 
 SHIFTS = np.arange(-2.0, 2.01, 0.25)  # decision thresholds tried, as log-odds shifts
 
@@ -137,18 +132,12 @@ def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) 
     enough for a net that sees a neighbourhood to learn where each scene's clutter lies)."""
     torch.manual_seed(seed)
     net = CorrectionNet(X.shape[1], kernel)
-    opt = torch.optim.Adam(net.parameters(), lr=3e-3, weight_decay=1e-4)
-    gen = torch.Generator().manual_seed(seed)
-    for _ in range(epochs):
-        perm = torch.randperm(len(X), generator=gen)
-        for j in range(0, len(X), 64):
-            b = perm[j:j + 64]
-            k = int(torch.randint(8, (), generator=gen)) if symmetries else 0
-            loss = nn.functional.binary_cross_entropy_with_logits(net(dihedral(X[b], k)), dihedral(Y[b], k))
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-    return net.eval()
+
+    def loss(b, gen):
+        k = int(torch.randint(8, (), generator=gen)) if symmetries else 0
+        return nn.functional.binary_cross_entropy_with_logits(net(dihedral(X[b], k)), dihedral(Y[b], k))
+
+    return fit_minibatches(net, len(X), loss, seed, epochs, lr=3e-3, weight_decay=1e-4)
 
 
 def best_shift(logits: np.ndarray, labels: np.ndarray) -> float:
@@ -156,9 +145,7 @@ def best_shift(logits: np.ndarray, labels: np.ndarray) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--family", default="wide")
-    ap.add_argument("--budget", choices=("8", "240"), default="8", help="T = 8 views, or 240 s of flight")
+    ap = probe_parser(__doc__)
     ap.add_argument("--train-scenes", type=int, default=100, help="training scenes the rollouts fly")
     ap.add_argument("--rollouts", type=int, default=10, help="rollouts per training scene (the first: the rule)")
     ap.add_argument("--epochs", type=int, default=20)
@@ -166,17 +153,10 @@ def main() -> None:
                     help="fit without the square's symmetries (the net with neighbours then memorises scenes)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds of the learned fusions")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--out", required=True, help="markdown file to write")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    net_p, _ = load_perception(str(shipped_perception(args.family)))
-    train = get_view_cache(net_p, args.family, "large", "train", features=False, limit=args.train_scenes)
-    val = get_view_cache(net_p, args.family, "large", "val", features=False)  # a bar only while building
-    config = budget_config(train.config, args.budget)
-    fusion = make_fusion(FUSION[args.budget], train.subset(np.arange(min(20, train.num_scenes))))
-    variant, _ = choose_rule(val, config, fusion)
-    rule = rule_policy(config, variant)
+    _, train, val, config, fusion, variant, rule = probe_setting(args.family, args.budget, args.train_scenes)
 
     def rollout(cache, agent):
         with torch.no_grad():

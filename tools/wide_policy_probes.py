@@ -313,21 +313,31 @@ def fit_table(X, Y, M) -> torch.Tensor:
     return tab
 
 
+def fit_minibatches(net: nn.Module, n: int, loss, seed: int, epochs: int, lr: float, weight_decay: float,
+                    batch: int = 64) -> nn.Module:
+    """Adam over `epochs` shuffled passes of n examples; loss(indices, generator) -> the minibatch's loss (the
+    generator, seeded by `seed`, also shuffles)."""
+    opt = torch.optim.Adam(net.parameters(), lr=lr, weight_decay=weight_decay)
+    gen = torch.Generator().manual_seed(seed)
+    for _ in range(epochs):
+        perm = torch.randperm(n, generator=gen)
+        for j in range(0, n, batch):
+            out = loss(perm[j:j + batch], gen)
+            opt.zero_grad()
+            out.backward()
+            opt.step()
+    return net.eval()
+
+
 def fit_net(config, X, Y, M, seed: int, epochs: int = 8) -> CellNet:
     torch.manual_seed(seed)
     net = CellNet(config)
-    opt = torch.optim.Adam(net.parameters(), lr=1e-3, weight_decay=1e-5)
-    gen = torch.Generator().manual_seed(seed)
-    for _ in range(epochs):
-        perm = torch.randperm(len(X), generator=gen)
-        for j in range(0, len(X), 64):
-            b = perm[j:j + 64]
-            w = M[b].float()
-            loss = ((net(X[b].float()) - Y[b]) ** 2 * w).sum() / w.sum().clamp(min=1)
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-    return net.eval()
+
+    def loss(b, gen):
+        w = M[b].float()
+        return ((net(X[b].float()) - Y[b]) ** 2 * w).sum() / w.sum().clamp(min=1)
+
+    return fit_minibatches(net, len(X), loss, seed, epochs, lr=1e-3, weight_decay=1e-5)
 
 
 def feature_auc(net_p, family: str, scenes: int, fusion) -> list[tuple[str, float, float]]:
@@ -373,27 +383,39 @@ def feature_auc(net_p, family: str, scenes: int, fusion) -> list[tuple[str, floa
     return out
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def probe_parser(doc: str) -> argparse.ArgumentParser:
+    """The options every probe takes: the family, the budget and the report to write."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--family", default="wide")
     ap.add_argument("--budget", choices=("8", "240"), default="8", help="T = 8 views, or 240 s of flight")
+    ap.add_argument("--out", required=True, help="markdown file to write")
+    return ap
+
+
+def probe_setting(family: str, budget: str, train_scenes: int):
+    """(perception, training cache of the first `train_scenes`, validation cache, the budget's config, the
+    learned policy's fusion fitted on the first 20 training scenes, the rule's variant chosen on validation, the
+    rule): what every probe starts from. The caches show a bar only while they are built."""
+    net_p, _ = load_perception(str(shipped_perception(family)))
+    train = get_view_cache(net_p, family, "large", "train", features=False, limit=train_scenes)
+    val = get_view_cache(net_p, family, "large", "val", features=False)
+    config = budget_config(train.config, budget)
+    fusion = make_fusion(FUSION[budget], train.subset(np.arange(min(20, train.num_scenes))))
+    variant, _ = choose_rule(val, config, fusion)
+    return net_p, train, val, config, fusion, variant, rule_policy(config, variant)
+
+
+def main() -> None:
+    ap = probe_parser(__doc__)
     ap.add_argument("--train-scenes", type=int, default=100, help="scenes the learned probes' rollouts draw from")
     ap.add_argument("--episodes", type=int, default=256, help="rule rollouts the learned probes fit")
     ap.add_argument("--feature-scenes", type=int, default=20, help="scenes of each part for the feature probe")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out", required=True, help="markdown file to write")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    net_p, _ = load_perception(str(shipped_perception(args.family)))
-    train = get_view_cache(net_p, args.family, "large", "train", features=False, limit=args.train_scenes,
-                           progress=False)
-    val = get_view_cache(net_p, args.family, "large", "val", features=False, progress=False)
-    config = budget_config(train.config, args.budget)
-    fusion = make_fusion(FUSION[args.budget], train.subset(np.arange(min(20, train.num_scenes))))
-    variant, _ = choose_rule(val, config, fusion)
-    rule = rule_policy(config, variant)
+    net_p, train, val, config, fusion, variant, rule = probe_setting(args.family, args.budget, args.train_scenes)
 
     def scores(policy) -> np.ndarray:
         return evaluate_agent(val, Agent(fusion, policy), 1, config=config).f1[:, -1]
