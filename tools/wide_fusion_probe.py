@@ -18,7 +18,7 @@ their final ones, corrects the map after every view, so the policy reads the cor
 the shipped learned policy (trained on the calibrated fusion's maps) fly with it, each paired against the rule
 with the calibrated fusion, and against each other with the correction.
 
-    python tools/wide_fusion_probe.py --budget 8 --out results/map_policy/fusion_probe_T8.md
+    python tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --out results/map_policy/fusion_probe_T8.md
 """
 
 from __future__ import annotations
@@ -36,12 +36,13 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from uavsearch.paths import display_path  # noqa: E402
-from uavsearch.search.agents import load_wide_agent  # noqa: E402
+from uavsearch.search.agents import budget_text, load_wide_agent  # noqa: E402
 from uavsearch.search.evaluate.bounds import bootstrap_ci  # noqa: E402
 from uavsearch.search.fusion import calibrated_logit  # noqa: E402
 from uavsearch.search.map_policy import wide_checkpoint  # noqa: E402
 from uavsearch.search.metrics import map_f1  # noqa: E402
 from uavsearch.search.search_loop import Agent, CachedViews, run_search  # noqa: E402
+from uavsearch.search.wide_policies import lowest_layer  # noqa: E402
 from wide_policy_probes import FUSION, NoisyRule, fit_minibatches, probe_parser, probe_setting, write_markdown  # noqa: E402  (tools/, beside this file)
 
 SHIFTS = np.arange(-2.0, 2.01, 0.25)  # decision thresholds tried, as log-odds shifts
@@ -52,8 +53,7 @@ def view_planes(fused, p, v, area, idx, coef, config) -> torch.Tensor:
     log-odds, then per altitude layer (lowest first) the cell's views: count (capped at 4, / 4), highest, mean and
     lowest calibrated log-odds, mean log pixel area."""
     c = calibrated_logit(p, area, coef)
-    alts = torch.tensor(config.lattice.positions_enu[:, 2])
-    low = alts == alts.min()
+    low = lowest_layer(config)
     planes = [torch.logit(fused.float().clamp(1e-5, 1 - 1e-5))]
     for layer in (low, ~low):
         m = v & layer[idx][..., None]
@@ -93,14 +93,15 @@ class CorrectedFusion:
         return None
 
     def update(self, state, view):
-        base_state, hist = state if state is not None else (None, None)
+        """The calibrated fusion's state keeps the views so far; only their viewpoints are kept beside it."""
+        base_state, idx = state if state is not None else (None, None)
         base_state, fused = self.base.update(base_state, view)
-        now = (view.p.float(), view.valid.bool(), view.area_px.float(), view.viewpoints)
-        if hist is not None:
-            now = tuple(torch.cat([h, x], 1) for h, x in zip(hist, now))
+        idx = view.viewpoints if idx is None else torch.cat([idx, view.viewpoints], 1)
+        h = base_state.views
         with torch.no_grad():
-            z = self.net(view_planes(fused, *now, self.base.coef, self.config)).flatten(1) + self.shift
-        return (base_state, now), torch.sigmoid(z)
+            planes = view_planes(fused, h.p.float(), h.valid, h.area_px.float(), idx, self.base.coef, self.config)
+            z = self.net(planes).flatten(1) + self.shift
+        return (base_state, idx), torch.sigmoid(z)
 
     def view_scores(self, state):
         return None
@@ -222,8 +223,7 @@ def main() -> None:
     search_rows = [(n, float(f.mean()), *bootstrap_ci(f - ref)) for n, f in f1s.items()]
     both = bootstrap_ci(f1s["ours, learned correction during the search"]
                         - f1s["the rule, learned correction during the search"])
-    budget = "T = 8 views" if args.budget == "8" else f"{config.budget_s:g} s of flight"
-    lines = [f"# A learned fusion over each cell's views: {args.family}, {budget}", "",
+    lines = [f"# A learned fusion over each cell's views: {args.family}, {budget_text(config)}", "",
              f"Final maps of the rule ({variant}) on {val.num_scenes} validation scenes, fused by {FUSION[args.budget]} "
              f"(AF1 {base.mean():.3f}) and by learned corrections to it, fitted on {len(X)} final maps of "
              f"{args.rollouts} rollouts of the first {train.num_scenes} training scenes (the rule, then 30% random "

@@ -40,6 +40,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from uavsearch.paths import display_path  # noqa: E402
+from uavsearch.search.agents import budget_text  # noqa: E402
 from uavsearch.search.data.view_cache import get_view_cache  # noqa: E402
 from uavsearch.search.evaluate.bounds import bootstrap_ci  # noqa: E402
 from uavsearch.search.fusion import SAME_SCALE, calibrated_logit, make_fusion  # noqa: E402
@@ -51,7 +52,7 @@ from uavsearch.search.search_loop import Agent, CachedViews, run_search  # noqa:
 from uavsearch.search.train.map_policy import LabelLookahead, _repeat, budget_config  # noqa: E402
 from uavsearch.search.wide_policies import (RULE_OVERHEAD_S, RULE_VARIANTS, SURVEY_OUTER_M,  # noqa: E402
                                             DescendRule, argmax_allowed, candidates, choose_rule, footprints,
-                                            route_views, rule_policy)
+                                            lowest_layer, route_views, rule_policy)
 
 FUSION = {"8": "calibrated:0.25", "240": "calibrated:0.75"}  # the learned policy's (docs/learning.md)
 
@@ -156,8 +157,7 @@ class CellTargets:
         self.rows = torch.as_tensor(np.asarray(rows), dtype=torch.long)
         self.labels = cache.occupancy[self.rows]
         self.foot = footprints(config).float()
-        alts = config.lattice.positions_enu[:, 2]
-        self.layer = torch.as_tensor(alts != alts.min()).long()
+        self.layer = (~lowest_layer(config)).long()
         self.state, self.fused, self.seen = None, None, 0
 
     def __call__(self, inp):
@@ -186,8 +186,7 @@ class CellTargets:
 def per_layer_sum(gains, config):
     """(B, 2, N) per-cell gains of a view from each layer -> (B, P) the sum over each viewpoint's footprint."""
     foot = footprints(config).float()
-    alts = torch.tensor(config.lattice.positions_enu[:, 2])
-    return torch.where(alts == alts.min(), gains[:, 0] @ foot.T, gains[:, 1] @ foot.T)
+    return torch.where(lowest_layer(config), gains[:, 0] @ foot.T, gains[:, 1] @ foot.T)
 
 
 class CellNet(nn.Module):
@@ -268,10 +267,10 @@ def footprint_features(inp, config) -> torch.Tensor:
     seen, the summed highest p any view gave the open cells, the flight time to it; once for lowest-layer
     viewpoints and once for the others, and which it is."""
     foot = footprints(config).float()
-    alts = torch.tensor(config.lattice.positions_enu[:, 2])
-    low = (alts == alts.min()).float()
+    lowest = lowest_layer(config)
+    low = lowest.float()
     p, v = inp.fused.float(), inp.view_valid
-    open_ = (~((alts == alts.min())[inp.view_positions][..., None] & v).any(1)).float()
+    open_ = (~(lowest[inp.view_positions][..., None] & v).any(1)).float()
     po = p * open_
     top2 = (po[:, None] * foot[None]).topk(2, -1).values
     maxp = torch.where(v, inp.view_probs.float(), torch.zeros_like(inp.view_probs.float())).amax(1)
@@ -457,8 +456,7 @@ def main() -> None:
     row("label-peeking greedy after the survey (bound)", AfterSurvey(rule, greedy.gains, config, per_second=False))
     bar.close()
     feats = feature_auc(net_p, args.family, args.feature_scenes, fusion)
-    budget = "T = 8 views" if args.budget == "8" else f"{config.budget_s:g} s of flight"
-    lines = [f"# Probes of the wide-area search's descents: {args.family}, {budget}", "",
+    lines = [f"# Probes of the wide-area search's descents: {args.family}, {budget_text(config)}", "",
              f"{val.num_scenes} validation scenes, paired against the rule ({variant}; AF1 {rule_f1.mean():.3f}); "
              f"fusion {FUSION[args.budget]} fitted on the first 20 training scenes; learned probes fit on "
              f"{args.episodes} rollouts of the first {train.num_scenes} training scenes, seed {args.seed}. "

@@ -52,6 +52,12 @@ def footprints(config: SearchConfig) -> torch.Tensor:
     return config.lattice.cell_areas >= config.min_cell_area_px
 
 
+def lowest_layer(config: SearchConfig) -> torch.Tensor:
+    """(P,) bool: the viewpoints of the lattice's lowest altitude layer (the close looks)."""
+    alts = config.lattice.positions_enu[:, 2]
+    return torch.as_tensor(alts == alts.min())
+
+
 def viewpoints_at(config: SearchConfig, xy_m, altitude_m: float) -> list[int]:
     """Lattice indices of the viewpoints at these (east, north) positions and altitude."""
     lat = config.lattice
@@ -127,7 +133,7 @@ class DescendRule:
         self.survey = viewpoints_at(config, survey_xy_m, config.layers_m[0])
         self.foot = footprints(config).float()  # (P, N)
         alts = config.lattice.positions_enu[:, 2]
-        self.low = torch.as_tensor(alts == alts.min())  # (P,) viewpoints of the lowest layer
+        self.low = lowest_layer(config)
         self.top = torch.as_tensor(alts == alts.max())
         self.resurvey_below = float(resurvey_below)
         self.overhead_s = per_second_overhead_s
