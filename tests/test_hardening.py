@@ -11,7 +11,6 @@ import struct
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,9 +19,7 @@ from pymavlink import mavutil
 from uavsearch.testing.mavlink_client import Client
 from uavsearch.flight.mavlink.params import decode_param
 from uavsearch.flight.sitl_process import SitlProcess
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-import fuzz_mavlink  # noqa: E402
+from uavsearch.research import fuzz_mavlink
 from uavsearch.testing.clean_env import clean_env
 
 M = mavutil.mavlink

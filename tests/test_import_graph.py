@@ -174,6 +174,7 @@ NEVER_REACHES = {
     "uavsearch.logs": ("uavsearch.search", "uavsearch.fly", "uavsearch.replay", "uavsearch.cli"),
     "uavsearch.fly": ("uavsearch.replay", "uavsearch.cli"),
     "uavsearch.replay": ("uavsearch.cli",),
+    "uavsearch.research": ("uavsearch.cli",),
 }
 
 
@@ -198,3 +199,21 @@ def test_upward_imports_are_found():
 def test_no_room_imports_a_room_above_it():
     bad = upward_imports(import_graph())
     assert not bad, "imports of a room that stands above: " + "; ".join(bad)
+
+
+def research_importers(graph: dict[str, set[str]]) -> list[str]:
+    """Modules outside the research room (and the command) that import it: its probes build on every room, and
+    no room builds on them, so a probe can change without touching the product."""
+    return sorted(f"{m} -> {d}" for m in graph for d in graph[m] if _room(d) == "uavsearch.research"
+                  and _room(m) not in ("uavsearch.research", "uavsearch.cli"))
+
+
+def test_research_importers_are_found():
+    g = {"uavsearch.search.a": {"uavsearch.research.p"}, "uavsearch.cli": {"uavsearch.research.p"},
+         "uavsearch.research.p": {"uavsearch.search.a"}}
+    assert research_importers(g) == ["uavsearch.search.a -> uavsearch.research.p"]
+
+
+def test_only_the_command_imports_the_research_room():
+    bad = research_importers(import_graph())
+    assert not bad, "the package imports its research room: " + "; ".join(bad)

@@ -167,12 +167,7 @@ def test_the_rule_can_be_the_teacher(tmp_path):
 def test_route_measures_count_views_near_found_groups_and_empty_40m_views():
     """tools/wide_routes.py's measures on a hand-made route: a group found at view 1, a 40 m look above it that
     adds nothing (near, empty), then a far 40 m look (not near, empty)."""
-    import sys
-
-    from uavsearch.paths import REPO_ROOT
-
-    sys.path.insert(0, str(REPO_ROOT / "tools"))
-    from wide_routes import route_stats
+    from uavsearch.research.wide_routes import route_stats
 
     pos = TIMED.lattice.positions_enu
     top, low = pos[:, 2] == pos[:, 2].max(), pos[:, 2] == pos[:, 2].min()
@@ -223,14 +218,9 @@ def test_fusion_probe_planes_hold_each_cells_views_per_altitude():
     """tools/wide_fusion_probe.py's per-cell planes, checked against the views of a route flown on a synthetic
     wide cache: the fused log-odds, and per altitude layer the count and the highest, mean and lowest calibrated
     log-odds of the cell's views; its symmetries of the square are the eight distinct ones."""
-    import sys
-
-    from uavsearch.paths import REPO_ROOT
+    from uavsearch.research.wide_fusion_probe import cell_planes, dihedral
     from uavsearch.search.fusion import calibrated_logit
     from uavsearch.search.wide_policies import RoutePolicy
-
-    sys.path.insert(0, str(REPO_ROOT / "tools"))
-    from wide_fusion_probe import cell_planes, dihedral
 
     cache = wide_cache(2, k=3)
     fusion = make_fusion("calibrated:0.25", cache)

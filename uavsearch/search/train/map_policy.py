@@ -148,14 +148,14 @@ def check_args(args: Args) -> None:
 # The teacher
 
 
-def _repeat(x, k: int):
+def repeat_state(x, k: int):
     """A fusion state (tensors, NamedTuples of them, None) with each batch row repeated k times."""
     if x is None:
         return None
     if isinstance(x, torch.Tensor):
         return x.repeat_interleave(k, 0)
     if isinstance(x, tuple):
-        return type(x)(*(_repeat(f, k) for f in x))
+        return type(x)(*(repeat_state(f, k) for f in x))
     return x
 
 
@@ -198,7 +198,7 @@ class LabelLookahead:
             k = len(cs)
             pos = torch.tensor(cs).repeat(B)  # (B*k,) episode-major
             rows = self.rows.repeat_interleave(k)
-            _, fused = self.fusion.update(_repeat(self.state, k), route_views(self.cache, rows, pos[:, None]))
+            _, fused = self.fusion.update(repeat_state(self.state, k), route_views(self.cache, rows, pos[:, None]))
             lab = self.labels.repeat_interleave(k, 0)
             after = classification_reward(fused, lab).float() + 0.1 * (fused * lab.float()).sum(-1)
             out[:, cs] = after.reshape(B, k) - now[:, None]
