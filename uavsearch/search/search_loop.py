@@ -97,12 +97,14 @@ class CachedViews:
 
     With `confidence` (a net whose scores need no gradient: evaluation, rollouts) the scores of each
     (scene, position) are computed once, when an episode of the batch first sees it, instead of once per
-    episode and step (and never for positions no episode visits).
+    episode and step (and never for positions no episode visits). Cell features come from the cache
+    (ViewCache.features_at: from its feature store when it keeps them on disk); with `features` every
+    Observation carries them, scores or not.
     """
 
-    def __init__(self, cache, scene_rows, config: SearchConfig | None = None, confidence=None):
+    def __init__(self, cache, scene_rows, config: SearchConfig | None = None, confidence=None, features: bool = False):
         """`config` defaults to the one the cache was made for (a cache records it)."""
-        self.cache = cache
+        self.cache, self.features = cache, features
         self.rows = torch.as_tensor(np.asarray(scene_rows), dtype=torch.long).reshape(-1)
         self.config = config if config is not None else getattr(cache, "config", None)
         if self.config is None:
@@ -125,7 +127,7 @@ class CachedViews:
         if len(new):
             P = self.cache.num_positions
             with torch.no_grad():
-                self._scores[new] = self.confidence(self.cache.cell_features[self._rows_u[new // P], new % P].float())
+                self._scores[new] = self.confidence(self.cache.features_at(self._rows_u[new // P], new % P).float())
             self._have[new] = True
         return self._scores[key]
 
@@ -133,9 +135,10 @@ class CachedViews:
         r, p = self.rows, lattice_idx
         c = self.cache
         if self.confidence is not None:
-            return Observation(c.log_probs[r, p], None, c.global_feature[r, p], c.cell_area_px[r, p], c.valid[r, p],
-                               self._scores_at(p))
-        return Observation(c.log_probs[r, p], c.cell_features[r, p].float(), c.global_feature[r, p],
+            return Observation(c.log_probs[r, p], c.features_at(r, p).float() if self.features else None,
+                               c.global_feature[r, p], c.cell_area_px[r, p], c.valid[r, p], self._scores_at(p))
+        f = c.features_at(r, p) if self.features else c.cell_features[r, p]
+        return Observation(c.log_probs[r, p], f.float(), c.global_feature[r, p],
                            c.cell_area_px[r, p], c.valid[r, p])
 
 
@@ -145,7 +148,7 @@ class CachedViews:
         c, P = self.cache, self.cache.num_positions
         r = self.rows[:, None].expand_as(lattice_idx)
         uniq, inv = torch.unique(r * P + lattice_idx, return_inverse=True)
-        feats = c.cell_features.reshape(-1, *c.cell_features.shape[2:])[uniq].float()  # (U, N, D)
+        feats = c.features_at(uniq // P, uniq % P).float()  # (U, N, D)
         return FusionViews(c.log_probs[r, lattice_idx][..., 1].exp(), c.valid[r, lattice_idx],
                            c.cell_area_px[r, lattice_idx], feats, None, lattice_idx, self.labels, inv)
 

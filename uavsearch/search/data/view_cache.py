@@ -20,8 +20,9 @@ Two layers, both under the gitignored ``cache/`` folder:
        occupied_cells   (S,) int64    K
        occupancy        (S, N) int8   ground truth, N = cells (100)
        log_probs        (S, P, N, 2) float32   l_i = [log p(y=0), log p(y=1)] of the view at position p
-       cell_features    (S, P, N, D) float32   f_i, the confidence network's input (D = cell_dim); float16 for a
-                                               scene family (73 views x 900 cells: 27 MB a scene in float32)
+       cell_features    (S, P, N, D) float32   f_i, the confidence network's input (D = cell_dim); for a scene
+                                               family (S, P, N, 0) float16: its features (73 views x 900 cells:
+                                               13.7 MB a scene in float16) are in the feature store below
        global_feature   (S, P, G) float32      the image embedding's input (G = global_dim)
        cell_area_px     (S, P, N) float32      F_size: the cell's clipped image polygon area
        valid            (S, P, N) bool         cell measured by the view: in view (c^t) and pooled pixels > 0
@@ -31,10 +32,15 @@ Two layers, both under the gitignored ``cache/`` folder:
 
        search_config    () str        config_to_dict of the SearchConfig, as JSON: P indexes its lattice
                                                (search/lattice.py; row-major from the NW corner, layer by layer)
+       feature_store    () str        a scene family's only: the folder, beside the .npz, of its per-view cell
+                                               features (feature_store.py: one memory-mapped float16 file per scene,
+                                               shared by every `limit` of the part; caches written before it hold
+                                               their features in cell_features and have no such key)
 
 A run is resumable at layer 1 (dataset.generate_views skips finished shards; its scenes run on local
 processes or on Ray, parallel.map_scenes); layer 2 is one pass of the CNN over the rendered images, in this
-process (about a minute for a whole paper split on one core). ``cache_dir`` may be an fsspec URL (e.g.
+process (about a minute for a whole paper split on one core); a scene family's is resumable too, scene by
+scene (its feature store keeps each finished scene's outputs). ``cache_dir`` may be an fsspec URL (e.g.
 s3://bucket/uavsearch-cache) that every node of a cluster reaches.
 """
 
@@ -61,6 +67,7 @@ from uavsearch.world.settings import scene_seeds
 from ..config import SearchConfig, config_from_dict, config_to_dict, setting_config
 from ..perception import perception_tag
 from .dataset import ViewSetSpec, generate_views, load_views, probe_render
+from .feature_store import FeatureStore
 
 FORMAT = "uavsearch-search-views/1"
 CACHE_DIR = REPO_ROOT / "cache"
@@ -80,6 +87,7 @@ class ViewCache(NamedTuple):
     perception_tag: str
     person_px: torch.Tensor | None = None  # (S, P, N) int32 visible person pixels per cell (None: an older cache)
     config: SearchConfig | None = None  # the search config whose lattice the positions are
+    feature_store: FeatureStore | None = None  # where cell features kept on disk are (None: none, or in memory)
 
     @property
     def num_scenes(self) -> int:
@@ -91,10 +99,21 @@ class ViewCache(NamedTuple):
 
     def subset(self, rows) -> "ViewCache":
         rows = np.asarray(rows)
-        t = torch.as_tensor(rows, dtype=torch.long)
+        t = torch.as_tensor(rows, dtype=torch.long, device=self.occupancy.device)
         return ViewCache(self.scene_seed[rows], self.occupied_cells[rows], self.occupancy[t], self.log_probs[t],
                          self.cell_features[t], self.global_feature[t], self.cell_area_px[t], self.valid[t],
-                         self.perception_tag, None if self.person_px is None else self.person_px[t], self.config)
+                         self.perception_tag, None if self.person_px is None else self.person_px[t], self.config,
+                         self.feature_store)
+
+    def features_at(self, rows, positions) -> torch.Tensor:
+        """The (..., N, D) cell features of the views (scene row, lattice position): from memory when the cache
+        holds them, else from its feature store (reading only those views), else the empty (..., N, 0)."""
+        if self.cell_features.shape[-1] > 0 or self.feature_store is None:
+            return self.cell_features[rows, positions]
+        rows, positions = torch.broadcast_tensors(torch.as_tensor(rows), torch.as_tensor(positions))
+        seeds = self.scene_seed[rows.reshape(-1).cpu().numpy()]
+        out = self.feature_store.gather(seeds, positions.reshape(-1).cpu())
+        return out.reshape(*rows.shape, *out.shape[1:]).to(self.occupancy.device)  # the cache's device
 
 
 @dataclass(frozen=True)
@@ -195,24 +214,25 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
     scenes = list(scenes) if scenes is not None else key.scenes()
     root = render_lattice_views(key, scenes, root=store.path(f"lattice_views/{world}/{key.part_name}"), workers=workers,
                                 progress=progress, executor=executor)
+    # A scene family's features are too big to hold whole: float16, in a feature store beside the .npz, written
+    # scene by scene (a resumed build skips the scenes it holds); the paper's stay in the .npz as float32.
     feature_dtype = np.float32 if key.family is None else np.float16
+    features = None if key.family is None else FeatureStore(store.path(feature_store_key(world, tag, key)), tag)
     net = net.for_grid(key.search_config.grid.num_cells)
     parts: dict[str, list] = {k: [] for k in ("log_probs", "cell_features", "global_feature", "cell_area_px",
                                               "valid", "person_px", "occupancy", "scene_seed",
                                               "occupied_cells")}
     for s, k in tqdm(scenes, desc=f"perception {key.name}", unit="scene", disable=not progress):
-        vs = load_views(root, scenes=[(s, k)])
-        order = np.argsort(vs.lattice_index)
-        if not np.array_equal(vs.lattice_index[order], np.arange(len(order))):
-            raise UavsearchError(f"{root}: scene {s} does not hold every lattice position")
-        o = perception_outputs(net, vs.images[order], vs.label_images(order), vs.position_enu[order, 2])
-        parts["log_probs"].append(o["log_probs"])
-        parts["cell_features"].append(o["cell_features"].astype(feature_dtype))
-        parts["global_feature"].append(o["global_feature"])
-        parts["cell_area_px"].append(vs.cell_area_px[order])
-        parts["valid"].append(vs.cells_in_view[order] & (o["cell_pixels"] > 0))
-        parts["person_px"].append(vs.person_px[order].astype(np.int32))
-        parts["occupancy"].append(vs.occupancy[0])
+        if features is not None and features.done(s):
+            o = features.outputs(s)
+        else:
+            o = scene_outputs(net, root, s, k, feature_dtype)
+            if features is not None:
+                features.write(s, o.pop("cell_features"), o)
+        if features is not None:
+            o["cell_features"] = np.zeros((*o["log_probs"].shape[:2], 0), feature_dtype)
+        for name, value in o.items():
+            parts[name].append(value)
         parts["scene_seed"].append(int(s))
         parts["occupied_cells"].append(int(k))
     # written whole (two processes building at once never clash), without timestamps (equal caches are equal bytes)
@@ -220,14 +240,33 @@ def build_view_cache(net, key: CacheKey, scenes=None, cache_dir=None, workers: i
         "format": np.array(FORMAT), "perception_tag": np.array(tag),
         "search_config": np.array(json.dumps(config_to_dict(key.search_config), sort_keys=True)),
         **{k: np.stack(v) if k not in ("scene_seed", "occupied_cells") else np.array(v, np.int64)
-           for k, v in parts.items()}}, compress=False))
+           for k, v in parts.items()},
+        **({} if features is None else {"feature_store": np.array(f"{key.part_name}.features")})}, compress=False))
     return out
+
+
+def scene_outputs(net, root, seed: int, k: int, feature_dtype=np.float32) -> dict[str, np.ndarray]:
+    """One scene's row of the cache: perception over its stored renders, in lattice order."""
+    vs = load_views(root, scenes=[(seed, k)])
+    order = np.argsort(vs.lattice_index)
+    if not np.array_equal(vs.lattice_index[order], np.arange(len(order))):
+        raise UavsearchError(f"{root}: scene {seed} does not hold every lattice position")
+    o = perception_outputs(net, vs.images[order], vs.label_images(order), vs.position_enu[order, 2])
+    return {"log_probs": o["log_probs"], "cell_features": o["cell_features"].astype(feature_dtype),
+            "global_feature": o["global_feature"], "cell_area_px": vs.cell_area_px[order],
+            "valid": vs.cells_in_view[order] & (o["cell_pixels"] > 0), "person_px": vs.person_px[order].astype(np.int32),
+            "occupancy": vs.occupancy[0]}
+
+
+def feature_store_key(world: str, tag: str, key: CacheKey) -> str:
+    """A part's feature store, shared by every `limit` of it: a longer build reuses the scenes a shorter one wrote."""
+    return f"search_views/{world}-{tag}/{key.part_name}.features"
 
 
 def load_view_cache(path, features: bool = True) -> ViewCache:
     """Read a cache .npz written by build_view_cache (a file or an fsspec URL); without `features` the cell
     features stay on disk ((S, P, N, 0): enough for every fusion but the learned one, and a fraction of
-    the memory)."""
+    the memory), where a cache with a feature store still serves them view by view (ViewCache.features_at)."""
     parent, _, name = str(path).rpartition("/")
     store = Store(parent or ".")
     if not store.exists(name):
@@ -241,6 +280,14 @@ def load_view_cache(path, features: bool = True) -> ViewCache:
                 d["cell_features"] = np.zeros((*d["log_probs"].shape[:3], 0), np.float32)
     except (OSError, KeyError, ValueError) as e:
         raise UavsearchError(f"{path} is not a uavsearch view cache ({type(e).__name__}: {e}); delete it") from None
+    feature_store = None
+    if "feature_store" in d:
+        feature_store = FeatureStore(f"{parent}/{d['feature_store']}" if parent else str(d["feature_store"]))
+        if feature_store.tag != str(d["perception_tag"]) or not all(str(int(s)) in feature_store.manifest["scenes"]
+                                                                      for s in d["scene_seed"]):
+            raise UavsearchError(f"{path}: its feature store {feature_store.store.url} lacks some of its scenes; delete both")
+        if features:
+            d["cell_features"] = feature_store.load(d["scene_seed"]).numpy()
     return ViewCache(
         scene_seed=d["scene_seed"], occupied_cells=d["occupied_cells"],
         occupancy=torch.as_tensor(d["occupancy"]).bool(), log_probs=torch.as_tensor(d["log_probs"]),
@@ -249,6 +296,7 @@ def load_view_cache(path, features: bool = True) -> ViewCache:
         perception_tag=str(d["perception_tag"]),
         person_px=torch.as_tensor(d["person_px"].astype(np.int32)) if "person_px" in d else None,
         config=config_from_dict(json.loads(str(d["search_config"]))) if "search_config" in d else None,
+        feature_store=None if features else feature_store,
     )
 
 
