@@ -3,6 +3,8 @@
 import re
 from pathlib import Path
 
+import pytest
+
 import uavsearch
 
 PKG = Path(uavsearch.__file__).resolve().parent
@@ -57,3 +59,31 @@ def test_layout_rows_name_only_modules_that_exist():
             if not (base / name).is_file() and not (PKG / name).is_file():
                 stale.append(f"{name} (row {room})")
     assert not stale, "docs/reference.md's layout names modules that do not exist: " + ", ".join(stale)
+
+
+def _path_rows() -> dict[str, str]:
+    """{path: what} of the layout's second table: the repository's folders beside the package."""
+    text = REFERENCE.read_text()
+    section = text[text.index("## Layout"):text.index("## Conventions")]
+    table = section[section.index("| path |"):].split("\n\n")[0]
+    rows = {}
+    for line in table.splitlines()[2:]:
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        rows[cells[0].strip("`")] = cells[1]
+    return rows
+
+
+def test_layout_paths_exist():
+    missing = [p for p in _path_rows() if not (PKG.parent / p).exists()]
+    assert not missing, "docs/reference.md's layout names paths that do not exist: " + ", ".join(missing)
+
+
+@pytest.mark.parametrize("folder", ["tools/", "examples/"])
+def test_layout_names_every_script_and_only_those(folder):
+    """The scripts users run are listed one by one, so a new or a removed one shows here."""
+    cell = _path_rows()[folder]
+    on_disk = {p.name for p in (PKG.parent / folder).iterdir() if p.suffix in (".py", ".sh")}
+    named = set(re.findall(r"`([\w.-]+\.(?:py|sh))`", cell))
+    row = f"docs/reference.md's `{folder}` row"
+    assert not on_disk - named, f"{row} does not name: " + ", ".join(sorted(on_disk - named))
+    assert not named - on_disk, f"{row} names files that do not exist: " + ", ".join(sorted(named - on_disk))
