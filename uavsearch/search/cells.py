@@ -7,17 +7,17 @@ Nothing here imports gymnasium (flying and evaluation never load it).
 - `CellTables`: every (scene, viewpoint) of a view cache as the fusion reads it: p(y=1), the valid mask
   (cell in view and pooled pixels > 0), the cell's pixel area and, for a learned fusion, the confidence
   scores, each scored once.
-- `SearchBatch`: B episodes on a `ViewSource`, stepped with one array operation per step. Moves, revisits and
-  the time budget follow `search_loop.run_search` (the lattice's move table; `search_loop.affordable`);
-  the fused map is the fusion object's `fuse` over each episode's views so far (fixed (B, T, N) buffers,
-  views not yet taken masked out, which gives run_search's maps); the rewards are `search_loop.step_rewards`.
+- `SearchBatch`: B episodes on a `ViewSource` (`TableSource`: the tables of cached scenes), stepped with one
+  array operation per step: the episode engine (episode.SearchState) that run_search and run_team step too,
+  with its map in fixed (B, T, N) buffers so that episodes start and end on their own; the action set's move
+  rule; the rewards are `search_loop.step_rewards`.
 - `cells_observation`: the "cells" observation (map-shaped arrays) from those arrays; `external_policy`
   builds the same dict from a `search_loop.PolicyInput`.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple, Protocol
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -25,9 +25,10 @@ import torch
 from uavsearch.errors import UavsearchError
 
 from .config import SearchConfig
-from .fusion import Fusion, FusionViews
+from .fusion import Fusion
 from .metrics import map_accuracy, map_f1
-from .search_loop import R_FP, R_RE, R_TP, affordable, step_rewards
+from .episode import SLACK_S, Observation, SearchState, ViewSource
+from .search_loop import R_FP, R_RE, R_TP, step_rewards
 
 REWARD_MODES = ("terminal", "shaped")
 
@@ -60,31 +61,19 @@ def cell_tables(cache, fusion: Fusion, chunk: int = 4096) -> CellTables:
                       np.asarray(cache.scene_seed), np.asarray(cache.occupied_cells))
 
 
-class ViewCells(NamedTuple):
-    """What the fusion reads of k views (k, N) each."""
-
-    p: torch.Tensor
-    valid: torch.Tensor
-    area_px: torch.Tensor
-    scores: torch.Tensor | None
-
-
-class ViewSource(Protocol):
-    """Where an episode's views come from: `cells(envs, idx)` for episodes `envs` (k,) at viewpoints `idx`."""
-
-    def cells(self, envs: torch.Tensor, idx: torch.Tensor) -> ViewCells: ...
-
-
 class TableSource:
-    """Episodes on cached scenes: episode b reads row `rows[b]` of the tables."""
+    """Episodes on cached scenes (a ViewSource): episode b reads row `rows[b]` of the tables."""
 
     def __init__(self, tables: CellTables, batch_size: int):
         self.tables = tables
-        self.rows = torch.zeros(batch_size, dtype=torch.long)
+        self.device = tables.p.device  # the tables': every tensor of its episodes lives there
+        self.rows = torch.zeros(batch_size, dtype=torch.long, device=self.device)
+        self.batch_size = batch_size
 
-    def cells(self, envs, idx) -> ViewCells:
-        t, r = self.tables, self.rows[envs]
-        return ViewCells(t.p[r, idx], t.valid[r, idx], t.area_px[r, idx], None if t.scores is None else t.scores[r, idx])
+    def observe(self, lattice_idx) -> Observation:
+        t, r = self.tables, self.rows
+        return Observation(None, None, None, t.area_px[r, lattice_idx], t.valid[r, lattice_idx],
+                           None if t.scores is None else t.scores[r, lattice_idx], t.p[r, lattice_idx])
 
 
 def observation_keys(config: SearchConfig) -> tuple[str, ...]:
@@ -107,7 +96,7 @@ def cells_observation(config: SearchConfig, p_view, valid, fused, cell_views, vi
     P, T = config.lattice.num_positions, config.budget_T
 
     def grid(x):  # new arrays: callers keep what they are given, the episode state moves on
-        return torch.as_tensor(x).reshape(B, n, n).numpy().astype(np.float32)
+        return torch.as_tensor(x).reshape(B, n, n).cpu().numpy().astype(np.float32)
 
     valid = torch.as_tensor(valid).bool()
     step = torch.as_tensor(step).long().clamp(max=T - 1)
@@ -116,13 +105,13 @@ def cells_observation(config: SearchConfig, p_view, valid, fused, cell_views, vi
         "fused": grid(fused),
         "in_view": grid(valid),
         "p_view": grid(torch.where(valid, torch.as_tensor(p_view).float(), 0.0)),
-        "position": torch.nn.functional.one_hot(torch.as_tensor(idx).long(), P).float().numpy(),
-        "step": torch.nn.functional.one_hot(step, T).float().numpy(),
-        "visits": torch.as_tensor(visits).numpy().astype(np.float32),
+        "position": torch.nn.functional.one_hot(torch.as_tensor(idx).long(), P).float().cpu().numpy(),
+        "step": torch.nn.functional.one_hot(step, T).float().cpu().numpy(),
+        "visits": torch.as_tensor(visits).cpu().numpy().astype(np.float32),
     }
     if config.budget_s is not None:
-        out["action_mask"] = torch.as_tensor(allowed).numpy().astype(np.float32)
-        out["time_left_s"] = torch.as_tensor(time_left_s).reshape(B, 1).numpy().astype(np.float32)
+        out["action_mask"] = torch.as_tensor(allowed).cpu().numpy().astype(np.float32)
+        out["time_left_s"] = torch.as_tensor(time_left_s).reshape(B, 1).cpu().numpy().astype(np.float32)
     return {k: out[k] for k in observation_keys(config)}
 
 
@@ -133,99 +122,89 @@ def flatten_cells(obs: dict[str, np.ndarray]) -> np.ndarray:
 
 
 class SearchBatch:
-    """B search episodes, stepped together (see the module docstring); episodes start and end independently."""
+    """B search episodes of the envs, stepped together (see the module docstring); episodes start and end
+    independently. A skin over the episode engine (episode.SearchState, buffered): the move rule of the action
+    set, the env's rewards and observation."""
 
     def __init__(self, config: SearchConfig, fusion: Fusion, batch_size: int, reward: str = "terminal",
-                 r_tp: float = R_TP, r_fp: float = R_FP, r_re: float = R_RE):
+                 r_tp: float = R_TP, r_fp: float = R_FP, r_re: float = R_RE, device="cpu"):
         if reward not in REWARD_MODES:
             raise UavsearchError(f"unknown reward mode {reward!r}; valid: {', '.join(REWARD_MODES)}")
         self.config, self.fusion, self.reward_mode = config, fusion, reward
         self.r = {"r_tp": float(r_tp), "r_fp": float(r_fp), "r_re": float(r_re)}
-        B, T, N, P = batch_size, config.budget_T, config.grid.num_cells, config.lattice.num_positions
-        self.B, self.T, self.N, self.P = B, T, N, P
-        self.moves = config.lattice.moves
-        self.timed = config.budget_s is not None
-        self.flight_s = config.lattice.flight_time_t if self.timed else None
-        self.idx = torch.full((B,), config.lattice.start_index, dtype=torch.long)
-        self.t = torch.zeros(B, dtype=torch.long)
-        self.visits = torch.zeros(B, P, dtype=torch.long)
-        # float64 views: the fused map then rounds to the same float32 whatever the batch's size and layout (a
-        # vector env equals its single envs bit for bit)
-        self.hist_p = torch.zeros(B, T, N, dtype=torch.float64)
-        self.hist_valid = torch.zeros(B, T, N, dtype=torch.bool)
-        self.hist_area = torch.zeros(B, T, N, dtype=torch.float64)
-        self.hist_scores = torch.zeros(B, T, N, dtype=torch.float64)
-        self.fused = torch.full((B, N), float(fusion.prior))
-        self.labels = torch.zeros(B, N, dtype=torch.bool)
-        self.time_left = torch.zeros(B, dtype=torch.float64)
-        self.allowed = torch.ones(B, P, dtype=torch.bool)
-        self.revisit = torch.zeros(B, dtype=torch.bool)
-        self.done = torch.zeros(B, dtype=torch.bool)
-        self._ar = torch.arange(B)
+        self.device = dev = torch.device(device)
+        self.state = SearchState(config, fusion, batch_size, buffered=True, device=dev)
+        self.B, self.T, self.N, self.P = batch_size, config.budget_T, config.grid.num_cells, config.lattice.num_positions
+        self.revisit = torch.zeros(self.B, dtype=torch.bool, device=dev)
+        self.done = torch.zeros(self.B, dtype=torch.bool, device=dev)
+        self._lead = torch.zeros(self.B, dtype=torch.long, device=dev)  # the one vehicle
         self.source: ViewSource | None = None
 
+    # what the envs read of the state
+    @property
+    def idx(self) -> torch.Tensor:
+        """(B,) the viewpoint of each episode's latest view."""
+        return self.state.pos[:, 0]
+
+    @property
+    def t(self) -> torch.Tensor:
+        """(B,) the index of each episode's latest view."""
+        return self.state.views - 1
+
+    @property
+    def fused(self) -> torch.Tensor:
+        return self.state.fused
+
+    @property
+    def labels(self) -> torch.Tensor:
+        return self.state.labels
+
+    @property
+    def allowed(self) -> torch.Tensor:
+        return self.state.allowed
+
+    @property
+    def visits(self) -> torch.Tensor:
+        return self.state.visits
+
     # ----------------------------------------------------------------------------------------------
-    def _take(self, envs: torch.Tensor, idx: torch.Tensor) -> None:
-        """Episodes `envs` take their next view (index t) at viewpoints `idx` and re-fuse."""
-        c = self.source.cells(envs, idx)
-        t = self.t[envs]
-        self.hist_p[envs, t], self.hist_valid[envs, t] = c.p.double(), c.valid
-        self.hist_area[envs, t] = c.area_px.double()
-        if c.scores is not None:
-            self.hist_scores[envs, t] = c.scores.double()
-        views = FusionViews(self.hist_p[envs], self.hist_valid[envs], self.hist_area[envs],
-                            scores=self.hist_scores[envs] if c.scores is not None else None, labels=self.labels[envs])
-        self.fused[envs] = self.fusion.fuse(views).float()
-        self.visits[envs, idx] += 1
-
-    def _ended(self, envs: torch.Tensor) -> torch.Tensor:
-        """After a view: the budget of views is spent, or (time budget) no unvisited viewpoint is affordable."""
-        end = self.t[envs] >= self.T - 1
-        if self.timed:
-            self.allowed[envs] = affordable(self.config, self.idx[envs], self.visits[envs] > 0, self.time_left[envs])
-            end = end | ~self.allowed[envs].any(1)
-        return end
-
     @torch.no_grad()
     def start(self, envs, labels) -> None:
         """Start episodes `envs` (k,) with ground truth `labels` (k, N) bool (their source is set already)."""
-        envs = torch.as_tensor(envs, dtype=torch.long).reshape(-1)
-        self.idx[envs] = self.config.lattice.start_index
-        self.t[envs] = 0
-        for buf in (self.visits, self.hist_p, self.hist_valid, self.hist_area, self.hist_scores):
-            buf[envs] = 0
-        self.labels[envs] = torch.as_tensor(labels).bool().reshape(len(envs), -1)
-        if self.timed:
-            self.time_left[envs] = float(self.config.budget_s)
+        envs = torch.as_tensor(envs, dtype=torch.long, device=self.device).reshape(-1)
+        st = self.state
+        st.restart(envs, torch.as_tensor(labels, device=self.device).bool().reshape(len(envs), -1))
         self.revisit[envs] = False
-        self._take(envs, self.idx[envs])
-        self.done[envs] = self._ended(envs)
+        mask = torch.zeros(self.B, dtype=torch.bool, device=self.device)
+        mask[envs] = True
+        st.take(self.source, mask=mask)
+        self.done[envs] = st.ended()[envs]
 
     @torch.no_grad()
     def step(self, actions, active=None) -> tuple[torch.Tensor, torch.Tensor]:
         """Move the `active` episodes (default all) by `actions` (B,): (rewards (B,) float32, terminated (B,) bool);
         inactive episodes are left as they are, with reward 0."""
-        actions = torch.as_tensor(np.asarray(actions), dtype=torch.long).reshape(-1)
-        act = torch.ones(self.B, dtype=torch.bool) if active is None else torch.as_tensor(active).bool().clone()
+        st = self.state
+        dev = self.device
+        actions = torch.as_tensor(np.asarray(actions), dtype=torch.long, device=dev).reshape(-1)
+        act = torch.ones(self.B, dtype=torch.bool, device=dev) if active is None else \
+            torch.as_tensor(active, device=dev).bool().clone()
         if bool((self.done & act).any()):
             raise UavsearchError("an episode that has ended was stepped; start it again first")
         first = act & (self.t == 0)
-        prev = self.fused.clone()
-        nxt = self.moves[self.idx, actions.clamp(0, self.moves.shape[1] - 1)]
-        cant = torch.zeros(self.B, dtype=torch.bool)
-        if self.timed:  # a move it cannot afford ends the episode where it is (run_search's rule)
-            cost = self.flight_s[self.idx, nxt]
-            cant = act & (cost > self.time_left + 1e-9)
-            self.time_left = torch.where(act & ~cant, self.time_left - cost, self.time_left)
+        prev = st.fused.clone()
+        idx, now = st.pos[:, 0], st.clock_s[:, 0]
+        nxt = st.moves[idx, actions.clamp(0, st.moves.shape[1] - 1)]
+        cant = torch.zeros(self.B, dtype=torch.bool, device=dev)
+        if st.timed:  # a move it cannot afford ends the episode where it is (run_search's rule)
+            cant = act & (st.cost_s[idx, nxt] > st.time_left_s(now) + SLACK_S)
         move = act & ~cant
-        self.revisit = move & (self.visits[self._ar, nxt] > 0)
-        envs = move.nonzero().reshape(-1)
+        st.fly(self._lead, nxt, move, now)
+        self.revisit = torch.zeros(self.B, dtype=torch.bool, device=dev)
         terminated = cant.clone()
-        if len(envs):
-            self.idx[envs] = nxt[envs]
-            self.t[envs] += 1
-            self._take(envs, nxt[envs])
-            terminated[envs] = self._ended(envs)
+        if bool(move.any()):
+            _, self.revisit = st.take(self.source, mask=move)
+            terminated |= move & st.ended()
         self.done |= terminated
         return self._rewards(prev, act, first, terminated), terminated
 
@@ -243,17 +222,19 @@ class SearchBatch:
     # ----------------------------------------------------------------------------------------------
     def observation(self) -> dict[str, np.ndarray]:
         """The "cells" observation of every episode (its latest view)."""
-        last = self.t[:, None, None].expand(-1, 1, self.N)
-        p = self.hist_p.gather(1, last)[:, 0]
-        valid = self.hist_valid.gather(1, last)[:, 0]
-        return cells_observation(self.config, p, valid, self.fused, self.hist_valid.sum(1), self.visits, self.idx,
-                                 self.t, self.time_left if self.timed else None, self.allowed if self.timed else None)
+        st, t = self.state, self.t
+        last = t[:, None, None].expand(-1, 1, self.N)
+        p = st.hist_p.gather(1, last)[:, 0]
+        valid = st.hist_valid.gather(1, last)[:, 0]
+        return cells_observation(self.config, p, valid, st.fused, st.hist_valid.sum(1), st.visits, st.pos[:, 0], t,
+                                 st.time_left_s(st.clock_s[:, 0]) if st.timed else None,
+                                 st.allowed if st.timed else None)
 
     def scores(self) -> dict[str, np.ndarray]:
         """Per episode: Aacc and F1 of the fused map (search/metrics.py), and the ground truth."""
-        fused, labels = self.fused.numpy(), self.labels.numpy()
+        fused, labels = self.fused.cpu().numpy(), self.labels.cpu().numpy()
         return {"f1": map_f1(fused, labels), "acc": map_accuracy(fused, labels)}
 
 
-__all__ = ["REWARD_MODES", "CellTables", "SearchBatch", "TableSource", "ViewCells", "cell_tables", "cells_observation",
+__all__ = ["REWARD_MODES", "CellTables", "SearchBatch", "TableSource", "cell_tables", "cells_observation",
            "flatten_cells", "observation_keys"]

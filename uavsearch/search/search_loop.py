@@ -33,6 +33,7 @@ import torch
 from uavsearch.errors import UavsearchError
 
 from .config import SearchConfig
+from .episode import SLACK_S, Observation, PolicyInput, SearchState, ViewSource, fusion_view
 from .fusion import Fusion, FusionViews
 
 
@@ -69,27 +70,6 @@ def step_rewards(maps, labels, revisit, r_tp: float = R_TP, r_fp: float = R_FP, 
 
 # --------------------------------------------------------------------------------------------------
 # Views in, per-view perception outputs out
-
-
-class Observation(NamedTuple):
-    """What the frozen perception says about one view, batched over episodes."""
-
-    log_probs: torch.Tensor  # (B, N, 2)
-    cell_features: torch.Tensor | None  # (B, N, D) the confidence network's input (None when scores are given)
-    global_feature: torch.Tensor  # (B, G) the image embedding's input
-    cell_area_px: torch.Tensor  # (B, N) F_size
-    valid: torch.Tensor  # (B, N) bool: the view measured the cell (c^t)
-    scores: torch.Tensor | None = None  # (B, N) confidence scores s_i, if the source precomputed them
-
-
-class ViewSource(Protocol):
-    """Where views come from: cached perception outputs, or a vehicle plus a perception net."""
-
-    config: SearchConfig
-    batch_size: int
-    labels: torch.Tensor | None  # (B, N) bool ground truth if known (oracle fusion and scoring only)
-
-    def observe(self, lattice_idx: torch.Tensor) -> Observation: ...
 
 
 class CachedViews:
@@ -188,27 +168,6 @@ def observe_view(perception, view) -> Observation:
 # The loop
 
 
-class PolicyInput(NamedTuple):
-    """Everything a policy may look at before choosing the move after view t (Eq. 9's s^t, unencoded)."""
-
-    global_feature: torch.Tensor  # (B, G) of the current view
-    cells_in_view: torch.Tensor  # (B, N) float c^t
-    fused: torch.Tensor  # (B, N) M-bar^t, fused p(y=1) over views 0..t (detached)
-    lattice_idx: torch.Tensor  # (B,) current position
-    visited: torch.Tensor  # (B, P) bool, positions visited so far
-    step: int  # t, 0 for the start view
-    budget_T: int
-    # the episode so far, view by view (run_search fills them; a policy that reacts to what each view said
-    # reads them, e.g. reactive.ReactivePolicyNet)
-    view_positions: torch.Tensor | None = None  # (B, t+1) long lattice index of views 0..t
-    view_probs: torch.Tensor | None = None  # (B, t+1, N) each view's p(y=1)
-    view_valid: torch.Tensor | None = None  # (B, t+1, N) bool, the view measured the cell
-    view_scores: torch.Tensor | None = None  # (B, t+1, N) confidence scores (detached), None without learned fusion
-    # with a time budget (config.budget_s; else None)
-    time_left_s: torch.Tensor | None = None  # (B,) simulated seconds of flight left
-    allowed: torch.Tensor | None = None  # (B, P) bool: unvisited viewpoints affordable in the time left
-
-
 class Policy(Protocol):
     def act(self, inp: PolicyInput, generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor | None,
                                                                                  torch.Tensor | None]:
@@ -278,21 +237,6 @@ class Episode(NamedTuple):
     flight_s: torch.Tensor | None = None  # (B,) simulated seconds flown (with a time budget)
 
 
-def affordable(config: SearchConfig, idx: torch.Tensor, visited: torch.Tensor, time_left_s: torch.Tensor):
-    """(B, P) bool: the unvisited viewpoints each episode can still fly to in the time it has left."""
-    cost = config.lattice.flight_time_t[idx]  # (B, P)
-    return ~visited & (cost <= time_left_s[:, None] + 1e-9)
-
-
-def fusion_view(o: Observation, lattice_idx: torch.Tensor, labels: torch.Tensor | None) -> FusionViews:
-    """One observed view as a fusion batch of T = 1."""
-    def one(x):
-        return None if x is None else x.unsqueeze(1)
-
-    return FusionViews(o.log_probs[..., 1].exp()[:, None], o.valid[:, None], o.cell_area_px[:, None],
-                       one(o.cell_features), one(o.scores), lattice_idx[:, None], labels)
-
-
 def _last(view_scores: torch.Tensor | None) -> torch.Tensor | None:
     """The latest view's scores of (B, t+1, N) per-view scores."""
     return None if view_scores is None else view_scores[:, -1]
@@ -300,7 +244,8 @@ def _last(view_scores: torch.Tensor | None) -> torch.Tensor | None:
 
 def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
                generator: torch.Generator | None = None, start_idx: int | None = None, on_step=None) -> Episode:
-    """Run B episodes of `budget_T` views (default config.budget_T) from the lattice centre.
+    """Run B episodes of `budget_T` views (default config.budget_T) from the lattice centre: one vehicle on the
+    episode engine (episode.SearchState).
 
     Gradients flow where autograd is enabled: the last fused map w.r.t. the confidence net and the
     log-probabilities w.r.t. a learned policy. Wrap in torch.no_grad() to evaluate.
@@ -309,65 +254,44 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
     """
     config = source.config
     T = int(budget_T or config.budget_T)
-    moves = config.lattice.moves
-    B, P = source.batch_size, config.lattice.num_positions
-    idx = torch.full((B,), config.lattice.start_index if start_idx is None else int(start_idx), dtype=torch.long)
-    visited = torch.zeros(B, P, dtype=torch.bool)
-    arange = torch.arange(B)
-    obs: list[Observation] = []
-    state = agent.fusion.init_state(B, config.grid.num_cells)
-    positions, actions, logps, ents, revisits, maps = [], [], [], [], [], []
-    timed = config.budget_s is not None
-    if timed:
-        cost_s = config.lattice.flight_time_t
-        time_left = torch.full((B,), float(config.budget_s), dtype=torch.float64)
-        ended = torch.zeros(B, dtype=torch.bool)
-        takens = []
+    B = source.batch_size
+    st = SearchState(config, agent.fusion, B, max_views=T, labels=source.labels, start_idx=start_idx,
+                     device=getattr(source, "device", None))
+    timed = st.timed
+    lead = torch.zeros(B, dtype=torch.long, device=st.device)  # the one vehicle
+    actions, logps, ents, revisits, maps, takens = [], [], [], [], [], []
     for t in range(T):
-        revisits.append(visited[arange, idx].clone() & ~ended if timed else visited[arange, idx].clone())
-        visited[arange, idx] = True
-        positions.append(idx)
-        o = source.observe(idx)
-        if timed and ended.any():  # an ended episode's view is not taken: it measures nothing
-            o = o._replace(valid=o.valid & ~ended[:, None])
-        obs.append(o)
-        state, fused = agent.fusion.update(state, fusion_view(o, idx, source.labels))
-        if timed:
-            takens.append(~ended)
-            if ended.any():
-                fused = torch.where(ended[:, None], maps[-1], fused)
-        maps.append(fused)
-        view_scores = agent.fusion.view_scores(state)
-        view_scores = None if view_scores is None else view_scores.detach()
+        live = st.active[:, 0].clone()
+        o, revisit = st.take(source, mask=live if timed else None)  # an ended episode's view measures nothing
+        revisits.append(revisit)
+        maps.append(st.fused)
+        takens.append(live)
+        view_scores = st.view_scores()
+        idx, now, visited = st.positions[-1], st.clock_s[:, 0].clone(), st.visited()
         allowed = None
         if timed:
-            allowed = affordable(config, idx, visited, time_left)
-            ended = ended | ~allowed.any(1)
-        if t == T - 1 or (timed and bool(ended.all())):
+            allowed = st.choices(visited, idx, now)
+            st.stop(lead, ~allowed.any(1))
+        if t == T - 1 or not bool(st.active.any()):
             if on_step is not None:
-                on_step(_step_info(t, True, idx, o, _last(view_scores), fused, None, revisits[-1], source.labels))
+                on_step(_step_info(t, True, idx, o, _last(view_scores), st.fused, None, revisit, source.labels))
             break
-        inp = PolicyInput(o.global_feature, o.valid.float(), fused.detach().float(), idx, visited.clone(), t, T,
-                          torch.stack(positions, 1), torch.stack([v.log_probs[..., 1].exp() for v in obs], 1),
-                          torch.stack([v.valid for v in obs], 1), view_scores,
-                          time_left.float() if timed else None, allowed)
-        a, lp, ent = agent.policy.act(inp, generator)
+        a, lp, ent = agent.policy.act(st.policy_input(idx, visited, now, allowed, view_scores), generator)
         if on_step is not None:
-            on_step(_step_info(t, False, idx, o, _last(view_scores), fused, a, revisits[-1], source.labels))
+            on_step(_step_info(t, False, idx, o, _last(view_scores), st.fused, a, revisit, source.labels))
         actions.append(a)
         if lp is not None:
             logps.append(lp)
             ents.append(ent)
-        nxt = moves[idx, a]
+        nxt = st.moves[idx, a]
+        go = st.active[:, 0]
         if timed:  # a move it cannot afford ends the episode where it is
-            cost = cost_s[idx, nxt]
-            ended = ended | (cost > time_left + 1e-9)
-            nxt = torch.where(ended, idx, nxt)
-            time_left = time_left - torch.where(ended, torch.zeros_like(cost), cost)
-        idx = nxt
-    empty = torch.zeros(B, 0)
+            go = go & (st.cost_s[idx, nxt] <= st.time_left_s(now) + SLACK_S)
+            st.stop(lead, ~go)
+        st.fly(lead, nxt, go, now)
+    empty = torch.zeros(B, 0, device=st.device)
     return Episode(
-        lattice_idx=torch.stack(positions, 1),
+        lattice_idx=torch.stack(st.positions, 1),
         actions=torch.stack(actions, 1) if actions else empty.long(),
         log_prob=torch.stack(logps, 1) if logps else None,
         entropy=torch.stack(ents, 1) if ents else None,
@@ -375,10 +299,10 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
         maps=torch.stack(maps, 1),
         labels=source.labels,
         taken=torch.stack(takens, 1) if timed else None,
-        flight_s=(float(config.budget_s) - time_left).float() if timed else None,
+        flight_s=st.clock_s[:, 0].float() if timed else None,
     )
 
 
 __all__ = ["Agent", "CachedViews", "Episode", "LiveViews", "Observation", "Policy", "PolicyInput", "ViewSource",
            "R_FP", "R_RE", "R_TP", "classification_reward", "fusion_view", "run_search", "sample_actions"]
-__all__ += ["StepInfo", "affordable", "observe_view", "step_rewards"]
+__all__ += ["StepInfo", "observe_view", "step_rewards"]

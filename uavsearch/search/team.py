@@ -37,14 +37,14 @@ from __future__ import annotations
 
 from typing import NamedTuple, Protocol
 
-import numpy as np
 import torch
 
+from uavsearch.devices import follow
 from uavsearch.errors import UavsearchError
 
 from .config import SearchConfig
 from .fusion import Fusion
-from .search_loop import PolicyInput, ViewSource, fusion_view
+from .episode import PolicyInput, SearchState, ViewSource
 from .wide_policies import SURVEY_OUTER_M, DescendRule, argmax_allowed, viewpoints_at
 
 
@@ -69,8 +69,8 @@ class TeamEpisode(NamedTuple):
     def map_at(self, time_s: float) -> torch.Tensor:
         """(B, N) the fused map of each episode after every view taken by `time_s` (the prior before any)."""
         ok = self.taken & (self.time_s <= time_s + 1e-9)
-        last = torch.where(ok, torch.arange(ok.shape[1]), -1).amax(1)  # (B,)
-        maps = self.maps[torch.arange(len(last)), last.clamp(min=0)]
+        last = torch.where(ok, torch.arange(ok.shape[1], device=ok.device), -1).amax(1)  # (B,)
+        maps = self.maps[torch.arange(len(last), device=ok.device), last.clamp(min=0)]
         return torch.where((last >= 0)[:, None], maps, torch.zeros_like(maps))
 
     def views(self) -> torch.Tensor:
@@ -80,94 +80,52 @@ class TeamEpisode(NamedTuple):
 
 def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles: int, budget_s: float,
              max_views: int | None = None, generator: torch.Generator | None = None, on_event=None) -> TeamEpisode:
-    """B episodes of a team of `vehicles` under a mission time of `budget_s` simulated seconds (module docstring).
+    """B episodes of a team of `vehicles` under a mission time of `budget_s` simulated seconds (module docstring),
+    on the episode engine (episode.SearchState).
 
     `on_event(vehicle, idx, time_s, taken, fused, next_idx)` hears each event once its next viewpoint is
     chosen (a flight log writes it there). Evaluation only: no gradients are kept."""
     config: SearchConfig = source.config
     if vehicles < 1:
         raise UavsearchError(f"a team needs at least one vehicle, got {vehicles}")
-    lat = config.lattice
-    cost = lat.flight_time_t.to(torch.float64)  # (P, P)
-    B, P, V = source.batch_size, lat.num_positions, int(vehicles)
-    ar = torch.arange(B)
-    pos = torch.full((B, V), lat.start_index, dtype=torch.long)
-    arrive = torch.zeros(B, V, dtype=torch.float64)
-    capture = torch.zeros(B, V, dtype=torch.bool)
-    capture[:, 0] = True  # vehicle 0 takes the start view; the others are sent out from there
-    active = torch.ones(B, V, dtype=torch.bool)
-    taken_vp = torch.zeros(B, P, dtype=torch.bool)
-    n_views = torch.zeros(B, dtype=torch.long)
-    planner.reset(B, V)
-    state = fusion.init_state(B, config.grid.num_cells)
-    fused = torch.zeros(B, config.grid.num_cells)  # the map before any view (every event 0 takes one)
+    B = source.batch_size
+    st = SearchState(config, fusion, B, int(vehicles), max_views=max_views, budget_s=budget_s, labels=source.labels,
+                     team=True, device=getattr(source, "device", None))
+    st.fused = torch.zeros_like(st.fused)  # the map before any view (every event 0 takes one)
+    ar = st._ar
+    planner.reset(B, st.V)
     ev_v, ev_idx, ev_t, ev_taken, ev_maps = [], [], [], [], []
-    positions, probs, valids = [], [], []
-    last_obs = None
+    clock = getattr(source, "mission_time_s", None)  # a flying team: the time the vehicle's own clock says
     with torch.no_grad():
-        while bool(active.any()):
-            t_ev = torch.where(active, arrive, torch.full_like(arrive, np.inf))
-            v = t_ev.argmin(1)
-            live = active.any(1)
-            now = torch.where(live, t_ev[ar, v], torch.zeros(B, dtype=torch.float64))
-            idx = pos[ar, v]
-            cap = capture[ar, v] & live
+        while bool(st.active.any()):
+            v, live, now = st.next_vehicle()
+            idx = st.pos[ar, v]
+            cap = st.capture[ar, v] & live
             if max_views is not None:
-                cap &= n_views < max_views
+                cap &= st.views < max_views
             if bool(cap.any()):
-                o = source.observe(idx, v) if getattr(source, "per_vehicle", False) else source.observe(idx)
-                o = o._replace(valid=o.valid & cap[:, None])
-                state, new = fusion.update(state, fusion_view(o, idx, source.labels))
-                fused = torch.where(cap[:, None], new, fused)
-                taken_vp[ar[cap], idx[cap]] = True
-                n_views += cap.long()
-                positions.append(idx)
-                probs.append(o.log_probs[..., 1].exp())
-                valids.append(o.valid)
-                last_obs = o
-                clock = getattr(source, "mission_time_s", None)
-                if clock is not None:  # a flying team: the time the vehicle's own clock says, not the prediction
+                st.take(source, v, cap)
+                if clock is not None:
                     now = torch.where(cap, clock(v).to(now.dtype), now)
-            capture[ar, v] = False
-            # the deciding vehicle's choices: nothing taken, claimed by another vehicle, or out of reach
-            claimed = torch.zeros(B, P, dtype=torch.bool)
-            for u in range(V):
-                other = active[:, u] & capture[:, u] & (u != v)
-                claimed[ar[other], pos[other, u]] = True
-            left = budget_s - now
-            allowed = ~taken_vp & ~claimed & (cost[idx] <= left[:, None] + 1e-9)
-            if max_views is not None:
-                pending = (active & capture).sum(1)
-                allowed &= (n_views + pending < max_views)[:, None]
-            vis = taken_vp | claimed
-            have = bool(positions)
-            inp = PolicyInput(
-                last_obs.global_feature if last_obs is not None else None,
-                last_obs.valid.float() if last_obs is not None else torch.zeros(B, config.grid.num_cells),
-                fused.float(), idx, vis, max(int(n_views.max()) - 1, 0),
-                int(max_views or P), torch.stack(positions, 1) if have else idx[:, None],
-                torch.stack(probs, 1) if have else None,
-                torch.stack(valids, 1) if have else torch.zeros(B, 1, config.grid.num_cells, dtype=torch.bool),
-                None, left.float(), allowed)
-            nxt = planner.choose(inp, v, generator)
+            st.capture[ar, v] = False
+            visited = st.visited(v)  # the deciding vehicle's choices: nothing taken, claimed, or out of reach
+            allowed = st.choices(visited, idx, now)
+            nxt = planner.choose(st.policy_input(idx, visited, now, allowed, st.view_scores()), v, generator)
             ok = (nxt >= 0) & live
             ok &= allowed[ar, nxt.clamp(min=0)]
-            stop = live & ~ok
             ev_v.append(v)
             ev_idx.append(idx)
             ev_t.append(now)
             ev_taken.append(cap)
-            ev_maps.append(fused.clone())
+            ev_maps.append(st.fused.clone())
             if on_event is not None:
                 on_event(v, idx, now, cap, ev_maps[-1], torch.where(ok, nxt, -1))
             if hasattr(source, "dispatch"):  # a flying team: the vehicle sets off now, the others fly on
                 source.dispatch(v, torch.where(ok, nxt, -1))
-            active[ar[stop], v[stop]] = False
-            pos[ar[ok], v[ok]] = nxt[ok]
-            arrive[ar[ok], v[ok]] = now[ok] + cost[idx[ok], nxt[ok]]
-            capture[ar[ok], v[ok]] = True
+            st.stop(v, live & ~ok)
+            st.fly(v, nxt, ok, now)
     return TeamEpisode(torch.stack(ev_v, 1), torch.stack(ev_idx, 1), torch.stack(ev_t, 1).float(),
-                       torch.stack(ev_taken, 1), torch.stack(ev_maps, 1), source.labels, V)
+                       torch.stack(ev_taken, 1), torch.stack(ev_maps, 1), source.labels, st.V)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -187,6 +145,7 @@ class TeamRule:
         pass
 
     def choose(self, inp: PolicyInput, vehicle: torch.Tensor, generator=None) -> torch.Tensor:
+        follow(self, inp.allowed.device)
         allowed = inp.allowed
         cost = self.cost[inp.lattice_idx]  # (B, P)
         in_survey = torch.zeros_like(allowed)
@@ -221,9 +180,10 @@ class Partition:
         self.step = torch.zeros(batch, vehicles, dtype=torch.long)
 
     def choose(self, inp: PolicyInput, vehicle: torch.Tensor, generator=None) -> torch.Tensor:
+        follow(self, vehicle.device)
         B = len(vehicle)
-        ar = torch.arange(B)
-        out = torch.full((B,), -1, dtype=torch.long)
+        ar = torch.arange(B, device=vehicle.device)
+        out = torch.full((B,), -1, dtype=torch.long, device=vehicle.device)
         for _ in range(self.table.shape[1]):  # the next viewpoint of its strip it may still take
             k = self.step[ar, vehicle]
             cand = torch.where(k < self.table.shape[1], self.table[vehicle, k.clamp(max=self.table.shape[1] - 1)], -1)
@@ -256,6 +216,7 @@ class TeamEntropy:
         pass
 
     def choose(self, inp: PolicyInput, vehicle: torch.Tensor, generator=None) -> torch.Tensor:
+        follow(self, inp.visited.device)
         taken = torch.zeros_like(inp.visited)
         taken.scatter_(1, inp.view_positions, inp.view_valid.any(-1))  # viewpoints a view measured from
         claimed = inp.visited & ~taken  # where the other vehicles are flying

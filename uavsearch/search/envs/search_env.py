@@ -5,7 +5,7 @@
 - The batched form of both is `envs.vector_env.SearchVectorEnv` (``gym.make_vec(id, num_envs=N,
   vectorization_mode="vector_entry_point")``).
 
-Every env steps the same state machine (cells.SearchBatch) on the project's view caches
+Every env steps the episode engine (episode.SearchState, through cells.SearchBatch) on the project's view caches
 (data/view_cache.get_view_cache: built on first use, shared on disk by every process); a scene outside the
 caches is rendered live, with a one-line warning.
 """
@@ -26,8 +26,9 @@ from gymnasium import spaces
 from ...errors import SceneError, UavsearchError
 from ...world import settings
 from ...world.scene import SceneSpec, scene_from_json, scene_to_json
-from ..cells import REWARD_MODES, SearchBatch, TableSource, ViewCells, cell_tables, observation_keys
+from ..cells import REWARD_MODES, SearchBatch, TableSource, cell_tables, observation_keys
 from ..config import SearchConfig, setting_config
+from ..episode import Observation
 from ..fusion import FUSIONS, Fusion, check_buildable
 from ..search_loop import R_FP, R_RE, R_TP
 from ..views import TeleportVehicle, View
@@ -137,14 +138,15 @@ class SceneViews:
 
 
 class LiveSource:
-    """One episode on a scene outside the caches: render at the viewpoint, run perception (B = 1)."""
+    """One episode on a scene outside the caches (a ViewSource): render at the viewpoint, run perception (B = 1)."""
 
     def __init__(self, vehicle: TeleportVehicle, perception, fusion: Fusion):
         self.vehicle, self.perception, self.scorer = vehicle, perception, fusion.frozen().scorer
         self.positions = vehicle.config.lattice.positions_enu
-        self._memo: dict[int, tuple[View, ViewCells]] = {}
+        self._memo: dict[int, tuple[View, Observation]] = {}
+        self.batch_size = 1
 
-    def view(self, idx: int) -> tuple[View, ViewCells]:
+    def view(self, idx: int) -> tuple[View, Observation]:
         if idx not in self._memo:
             view = self.vehicle.capture(self.positions[idx])
             with torch.no_grad():
@@ -152,12 +154,12 @@ class LiveSource:
                                                 altitude_m=view.position_enu[2])
                 valid = torch.as_tensor(view.cells_in_view).reshape(1, -1) & (o.cell_pixels > 0)
                 scores = None if self.scorer is None else self.scorer(o.cell_features.float())
-            self._memo[idx] = (view, ViewCells(o.log_probs[..., 1].exp().float(), valid,
-                                               torch.as_tensor(view.cell_area_px, dtype=torch.float32)[None], scores))
+            self._memo[idx] = (view, Observation(None, None, None, torch.as_tensor(view.cell_area_px, dtype=torch.float32)[None],
+                                                 valid, scores, o.log_probs[..., 1].exp().float()))
         return self._memo[idx]
 
-    def cells(self, envs, idx) -> ViewCells:
-        return self.view(int(idx.reshape(-1)[0]))[1]
+    def observe(self, lattice_idx) -> Observation:
+        return self.view(int(lattice_idx.reshape(-1)[0]))[1]
 
 
 def cells_space(config: SearchConfig) -> spaces.Dict:

@@ -1,0 +1,290 @@
+"""The one episode engine: B search episodes x N vehicles, stepped together in array operations.
+
+Every search steps a `SearchState`: the teleport loop (`search_loop.run_search`, one vehicle), the team
+(`team.run_team`), the envs (`cells.SearchBatch`, the state of search/envs/) and flight (the same loops with
+views that fly). It keeps
+
+- per vehicle its viewpoint and its clock (the mission time at which it arrives there, simulated seconds since
+  the start view): the next vehicle to arrive acts (`next_vehicle`; ties: the lower vehicle); a vehicle that
+  stops never acts again;
+- per episode the views taken at each viewpoint (a view where one was taken is a revisit), the views so far,
+  the fused map of the episode's one `Fusion` (search/fusion.py);
+- the budgets: views (`max_views`) and seconds of flight (`budget_s`; `lattice.flight_time_s` a move, the
+  start view free): `choices` are the viewpoints a vehicle may still take;
+- the policy's input: `policy_input` gives the deciding vehicle's `PolicyInput`, the one object every policy
+  and team planner reads.
+
+The map is kept one of two ways. The loops step their episodes in lockstep and keep the fusion's running
+state (`Fusion.update`; differentiable, stage 2 trains through it). The envs start and end episodes one by
+one (`buffered`): each view goes into fixed (B, T, N) float64 buffers and the fusion re-fuses an episode's
+views when it takes one, so the map rounds to the same float32 whatever the batch (a vector env equals its
+single envs bit for bit).
+
+A team (`team=True`) keeps viewpoints apart: a vehicle's choices exclude every viewpoint taken or claimed by
+another vehicle's flight, and the views the pending flights will take count against `max_views`. One
+vehicle alone may choose a viewpoint again (a revisit).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Protocol
+
+import torch
+
+from .config import SearchConfig
+from .fusion import Fusion, FusionViews
+
+
+class Observation(NamedTuple):
+    """What the frozen perception says about one view, batched over episodes."""
+
+    log_probs: torch.Tensor | None  # (B, N, 2); None where the source keeps p only (`p`)
+    cell_features: torch.Tensor | None  # (B, N, D) the confidence network's input (None when scores are given)
+    global_feature: torch.Tensor | None  # (B, G) the image embedding's input
+    cell_area_px: torch.Tensor  # (B, N) F_size
+    valid: torch.Tensor  # (B, N) bool: the view measured the cell (c^t)
+    scores: torch.Tensor | None = None  # (B, N) confidence scores s_i, if the source precomputed them
+    p: torch.Tensor | None = None  # (B, N) p(y=1), where the source keeps it (the envs' cell tables)
+
+    def prob(self) -> torch.Tensor:
+        """(B, N) the view's p(y=1)."""
+        return self.p if self.p is not None else self.log_probs[..., 1].exp()
+
+
+class ViewSource(Protocol):
+    """Where an episode's views come from: cached perception outputs, or a vehicle plus a perception net.
+
+    `observe(lattice_idx)` gives the view of every episode at its viewpoint (B,). A source whose vehicles fly
+    (fly/team_controller.py) says `per_vehicle = True` and is asked `observe(lattice_idx, vehicle)`; it may
+    have `mission_time_s(vehicle)` (the capture's time on the vehicles' own clock, which then replaces the
+    predicted one) and `dispatch(vehicle, next_idx)` (send the vehicle on as soon as its next viewpoint is
+    chosen; -1: it stops).
+    """
+
+    config: SearchConfig
+    batch_size: int
+    labels: torch.Tensor | None  # (B, N) bool ground truth if known (oracle fusion and scoring only)
+
+    def observe(self, lattice_idx: torch.Tensor) -> Observation: ...
+
+
+class PolicyInput(NamedTuple):
+    """Everything a policy may look at before choosing the move after view t (Eq. 9's s^t, unencoded).
+
+    `SearchState.policy_input` builds it; in a team it is the deciding vehicle's."""
+
+    global_feature: torch.Tensor  # (B, G) of the current view
+    cells_in_view: torch.Tensor  # (B, N) float c^t
+    fused: torch.Tensor  # (B, N) M-bar^t, fused p(y=1) over views 0..t (detached)
+    lattice_idx: torch.Tensor  # (B,) current position
+    visited: torch.Tensor  # (B, P) bool, positions visited so far (in a team: or claimed by another vehicle)
+    step: int  # t, 0 for the start view (in a team: the views so far minus one, the largest over the batch)
+    budget_T: int
+    # the episode so far, view by view (a policy that reacts to what each view said reads them, e.g.
+    # reactive.ReactivePolicyNet)
+    view_positions: torch.Tensor | None = None  # (B, t+1) long lattice index of views 0..t
+    view_probs: torch.Tensor | None = None  # (B, t+1, N) each view's p(y=1)
+    view_valid: torch.Tensor | None = None  # (B, t+1, N) bool, the view measured the cell
+    view_scores: torch.Tensor | None = None  # (B, t+1, N) confidence scores (detached), None without learned fusion
+    # with a time budget (else None)
+    time_left_s: torch.Tensor | None = None  # (B,) simulated seconds of flight left
+    allowed: torch.Tensor | None = None  # (B, P) bool: unvisited viewpoints affordable in the time left
+
+
+def fusion_view(o: Observation, lattice_idx: torch.Tensor, labels: torch.Tensor | None) -> FusionViews:
+    """One observed view as a fusion batch of T = 1."""
+    def one(x):
+        return None if x is None else x.unsqueeze(1)
+
+    return FusionViews(o.prob()[:, None], o.valid[:, None], o.cell_area_px[:, None],
+                       one(o.cell_features), one(o.scores), lattice_idx[:, None], labels)
+
+
+SLACK_S = 1e-9  # a flight that fits the time left to this many seconds is affordable
+
+
+class SearchState:
+    """B episodes x `vehicles` vehicles of one search (module docstring).
+
+    `max_views` (default config.budget_T) and `budget_s` (None: no time budget; default config.budget_s) are the
+    budgets; `labels` (B, N) the ground truth where known (the oracle fusion reads it); `start_idx` the
+    viewpoint every vehicle starts above (default the lattice's start); vehicle 0 takes the start view.
+    """
+
+    def __init__(self, config: SearchConfig, fusion: Fusion, batch_size: int, vehicles: int = 1, *,
+                 max_views: int | None = None, budget_s: float | None = ..., labels: torch.Tensor | None = None,
+                 start_idx: int | None = None, team: bool = False, buffered: bool = False, device=None):
+        lat = config.lattice
+        self.config, self.fusion, self.team, self.buffered = config, fusion, bool(team), bool(buffered)
+        self.B, self.V, self.P, self.N = int(batch_size), int(vehicles), lat.num_positions, config.grid.num_cells
+        self.max_views = max_views if team else int(max_views or config.budget_T)
+        self.budget_s = config.budget_s if budget_s is ... else budget_s
+        self.timed = self.budget_s is not None
+        self.cost_s = lat.flight_time_t  # (P, P) float64
+        self.moves = lat.moves
+        self.start_idx = lat.start_index if start_idx is None else int(start_idx)
+        B, V, P, N = self.B, self.V, self.P, self.N
+        self.device = dev = torch.device("cpu") if device is None else torch.device(device)
+        self.cost_s, self.moves = self.cost_s.to(dev), self.moves.to(dev)
+        self._ar = torch.arange(B, device=dev)
+        self.labels = labels if not buffered else torch.zeros(B, N, dtype=torch.bool, device=dev)
+        self.pos = torch.full((B, V), self.start_idx, dtype=torch.long, device=dev)
+        self.clock_s = torch.zeros(B, V, dtype=torch.float64, device=dev)
+        self.capture = torch.zeros(B, V, dtype=torch.bool, device=dev)
+        self.capture[:, 0] = True
+        self.active = torch.ones(B, V, dtype=torch.bool, device=dev)
+        self.visits = torch.zeros(B, P, dtype=torch.long, device=dev)
+        self.views = torch.zeros(B, dtype=torch.long, device=dev)
+        self.allowed = torch.ones(B, P, dtype=torch.bool, device=dev)
+        self.fused = torch.full((B, N), float(fusion.prior), device=dev)
+        self.last: Observation | None = None  # the latest observation (lockstep)
+        if buffered:
+            T = self.max_views
+            self.hist_p = torch.zeros(B, T, N, dtype=torch.float64, device=dev)
+            self.hist_valid = torch.zeros(B, T, N, dtype=torch.bool, device=dev)
+            self.hist_area = torch.zeros(B, T, N, dtype=torch.float64, device=dev)
+            self.hist_scores = torch.zeros(B, T, N, dtype=torch.float64, device=dev)
+        else:
+            self.state = fusion.init_state(B, N)
+            self.positions: list[torch.Tensor] = []  # per lockstep view: (B,) viewpoint, (B, N) p, (B, N) valid
+            self.probs: list[torch.Tensor] = []
+            self.valids: list[torch.Tensor] = []
+
+    # -- the clocks --------------------------------------------------------------------------------
+
+    def next_vehicle(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(vehicle (B,), live (B,), now (B,) float64): the vehicle of each episode that arrives first, whether
+        any vehicle is still flying, and the time it arrives (0 where none is)."""
+        t_ev = torch.where(self.active, self.clock_s, torch.full_like(self.clock_s, float("inf")))
+        v = t_ev.argmin(1)
+        live = self.active.any(1)
+        return v, live, torch.where(live, t_ev[self._ar, v], torch.zeros(self.B, dtype=torch.float64, device=self.device))
+
+    def time_left_s(self, now: torch.Tensor) -> torch.Tensor:
+        return self.budget_s - now
+
+    # -- views -------------------------------------------------------------------------------------
+
+    def take(self, source, vehicle: torch.Tensor | None = None, mask: torch.Tensor | None = None):
+        """The episodes in `mask` (default all) take a view where `vehicle` (B,) (default 0) is and fuse it:
+        (the observation, (B,) bool revisit). A lockstep state observes every episode and masks the others
+        out; a buffered one re-fuses only the masked episodes."""
+        idx = self.pos[:, 0].clone() if vehicle is None else self.pos[self._ar, vehicle]
+        if vehicle is not None and getattr(source, "per_vehicle", False):
+            o = source.observe(idx, vehicle)
+        else:
+            o = source.observe(idx)
+        every = mask is None or bool(mask.all())
+        m = torch.ones(self.B, dtype=torch.bool, device=self.device) if mask is None else mask
+        if not every:
+            o = o._replace(valid=o.valid & m[:, None])
+        revisit = (self.visits[self._ar, idx] > 0) & m
+        if self.buffered:
+            self._buffer(m.nonzero().reshape(-1), idx, o)
+        else:
+            self.state, new = self.fusion.update(self.state, fusion_view(o, idx, self.labels))
+            self.fused = new if every else torch.where(m[:, None], new, self.fused)
+            self.positions.append(idx)
+            self.probs.append(o.prob())
+            self.valids.append(o.valid)
+        self.visits[self._ar[m], idx[m]] += 1
+        self.views += m.long()
+        self.last = o
+        return o, revisit
+
+    def _buffer(self, envs: torch.Tensor, idx: torch.Tensor, o: Observation) -> None:
+        """Episodes `envs` write their view into the buffers at their own index and re-fuse their views."""
+        t = self.views[envs]
+        self.hist_p[envs, t], self.hist_valid[envs, t] = o.prob()[envs].double(), o.valid[envs]
+        self.hist_area[envs, t] = o.cell_area_px[envs].double()
+        if o.scores is not None:
+            self.hist_scores[envs, t] = o.scores[envs].double()
+        views = FusionViews(self.hist_p[envs], self.hist_valid[envs], self.hist_area[envs],
+                            scores=self.hist_scores[envs] if o.scores is not None else None, labels=self.labels[envs])
+        self.fused[envs] = self.fusion.fuse(views).float()
+
+    def view_scores(self) -> torch.Tensor | None:
+        """(B, t+1, N) the confidence scores of the views so far (detached), or None (lockstep)."""
+        s = self.fusion.view_scores(self.state)
+        return None if s is None else s.detach()
+
+    # -- choices and moves -------------------------------------------------------------------------
+
+    def visited(self, vehicle: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, P) bool: viewpoints taken, and in a team those another vehicle is flying to."""
+        seen = self.visits > 0
+        if not self.team:
+            return seen
+        claimed = torch.zeros_like(seen)
+        for u in range(self.V):
+            other = self.active[:, u] & self.capture[:, u] & (u != vehicle)
+            claimed[self._ar[other], self.pos[other, u]] = True
+        return seen | claimed
+
+    def choices(self, visited: torch.Tensor, idx: torch.Tensor, now: torch.Tensor) -> torch.Tensor:
+        """(B, P) bool: the viewpoints not in `visited` that a vehicle at `idx` can reach in the time left (and in a
+        team, while views are left once the pending flights have taken theirs)."""
+        allowed = ~visited & (self.cost_s[idx] <= self.time_left_s(now)[:, None] + SLACK_S)
+        if self.team and self.max_views is not None:
+            pending = (self.active & self.capture).sum(1)
+            allowed &= (self.views + pending < self.max_views)[:, None]
+        return allowed
+
+    def policy_input(self, idx: torch.Tensor, visited: torch.Tensor, now: torch.Tensor | None = None,
+                     allowed: torch.Tensor | None = None, view_scores=None) -> PolicyInput:
+        """The deciding vehicle's input (lockstep): it stands at `idx` (B,); `now` its time (with a time budget)."""
+        o, B, N = self.last, self.B, self.N
+        have = bool(self.positions)
+        return PolicyInput(
+            global_feature=o.global_feature if o is not None else None,
+            cells_in_view=o.valid.float() if o is not None else torch.zeros(B, N, device=self.device),
+            fused=self.fused.detach().float(),
+            lattice_idx=idx,
+            visited=visited,
+            step=max(int(self.views.max()) - 1, 0),
+            budget_T=int(self.max_views or self.P),
+            view_positions=torch.stack(self.positions, 1) if have else idx[:, None],
+            view_probs=torch.stack(self.probs, 1) if have else None,
+            view_valid=torch.stack(self.valids, 1) if have else torch.zeros(B, 1, N, dtype=torch.bool, device=self.device),
+            view_scores=view_scores,
+            time_left_s=self.time_left_s(now).float() if self.timed else None,
+            allowed=allowed,
+        )
+
+    def fly(self, vehicle: torch.Tensor, nxt: torch.Tensor, go: torch.Tensor, now: torch.Tensor) -> None:
+        """Vehicle `vehicle` (B,) of the episodes in `go` flies to `nxt` (B,), leaving at `now` (B,) float64 and
+        arriving a flight time later; it takes a view there."""
+        ar, idx = self._ar, self.pos[self._ar, vehicle]
+        self.pos[ar[go], vehicle[go]] = nxt[go]
+        self.clock_s[ar[go], vehicle[go]] = now[go] + self.cost_s[idx[go], nxt[go]]
+        self.capture[ar[go], vehicle[go]] = True
+
+    def stop(self, vehicle: torch.Tensor, mask: torch.Tensor) -> None:
+        """Vehicle `vehicle` (B,) of the episodes in `mask` stops: it never acts again in this episode."""
+        self.active[self._ar[mask], vehicle[mask]] = False
+
+    # -- episodes that start on their own (buffered) -----------------------------------------------
+
+    def restart(self, envs: torch.Tensor, labels: torch.Tensor) -> None:
+        """Start episodes `envs` (k,) afresh with ground truth `labels` (k, N) bool (a buffered state)."""
+        self.pos[envs] = self.start_idx
+        self.clock_s[envs] = 0.0
+        self.active[envs] = True
+        self.capture[envs] = False
+        self.capture[envs, 0] = True
+        self.views[envs] = 0
+        for buf in (self.visits, self.hist_p, self.hist_valid, self.hist_area, self.hist_scores):
+            buf[envs] = 0
+        self.labels[envs] = labels
+
+    def ended(self) -> torch.Tensor:
+        """(B,) bool, after a view (one vehicle): the views are spent, or (time budget) no unvisited viewpoint
+        is affordable; sets `allowed` to the affordable unvisited viewpoints."""
+        end = self.views >= self.max_views
+        if self.timed:
+            self.allowed = self.choices(self.visits > 0, self.pos[:, 0], self.clock_s[:, 0])
+            end = end | ~self.allowed.any(1)
+        return end
+
+
+__all__ = ["Observation", "PolicyInput", "SLACK_S", "SearchState", "ViewSource", "fusion_view"]
