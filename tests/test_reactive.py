@@ -20,7 +20,8 @@ from uavsearch.search.reactive import (LabelGreedyTeacher, ReactiveConfig, React
                                       mirror_states)
 from uavsearch.search.search_loop import (Agent, CachedViews, Observation, PolicyInput, classification_reward,
                                           run_search)
-from uavsearch.search.train.reactive import Args, DaggerMixture, add_train_reactive_parser, imitation_loss, train
+from uavsearch.search.train.dagger import DaggerMixture
+from uavsearch.search.train.reactive import Args, add_train_reactive_parser, imitation_loss, train
 
 CONFIG = SearchConfig()
 MOVES = CONFIG.lattice.moves
@@ -231,7 +232,7 @@ def test_dagger_lowers_the_imitation_loss_and_a_run_is_reproducible(tmp_path):
     mix = DaggerMixture(fresh, LabelGreedyTeacher(train_cache, rows, conf), 1.0, torch.Generator().manual_seed(0))
     with torch.no_grad():
         run_search(CachedViews(train_cache, rows, CONFIG, conf), Agent(LearnedFusion(conf), mix))
-        X, M, Y = torch.cat(mix.states), torch.cat(mix.masks), torch.cat(mix.targets)
+        X, M, Y = mix.aggregate()
         before = float(imitation_loss(fresh, X, M, Y)[0])
     save_search_model(tmp_path / "c.pt", LearnedFusion(conf), fresh)
     res = train(_tiny(tmp_path, confidence=str(tmp_path / "c.pt"), dagger_iterations=3, dagger_epochs=6,

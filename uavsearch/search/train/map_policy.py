@@ -1,7 +1,8 @@
 """The wide-area search's learned policy (map_policy.MapPolicyNet): DAgger from a label-peeking teacher, then
 REINFORCE, one net per budget of Table III (T = 8 views, or the family's seconds of flight).
 
-CleanRL-style: `Args`, then `train(args)` does everything. Perception is FROZEN (its view caches), and so is the
+CleanRL-style: `Args`, then `train(args)` does everything (the loop is train/dagger.py's, shared with the
+reactive policy). Perception is FROZEN (its view caches), and so is the
 fusion: the calibrated fusion (`--fusion calibrated:GAMMA`, fitted on the first `calibration_scenes` training
 scenes, as Table III fits it) or any fusion a name builds. Every episode is a few gathers (run_search on
 CachedViews).
@@ -45,9 +46,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 from torch.nn import functional as F
-from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.devices import resolve_device, to_device
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import display_path
 from uavsearch.viz import pyplot
@@ -58,10 +59,11 @@ from ..fusion import Fusion, make_fusion
 from ..map_policy import BUDGETS, MASKED, MapPolicyConfig, MapPolicyNet, wide_checkpoint
 from ..perception import load_perception, shipped_perception
 from ..policy import ArgmaxPolicy, save_search_model
-from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward, run_search, step_rewards
+from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward
 from ..scoring import evaluate_agent
 from ..wide_policies import argmax_allowed, candidates, choose_rule, route_views, rule_policy
-from .runs import (MetricsCsv, RunArgs, copy_checkpoint, finish_curves, fit_minibatches, imitation_panel, start_run,
+from .dagger import DaggerPolicy, ReinforceLoss, check_dagger_args, dagger_reinforce
+from .runs import (MetricsCsv, RunArgs, copy_checkpoint, finish_curves, imitation_panel, returns_to_go, start_run,
                    start_training)
 
 IMITATE = ("moves", "gains")
@@ -124,16 +126,10 @@ class TrainResult(NamedTuple):
 
 
 def check_args(args: Args) -> None:
-    if min(args.dagger_episodes, args.dagger_epochs, args.batch_size, args.scenes_per_batch, args.eval_every,
-           args.channels, args.conv_layers, args.hidden, args.val_scenes, args.calibration_scenes,
-           args.train_eval_scenes) < 1 or min(args.dagger_iterations, args.pg_iterations) < 0 or \
-            args.dagger_iterations + args.pg_iterations < 1:
-        raise UavsearchError("iterations, episodes, scenes, batch sizes, eval_every and the architecture must be "
-                             "positive")
+    check_dagger_args(args, "channels", "conv_layers", "hidden", "val_scenes", "calibration_scenes",
+                      "train_eval_scenes")
     if args.episodes_per_scene < 2:
         raise UavsearchError("--episodes-per-scene must be at least 2 (each episode's baseline is the others')")
-    if not 0.0 <= args.beta_decay <= 1.0:
-        raise UavsearchError(f"--beta-decay must lie in [0, 1], got {args.beta_decay}")
     if args.teacher not in ("labels", "rule"):
         raise UavsearchError(f"--teacher must be labels or rule, got {args.teacher!r}")
     if args.imitate not in IMITATE:
@@ -166,9 +162,11 @@ class LabelLookahead:
 
     def __init__(self, cache: ViewCache, rows, fusion: Fusion, config: SearchConfig, chunk: int = 8):
         self.cache, self.fusion, self.config, self.chunk = cache, fusion, config, chunk
-        self.rows = torch.as_tensor(np.asarray(rows), dtype=torch.long).reshape(-1)
+        dev = cache.occupancy.device
+        self.rows = torch.as_tensor(rows if isinstance(rows, torch.Tensor) else np.asarray(rows), dtype=torch.long,
+                                    device=dev).reshape(-1)
         self.labels = cache.occupancy[self.rows]
-        self.cost = config.lattice.flight_time_t.float()
+        self.cost = config.lattice.flight_time_t.float().to(dev)
         self.timed = config.budget_s is not None
         self.state, self.fused, self.seen = None, None, 0
 
@@ -190,13 +188,13 @@ class LabelLookahead:
         B, P = allowed.shape
         occ = self.labels.float()
         now = classification_reward(self.fused, self.labels).float() + 0.1 * (self.fused * occ).sum(-1)
-        out = torch.full((B, P), -np.inf)
+        out = torch.full((B, P), -np.inf, device=occ.device)
         for c0 in range(0, P, self.chunk):
             cs = [c for c in range(c0, min(c0 + self.chunk, P)) if bool(allowed[:, c].any())]
             if not cs:
                 continue
             k = len(cs)
-            pos = torch.tensor(cs).repeat(B)  # (B*k,) episode-major
+            pos = torch.tensor(cs, device=occ.device).repeat(B)  # (B*k,) episode-major
             rows = self.rows.repeat_interleave(k)
             _, fused = self.fusion.update(repeat_state(self.state, k), route_views(self.cache, rows, pos[:, None]))
             lab = self.labels.repeat_interleave(k, 0)
@@ -216,34 +214,17 @@ class LabelLookahead:
         return self.choose(self.gains(inp), inp), None, None
 
 
-class DaggerMixture:
-    """DAgger's rollout policy; records every (state, mask, teacher target) it passes: the teacher's move, or
-    (`gains`) its gain of every viewpoint (-inf where none may be taken), and then the net rolls out its argmax."""
+def rollout_worth_learning(inp: PolicyInput, mask: torch.Tensor, a_teacher: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: the decisions DAgger keeps. An episode with nothing left to take has ended, and a teacher's move
+    the net may not make (the rule flies its survey by step, also over a viewpoint the net visited): nothing to
+    learn there."""
+    return candidates(inp).any(1) & mask.gather(1, a_teacher[:, None])[:, 0]
 
-    def __init__(self, net: MapPolicyNet, teacher, beta: float, generator, gains: bool = False):
-        self.net, self.teacher, self.beta, self.gen, self.fit_gains = net, teacher, beta, generator, gains
-        self.planes, self.vps, self.masks, self.targets = [], [], [], []
 
-    @torch.no_grad()
-    def act(self, inp, generator=None):
-        planes, vp = self.net.state(inp)
-        mask = self.net.mask(inp)
-        logits = self.net(planes, vp, mask)
-        if self.fit_gains:
-            gains = self.teacher.gains(inp)
-            a_teacher, a_net = self.teacher.choose(gains, inp), logits.argmax(-1)
-        else:
-            a_teacher = self.teacher.act(inp)[0]
-            a_net = torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen).squeeze(-1)
-        use_teacher = torch.rand(len(a_net), generator=self.gen) < self.beta
-        # an episode with nothing left to take has ended, and a teacher's move the net may not make (the rule
-        # flies its survey by step, also over a viewpoint the net visited): nothing to learn there
-        live = candidates(inp).any(1) & mask.gather(1, a_teacher[:, None])[:, 0]
-        self.planes.append(planes[live].half())
-        self.vps.append(vp[live])
-        self.masks.append(mask[live])
-        self.targets.append(gains[live] if self.fit_gains else a_teacher[live])
-        return torch.where(use_teacher, a_teacher, a_net), None, None
+def half_planes(state: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The aggregate keeps the map planes in float16 (the viewpoint features as they are)."""
+    planes, vp = state
+    return planes.half(), vp
 
 
 def imitation_loss(net: MapPolicyNet, planes, vps, masks, targets, gain_scale: float | None = None
@@ -266,12 +247,6 @@ def imitation_loss(net: MapPolicyNet, planes, vps, masks, targets, gain_scale: f
     loss = F.mse_loss(centred(logits)[ok], centred(targets / gain_scale)[ok])
     agree = logits.masked_fill(~ok, MASKED).argmax(-1) == targets.argmax(-1)
     return loss, agree.float().mean()
-
-
-def returns_to_go(ep) -> torch.Tensor:
-    """(B, T-1) each move's return to go: the change of N_tp - N_fp of the fused map from view t to the end."""
-    r = step_rewards(ep.maps.detach(), ep.labels, ep.revisit, r_re=0.0, shaped=True)[:, 1:]
-    return r.flip(1).cumsum(1).flip(1)
 
 
 def leave_one_out(G: torch.Tensor, per_scene: int) -> torch.Tensor:
@@ -324,8 +299,9 @@ def train(args: Args, caches=None) -> TrainResult:
     """Train the map policy; `caches` = (train, val) ViewCaches skips loading perception (tests)."""
     check_args(args)
     t_start = time.perf_counter()
-    gen = start_training(args.threads, args.seed)
-    train_cache, val_cache = caches if caches is not None else _caches(args)
+    device = resolve_device(args.device)
+    gen = start_training(args.threads, args.seed, device)
+    train_cache, val_cache = (to_device(c, device) for c in (caches if caches is not None else _caches(args)))
     if train_cache.config.move_set != "any":
         raise UavsearchError(f"the map policy is the wide family's: {args.family!r} is not a wide family")
     config = budget_config(train_cache.config, args.budget)
@@ -334,7 +310,7 @@ def train(args: Args, caches=None) -> TrainResult:
     name = args.name or f"map_{args.family}_{args.budget}"
     run_dir = start_run(args, name, args.seed)
     net = MapPolicyNet(MapPolicyConfig(config_to_dict(config), channels=args.channels, conv_layers=args.conv_layers,
-                                       hidden=args.hidden))
+                                       hidden=args.hidden)).to(device)
     train_eval = train_cache.subset(np.arange(min(args.train_eval_scenes, S)))
     variant, _ = choose_rule(val_cache, config, fusion)
     rule = Agent(fusion, rule_policy(config, variant))
@@ -342,18 +318,15 @@ def train(args: Args, caches=None) -> TrainResult:
     teacher_val = scene_f1(val_cache, config, Agent(fusion, LabelLookahead(val_cache, torch.arange(val_cache.num_scenes),
                                                                            fusion, config)))
 
-    opt_il = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
-    opt_pg = torch.optim.Adam(net.parameters(), lr=args.lr_pg, weight_decay=args.weight_decay)
-    agg: list[list[torch.Tensor]] = [[], [], [], []]  # planes, viewpoint features, masks, targets
     gain_scale = None  # --imitate gains: the spread of the first aggregate's gains
     best, best_key = {}, -float("inf")
     ckpt = run_dir / "model.pt"
     metrics = MetricsCsv(run_dir / "metrics.csv")
-    rows, log = metrics.rows, metrics.log
+    rows = metrics.rows
     meta = {"args": asdict(args), "fusion": getattr(fusion, "spec", fusion.name), "rule": variant,
             "perception_tag": train_cache.perception_tag, "search_config": config_to_dict(config)}
 
-    def validate(row: dict, it: int) -> None:
+    def validate(row: dict, it: int) -> dict:
         nonlocal best, best_key
         net.eval()
         agent = Agent(fusion, ArgmaxPolicy(net))
@@ -366,6 +339,7 @@ def train(args: Args, caches=None) -> TrainResult:
             best = {"iteration": it, "phase": row["phase"], "val_af1": row["eval/val_af1"],
                     "val_vs_rule": row["eval/val_vs_rule"], "train_vs_rule": row["eval/train_vs_rule"]}
             save_search_model(ckpt, fusion, net, {**meta, "best": best})
+        return {"val_vs_rule": f"{row['eval/val_vs_rule']:+.3f}", "best": f"{best_key:+.3f}"}
 
     def blank(it: int, phase: str) -> dict:
         return {"iteration": it, "phase": phase, "seconds": round(time.perf_counter() - t_start, 1),
@@ -374,72 +348,33 @@ def train(args: Args, caches=None) -> TrainResult:
                 "charts/entropy_coef": None, "charts/steps_per_s": None, "eval/val_af1": None,
                 "eval/val_vs_rule": None, "eval/train_af1": None, "eval/train_vs_rule": None}
 
-    bar = tqdm(total=args.dagger_iterations + args.pg_iterations, desc=name, disable=not args.progress, unit="it")
-    it = 0
-    for i in range(args.dagger_iterations):  # 1. DAgger
-        it += 1
-        beta = args.beta_decay ** i
-        rows_b = torch.randint(S, (args.dagger_episodes,), generator=gen)
-        teacher = LabelLookahead(train_cache, rows_b, fusion, config) if args.teacher == "labels" else rule.policy
-        mix = DaggerMixture(net, teacher, beta, gen, gains=args.imitate == "gains")
-        t0 = time.perf_counter()
-        with torch.no_grad():
-            run_search(CachedViews(train_cache, rows_b, config), Agent(fusion, mix), generator=gen)
-        steps_s = sum(len(t) for t in mix.targets) / (time.perf_counter() - t0)
-        for store, new in zip(agg, (mix.planes, mix.vps, mix.masks, mix.targets)):
-            store.append(torch.cat(new))
-        X, V, M, Y = (torch.cat(a) for a in agg)
+    def on_aggregate(data) -> None:
+        nonlocal gain_scale
+        Y = data[-1]
         if args.imitate == "gains" and gain_scale is None:
             gain_scale = float(Y[torch.isfinite(Y)].std()) or 1.0  # the scores' unit: the gains' spread
             meta["gain_scale"] = gain_scale
-        loss, agree = fit_minibatches(opt_il, len(Y), args.dagger_epochs, args.batch_size, gen,
-                                      lambda b: imitation_loss(net, X[b], V[b], M[b], Y[b], gain_scale))
-        row = blank(it, "dagger")
-        row.update({"losses/imitation": loss, "charts/teacher_agreement": agree, "charts/beta": beta,
-                    "charts/aggregate": len(Y), "charts/steps_per_s": steps_s})
-        validate(row, it)
-        log(row)
-        bar.update()
-        bar.set_postfix(il_loss=f"{row['losses/imitation']:.3f}")
 
-    have_agg = bool(agg[0])
-    if have_agg:
-        X, V, M, Y = (torch.cat(a) for a in agg)
     E = args.episodes_per_scene
-    for k in range(args.pg_iterations):  # 2. REINFORCE, leave-one-out baseline per scene
-        it += 1
-        coef = args.entropy_start + (args.entropy_end - args.entropy_start) * k / max(args.pg_iterations - 1, 1)
-        rows_b = torch.randint(S, (args.scenes_per_batch,), generator=gen).repeat_interleave(E)
-        t0 = time.perf_counter()
-        ep = run_search(CachedViews(train_cache, rows_b, config), Agent(fusion, net), generator=gen)
-        G = returns_to_go(ep)
+
+    def reinforce_loss(ep, rows_b) -> ReinforceLoss:
+        """Leave-one-out baseline per scene; moves after a timed episode ended count for nothing."""
+        G = returns_to_go(ep.maps.detach(), ep.labels, ep.revisit, r_re=0.0, shaped=True)
         live = (ep.taken[:, 1:] if ep.taken is not None else torch.ones_like(G, dtype=torch.bool)).float()
         adv = leave_one_out(G, E)
         adv = (adv - (adv * live).sum() / live.sum()) / (adv[live.bool()].std() + 1e-8)
         n = live.sum().clamp(min=1.0)
-        loss_pg = -(ep.log_prob * adv * live).sum() / n
-        entropy = (ep.entropy * live).sum() / n
-        loss = loss_pg - coef * entropy
-        loss_il = agreement = None
-        if have_agg and args.imitation_coef > 0:
-            b = torch.randint(len(Y), (args.batch_size,), generator=gen)
-            loss_il, agreement = imitation_loss(net, X[b], V[b], M[b], Y[b], gain_scale)
-            loss = loss + args.imitation_coef * loss_il
-        opt_pg.zero_grad()
-        loss.backward()
-        opt_pg.step()
-        row = blank(it, "pg")
-        row.update({"losses/policy": float(loss_pg.detach()), "charts/return": float(G[:, 0].mean()),
-                    "charts/entropy": float(entropy.detach()), "charts/entropy_coef": coef,
-                    "charts/steps_per_s": float(live.sum()) / (time.perf_counter() - t0)})
-        if loss_il is not None:
-            row["losses/imitation"], row["charts/teacher_agreement"] = float(loss_il.detach()), float(agreement)
-        if (k + 1) % args.eval_every == 0 or k == args.pg_iterations - 1:
-            validate(row, it)
-            bar.set_postfix(val_vs_rule=f"{row['eval/val_vs_rule']:+.3f}", best=f"{best_key:+.3f}")
-        log(row)
-        bar.update()
-    bar.close()
+        return ReinforceLoss(-(ep.log_prob * adv * live).sum() / n, (ep.entropy * live).sum() / n,
+                             {"charts/return": float(G[:, 0].mean())}, float(live.sum()))
+
+    def teacher(rows_b):
+        return LabelLookahead(train_cache, rows_b, fusion, config) if args.teacher == "labels" else rule.policy
+
+    dagger_reinforce(DaggerPolicy(
+        net, fusion, views=lambda rows_b: CachedViews(train_cache, rows_b, config), teacher=teacher,
+        imitation_loss=lambda batch, g: imitation_loss(net, *batch, gain_scale), reinforce_loss=reinforce_loss,
+        validate=validate, blank=blank, gains=args.imitate == "gains", keep=rollout_worth_learning,
+        pack=half_planes, on_aggregate=on_aggregate), args, S, gen, metrics.log, name)
     metrics.close()
     if args.plot:
         _plot(rows, run_dir / "learning_curve.png", f"{name}, seed {args.seed}")

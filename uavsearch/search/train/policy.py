@@ -39,6 +39,7 @@ import torch
 from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.devices import resolve_device, to_device
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot
@@ -49,8 +50,8 @@ from ..fusion import BY_NAME, Fusion
 from ..metrics import map_f1
 from ..policy import save_search_model
 from ..scoring import evaluate_agent
-from ..search_loop import R_FP, R_RE, R_TP, Agent, CachedViews, classification_reward, run_search, step_rewards
-from .runs import RunArgs, copy_checkpoint, load_caches, start_run, start_training
+from ..search_loop import R_FP, R_RE, R_TP, Agent, CachedViews, classification_reward, run_search
+from .runs import RunArgs, copy_checkpoint, load_caches, returns_to_go, start_run, start_training
 
 
 @dataclass
@@ -109,8 +110,7 @@ def returns(ep, args: Args) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, T-1) return from each move (Eq. 13-15, undiscounted) and the (B,) classification reward."""
     maps = ep.maps.detach()
     r_cls = classification_reward(maps[:, -1], ep.labels, args.r_tp, args.r_fp).float()
-    r = step_rewards(maps, ep.labels, ep.revisit, args.r_tp, args.r_fp, args.r_re)[:, 1:]  # move t lands on view t+1
-    return r.flip(1).cumsum(1).flip(1), r_cls
+    return returns_to_go(maps, ep.labels, ep.revisit, r_tp=args.r_tp, r_fp=args.r_fp, r_re=args.r_re), r_cls
 
 
 def confidence_loss(fusion: Fusion, cache, rows, lattice_idx, pos_weight: float) -> torch.Tensor:
@@ -154,22 +154,25 @@ def train(args: Args, caches=None) -> TrainResult:
     to skip loading perception (tests)."""
     check_args(args)
     t_start = time.perf_counter()
-    gen = start_training(args.threads, args.seed)
+    device = resolve_device(args.device)
+    gen = start_training(args.threads, args.seed, device)
     name = args.name or f"policy_s{args.setting}_{args.fusion}"
     run_dir = start_run(args, name, args.seed)
 
-    train_cache, val_cache = caches if caches is not None else load_caches(args)
+    train_cache, val_cache = (to_device(c, device) for c in (caches if caches is not None else load_caches(args)))
     config = train_cache.config
     agent = new_agent(args.fusion, config, int(train_cache.global_feature.shape[-1]),
                       int(train_cache.cell_features.shape[-1]), args.state_extras)  # evaluation
-    policy, fusion = agent.policy, agent.fusion
+    policy, fusion = agent.policy.to(device), agent.fusion
+    if isinstance(fusion, torch.nn.Module):
+        fusion.to(device)
     groups = [{"params": policy.parameters(), "lr": args.lr_policy}]
     if fusion.trainable:
         groups.append({"params": fusion.parameters(), "lr": args.lr_confidence})
     opt = torch.optim.Adam(groups, weight_decay=args.weight_decay)
     rollout_agent = Agent(fusion.frozen(), policy)
     T, S = config.budget_T, train_cache.num_scenes
-    ema = torch.zeros(T - 1)
+    ema = torch.zeros(T - 1, device=device)
     rows: list[dict] = []
     best, best_key = {}, (-1.0, -1.0)
     ckpt = run_dir / "model.pt"
@@ -182,7 +185,7 @@ def train(args: Args, caches=None) -> TrainResult:
         if fusion.trainable:
             fusion.train()
         t0, c0 = time.perf_counter(), time.process_time()
-        scenes = torch.randint(S, (args.scenes_per_batch,), generator=gen)
+        scenes = torch.randint(S, (args.scenes_per_batch,), generator=gen, device=device)
         rows_b = scenes.repeat_interleave(args.episodes_per_scene)
         ep = run_search(CachedViews(train_cache, rows_b, config, rollout_agent.fusion.scorer), rollout_agent,
                         generator=gen)
@@ -200,7 +203,7 @@ def train(args: Args, caches=None) -> TrainResult:
         loss_pg = -(ep.log_prob * adv).mean()
         loss_ent = -ep.entropy.mean()
         loss = loss_pg + args.entropy_coef * loss_ent
-        loss_conf = torch.zeros(())
+        loss_conf = torch.zeros((), device=device)
         if fusion.trainable:
             n = min(args.conf_episodes, len(rows_b))
             loss_conf = confidence_loss(fusion, train_cache, rows_b[:n], ep.lattice_idx[:n], args.conf_pos_weight)
@@ -211,7 +214,7 @@ def train(args: Args, caches=None) -> TrainResult:
         roll_s += time.perf_counter() - t0
         roll_cpu += time.process_time() - c0
         steps += ep.actions.numel()
-        f1 = map_f1(final.detach().numpy(), y.numpy())
+        f1 = map_f1(final.detach().cpu().numpy(), y.cpu().numpy())
         row = {"iteration": it, "losses/policy": float(loss_pg.detach()), "losses/entropy": float(-loss_ent.detach()),
                "losses/confidence": float(loss_conf.detach()), "charts/return": float(R[:, 0].mean()),
                "charts/r_cls": float(r_cls.mean()), "charts/train_af1": float(f1.mean()),

@@ -1,8 +1,9 @@
 """The reactive view-selection policy (reactive.ReactivePolicyNet): DAgger from a label-peeking teacher, then REINFORCE.
 
-CleanRL-style: `Args`, then `train(args)` does everything. Perception and the confidence net are FROZEN: the
-confidence net is the paper method's (learned fusion's, from `--confidence`), its scores of every (scene,
-position) are computed once, and every episode is a few gathers (search_loop.run_search on CachedViews).
+CleanRL-style: `Args`, then `train(args)` does everything (the loop is train/dagger.py's, shared with the map
+policy). Perception and the confidence net are FROZEN: the confidence net is the paper method's (learned fusion's,
+from `--confidence`), its scores of every (scene, position) are computed once, and every episode is a few gathers
+(search_loop.run_search on CachedViews).
 
 1. DAgger (`dagger_iterations`): roll out a mixture, per episode and step the teacher
    (reactive.LabelGreedyTeacher, one-step lookahead on the labels) with probability beta (1, then times
@@ -35,9 +36,9 @@ from typing import NamedTuple
 
 import torch
 from torch.nn import functional as F
-from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.devices import resolve_device, to_device
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot
@@ -48,8 +49,9 @@ from ..fusion import LearnedFusion
 from ..policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search_model
 from ..reactive import LabelGreedyTeacher, ReactiveConfig, ReactivePolicyNet, mirror_states, score_table
 from ..scoring import evaluate_agent
-from ..search_loop import R_RE, Agent, CachedViews, classification_reward, run_search, step_rewards
-from .runs import (MetricsCsv, RunArgs, copy_checkpoint, finish_curves, fit_minibatches, imitation_panel, load_caches,
+from ..search_loop import R_RE, Agent, CachedViews, classification_reward, run_search
+from .dagger import DaggerPolicy, ReinforceLoss, check_dagger_args, dagger_reinforce
+from .runs import (MetricsCsv, RunArgs, copy_checkpoint, finish_curves, imitation_panel, load_caches, returns_to_go,
                    start_run, start_training)
 
 FUSION = "learned"
@@ -100,12 +102,7 @@ class TrainResult(NamedTuple):
 
 
 def check_args(args: Args) -> None:
-    if min(args.dagger_episodes, args.dagger_epochs, args.batch_size, args.scenes_per_batch, args.episodes_per_scene,
-           args.eval_every, args.channels, args.conv_layers, args.hidden) < 1 or \
-            min(args.dagger_iterations, args.pg_iterations) < 0 or args.dagger_iterations + args.pg_iterations < 1:
-        raise UavsearchError("iterations, episodes, batch sizes, eval_every and the architecture must be positive")
-    if not 0.0 <= args.beta_decay <= 1.0:
-        raise UavsearchError(f"--beta-decay must lie in [0, 1], got {args.beta_decay}")
+    check_dagger_args(args, "episodes_per_scene", "channels", "conv_layers", "hidden")
 
 
 class ScoreLookup(torch.nn.Module):
@@ -120,31 +117,12 @@ def scored(cache, scores):
     return cache._replace(cell_features=scores[..., None])
 
 
-class DaggerMixture:
-    """DAgger's rollout policy; records every (state, mask, teacher move) it passes."""
-
-    def __init__(self, net: ReactivePolicyNet, teacher: LabelGreedyTeacher, beta: float, generator):
-        self.net, self.teacher, self.beta, self.gen = net, teacher, beta, generator
-        self.states, self.masks, self.targets = [], [], []
-
-    @torch.no_grad()
-    def act(self, inp, generator=None):
-        state, mask = self.net.state(inp), self.net.mask(inp)
-        a_teacher = self.teacher.act(inp)[0]
-        a_net = torch.multinomial(torch.softmax(self.net(state, mask), -1), 1, generator=self.gen).squeeze(-1)
-        use_teacher = torch.rand(len(a_net), generator=self.gen) < self.beta
-        self.states.append(state)
-        self.masks.append(mask)
-        self.targets.append(a_teacher)
-        return torch.where(use_teacher, a_teacher, a_net), None, None
-
-
 def imitation_loss(net, states, masks, targets, mirror: torch.Generator | None = None,
                    config: SearchConfig | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Cross-entropy of the net's masked logits against the teacher's moves, and the agreement (argmax);
     with `mirror` (a generator) the batch is first mirrored east-west and / or north-south at random."""
     if mirror is not None:
-        ew, ns = (torch.rand(2, generator=mirror) < 0.5).tolist()
+        ew, ns = (torch.rand(2, generator=mirror, device=mirror.device) < 0.5).tolist()
         states, masks, targets = mirror_states(states, masks, targets, config or net.cfg.search_config(), ew, ns)
     logits = net(states, masks)
     return F.cross_entropy(logits, targets), (logits.argmax(-1) == targets).float().mean()
@@ -153,8 +131,7 @@ def imitation_loss(net, states, masks, targets, mirror: torch.Generator | None =
 def step_returns(maps, labels, revisit, r_re: float) -> torch.Tensor:
     """(B, T-1) return to go of each move: the change of N_tp - N_fp from the map after view t to the last
     map, plus r_re per revisit still to come (the shaped step_rewards of the views after view 0)."""
-    r = step_rewards(maps, labels, revisit, r_re=r_re, shaped=True)[:, 1:]
-    return r.flip(1).cumsum(1).flip(1)
+    return returns_to_go(maps, labels, revisit, r_re=r_re, shaped=True)
 
 
 def _validate(val, agent: Agent, config) -> dict:
@@ -183,16 +160,17 @@ def train(args: Args, caches=None) -> TrainResult:
     """Train the reactive policy; `caches` = (train, val) ViewCaches to skip loading perception (tests)."""
     check_args(args)
     t_start = time.perf_counter()
-    gen = start_training(args.threads, args.seed)
+    device = resolve_device(args.device)
+    gen = start_training(args.threads, args.seed, device)
     conf_path = Path(args.confidence) if args.confidence else checkpoint_path(args.setting, FUSION)
-    fusion, _, conf_extra = load_search_model(conf_path)
+    fusion, _, conf_extra = load_search_model(conf_path, device)
     if not fusion.trainable:
         raise UavsearchError(f"{conf_path} holds no confidence network ({fusion.name} fusion); give a learned-fusion "
                              "checkpoint with --confidence")
     name = args.name or f"reactive_s{args.setting}"
     run_dir = start_run(args, name, args.seed)
 
-    train_cache, val_cache = caches if caches is not None else load_caches(args)
+    train_cache, val_cache = (to_device(c, device) for c in (caches if caches is not None else load_caches(args)))
     tag = conf_extra.get("perception_tag") if isinstance(conf_extra, dict) else None
     if tag and tag != train_cache.perception_tag:
         print(f"uavsearch: warning: {conf_path}'s confidence net was trained on perception {tag}, the view cache "
@@ -206,7 +184,7 @@ def train(args: Args, caches=None) -> TrainResult:
     net = ReactivePolicyNet(ReactiveConfig(grid_size=config.grid.n, num_positions=config.lattice.num_positions,
                                            num_actions=len(config.actions), budget_T=T, step_m=config.step_m,
                                            channels=args.channels, conv_layers=args.conv_layers, hidden=args.hidden,
-                                           search=config_to_dict(config)))
+                                           search=config_to_dict(config))).to(device)
 
     with torch.no_grad():  # the coverage route: return to go per (train scene, step), and the validation bar
         cov = run_search(CachedViews(train_s, torch.arange(S), config, lookup), Agent(on_scores, CoverageRoute(config)))
@@ -215,17 +193,15 @@ def train(args: Args, caches=None) -> TrainResult:
     teacher_val = _validate(val_s, Agent(on_scores, LabelGreedyTeacher(val_s, torch.arange(val_s.num_scenes), lookup,
                                                                      config)), config)
 
-    opt_il = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
-    opt_pg = torch.optim.Adam(net.parameters(), lr=args.lr_pg, weight_decay=args.weight_decay)
-    agg_states, agg_masks, agg_targets = [], [], []
     best, best_key = {}, (-float("inf"), -float("inf"))
     ckpt = run_dir / "model.pt"
     metrics = MetricsCsv(run_dir / "metrics.csv")
-    rows, log = metrics.rows, metrics.log
+    rows = metrics.rows
     meta = {"args": asdict(args), "confidence": str(conf_path), "perception_tag": train_cache.perception_tag,
             "search_config": config_to_dict(config)}
+    mirror = gen if args.mirror else None
 
-    def validate(row: dict, it: int) -> None:
+    def validate(row: dict, it: int) -> dict:
         nonlocal best, best_key
         v = _validate(val_s, Agent(on_scores, ArgmaxPolicy(net)), config)
         row["eval/af1"], row["eval/aacc"], row["eval/af1_vs_coverage"] = v["af1"], v["aacc"], v["af1"] - cov_val["af1"]
@@ -235,6 +211,7 @@ def train(args: Args, caches=None) -> TrainResult:
             best = {"iteration": it, "phase": row["phase"], "val_af1": v["af1"], "val_aacc": v["aacc"],
                     "val_revisit": v["revisit"], "val_af1_vs_coverage": row["eval/af1_vs_coverage"]}
             save_search_model(ckpt, fusion, net, {**meta, "best": best})
+        return {"vs_coverage": f"{row['eval/af1_vs_coverage']:+.3f}", "best": f"{best_key[0]:+.3f}"}
 
     def blank(it: int, phase: str) -> dict:
         return {"iteration": it, "phase": phase, "losses/imitation": None, "losses/policy": None,
@@ -243,68 +220,22 @@ def train(args: Args, caches=None) -> TrainResult:
                 "charts/revisit_rate": None, "charts/entropy": None, "charts/entropy_coef": None,
                 "eval/af1": None, "eval/aacc": None, "eval/af1_vs_coverage": None}
 
-    bar = tqdm(total=args.dagger_iterations + args.pg_iterations, desc=name, disable=not args.progress, unit="it")
-    it = 0
-    for i in range(args.dagger_iterations):  # 1. DAgger
-        it += 1
-        beta = args.beta_decay ** i
-        rows_b = torch.randint(S, (args.dagger_episodes,), generator=gen)
-        mix = DaggerMixture(net, LabelGreedyTeacher(train_s, rows_b, lookup, config, scores=train_scores), beta, gen)
-        with torch.no_grad():
-            run_search(CachedViews(train_s, rows_b, config, lookup), Agent(on_scores, mix), generator=gen)
-        agg_states.append(torch.cat(mix.states))
-        agg_masks.append(torch.cat(mix.masks))
-        agg_targets.append(torch.cat(mix.targets))
-        X, M, Y = torch.cat(agg_states), torch.cat(agg_masks), torch.cat(agg_targets)
-        loss, agree = fit_minibatches(opt_il, len(Y), args.dagger_epochs, args.batch_size, gen, lambda b: imitation_loss(
-            net, X[b], M[b], Y[b], gen if args.mirror else None, config))
-        row = blank(it, "dagger")
-        row.update({"losses/imitation": loss, "charts/teacher_agreement": agree, "charts/beta": beta,
-                    "charts/aggregate": len(Y)})
-        if i == args.dagger_iterations - 1 or args.pg_iterations == 0:
-            validate(row, it)
-        log(row)
-        bar.update()
-        bar.set_postfix(il_loss=f"{row['losses/imitation']:.3f}")
-
-    X = torch.cat(agg_states) if agg_states else None
-    if X is not None:
-        M, Y = torch.cat(agg_masks), torch.cat(agg_targets)
-    for k in range(args.pg_iterations):  # 2. REINFORCE against the coverage route
-        it += 1
-        coef = args.entropy_start + (args.entropy_end - args.entropy_start) * k / max(args.pg_iterations - 1, 1)
-        scenes = torch.randint(S, (args.scenes_per_batch,), generator=gen)
-        rows_b = scenes.repeat_interleave(args.episodes_per_scene)
-        ep = run_search(CachedViews(train_s, rows_b, config, lookup), Agent(on_scores, net), generator=gen)
+    def reinforce_loss(ep, rows_b) -> ReinforceLoss:
+        """Each move's return to go against the coverage route's from the same scene and step."""
         G = step_returns(ep.maps.detach(), ep.labels, ep.revisit, args.r_re)
         adv = G - cov_returns[rows_b]
         adv_n = (adv - adv.mean()) / (adv.std() + 1e-8)
-        loss_pg = -(ep.log_prob * adv_n).mean()
-        entropy = ep.entropy.mean()
-        loss = loss_pg - coef * entropy
-        loss_il = agreement = None
-        if X is not None and args.imitation_coef > 0:
-            b = torch.randint(len(Y), (args.batch_size,), generator=gen)
-            loss_il, agreement = imitation_loss(net, X[b], M[b], Y[b], gen if args.mirror else None, config)
-            loss = loss + args.imitation_coef * loss_il
-        opt_pg.zero_grad()
-        loss.backward()
-        opt_pg.step()
-        row = blank(it, "pg")
-        row.update({"losses/policy": float(loss_pg.detach()), "charts/return": float(G[:, 0].mean()),
-                    "charts/advantage_vs_coverage": float(adv[:, 0].mean()),
-                    "charts/train_cls_reward": float(classification_reward(ep.maps[:, -1].detach(), ep.labels).float()
+        charts = {"charts/return": float(G[:, 0].mean()), "charts/advantage_vs_coverage": float(adv[:, 0].mean()),
+                  "charts/train_cls_reward": float(classification_reward(ep.maps[:, -1].detach(), ep.labels).float()
                                                     .mean()),
-                    "charts/revisit_rate": float(ep.revisit[:, 1:].float().mean()),
-                    "charts/entropy": float(entropy.detach()), "charts/entropy_coef": coef})
-        if loss_il is not None:
-            row["losses/imitation"], row["charts/teacher_agreement"] = float(loss_il.detach()), float(agreement)
-        if (k + 1) % args.eval_every == 0 or k == args.pg_iterations - 1:
-            validate(row, it)
-            bar.set_postfix(vs_coverage=f"{row['eval/af1_vs_coverage']:+.3f}", best=f"{best_key[0]:+.3f}")
-        log(row)
-        bar.update()
-    bar.close()
+                  "charts/revisit_rate": float(ep.revisit[:, 1:].float().mean())}
+        return ReinforceLoss(-(ep.log_prob * adv_n).mean(), ep.entropy.mean(), charts, float(G.numel()))
+
+    dagger_reinforce(DaggerPolicy(
+        net, on_scores, views=lambda rows_b: CachedViews(train_s, rows_b, config, lookup),
+        teacher=lambda rows_b: LabelGreedyTeacher(train_s, rows_b, lookup, config, scores=train_scores),
+        imitation_loss=lambda batch, g: imitation_loss(net, *batch, mirror, config), reinforce_loss=reinforce_loss,
+        validate=validate, blank=blank, validate_each_dagger=False), args, S, gen, metrics.log, name)
     metrics.close()
     if args.plot:
         _plot(rows, run_dir / "learning_curve.png", f"{name}, seed {args.seed}")

@@ -15,12 +15,14 @@ import numpy as np
 import torch
 
 from uavsearch.cli_args import opt
+from uavsearch.devices import make_generator, to_device
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import RUNS_DIR
 
 from ..data.view_cache import get_view_cache
 from ..perception import load_perception
+from ..search_loop import step_rewards
 
 
 @dataclass
@@ -72,7 +74,7 @@ def fit_minibatches(optimizer, n: int, epochs: int, batch_size: int, generator, 
     Returns the mean loss and agreement of the last 10 minibatches (what a DAgger iteration logs)."""
     losses, agree = [], []
     for _ in range(epochs):
-        perm = torch.randperm(n, generator=generator)
+        perm = torch.randperm(n, generator=generator, device=generator.device)
         for j in range(0, n, batch_size):
             loss, acc = loss_of(perm[j:j + batch_size])
             optimizer.zero_grad()
@@ -83,11 +85,19 @@ def fit_minibatches(optimizer, n: int, epochs: int, batch_size: int, generator, 
     return float(np.mean(losses[-10:])), float(np.mean(agree[-10:]))
 
 
-def start_training(threads: int, seed: int) -> torch.Generator:
-    """Torch's CPU threads, every seed (seed_everything), and the generator a run draws its episodes from."""
+def returns_to_go(maps, labels, revisit, **reward) -> torch.Tensor:
+    """(B, T-1) each move's return to go: the rewards (search_loop.step_rewards with `reward`'s weights) of the
+    views from the one it lands on (move t lands on view t+1) to the last, undiscounted."""
+    r = step_rewards(maps, labels, revisit, **reward)[:, 1:]
+    return r.flip(1).cumsum(1).flip(1)
+
+
+def start_training(threads: int, seed: int, device="cpu") -> torch.Generator:
+    """Torch's CPU threads, every seed (seed_everything), and the generator a run draws its episodes from, on the
+    run's device (devices.make_generator)."""
     torch.set_num_threads(int(threads))
     seed_everything(seed)
-    return torch.Generator().manual_seed(seed)
+    return make_generator(seed, device)
 
 
 def imitation_panel(ax, rows: list[dict]) -> None:
@@ -111,12 +121,12 @@ def finish_curves(fig, axes, title: str, path: Path, xlabel: str = "iteration (D
     save_figure(fig, path)
 
 
-def load_caches(args):
-    """The (train, val) view caches of args.setting / args.split under the frozen args.perception."""
+def load_caches(args, device="cpu"):
+    """The (train, val) view caches of args.setting / args.split under the frozen args.perception, on `device`."""
 
     net, _ = load_perception(args.perception)
     kw = dict(cache_dir=args.cache_dir, progress=args.progress, executor=Executor.from_args(args))
-    return get_view_cache(net, args.setting, args.split, "train", **kw), get_view_cache(net, args.setting, args.split, "val", **kw)
+    return tuple(to_device(get_view_cache(net, args.setting, args.split, part, **kw), device) for part in ("train", "val"))
 
 
 def copy_checkpoint(ckpt: Path, out, ship: bool, shipped: Path) -> Path | None:
@@ -140,4 +150,5 @@ def seed_everything(seed: int) -> np.random.Generator:
     return np.random.default_rng(seed)
 
 
-__all__ = ["MetricsCsv", "RunArgs", "finish_curves", "fit_minibatches", "imitation_panel", "start_training", "copy_checkpoint", "load_caches", "seed_everything", "start_run"]
+__all__ = ["MetricsCsv", "RunArgs", "finish_curves", "fit_minibatches", "imitation_panel", "start_training", "copy_checkpoint", "load_caches", "returns_to_go", "seed_everything",
+           "start_run"]
