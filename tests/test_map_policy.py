@@ -218,7 +218,8 @@ def test_fusion_probe_planes_hold_each_cells_views_per_altitude():
     """tools/wide_fusion_probe.py's per-cell planes, checked against the views of a route flown on a synthetic
     wide cache: the fused log-odds, and per altitude layer the count and the highest, mean and lowest calibrated
     log-odds of the cell's views; its symmetries of the square are the eight distinct ones."""
-    from uavsearch.research.wide_fusion_probe import cell_planes, dihedral
+    from uavsearch.research.wide_fusion_probe import cell_planes
+    from uavsearch.search.symmetry import square_symmetry as dihedral
     from uavsearch.search.fusion import calibrated_logit
     from uavsearch.search.wide_policies import RoutePolicy
 

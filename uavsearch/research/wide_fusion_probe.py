@@ -39,6 +39,7 @@ from ..search.fusion import calibrated_logit
 from ..search.map_policy import wide_checkpoint
 from ..search.metrics import map_f1
 from ..search.search_loop import Agent, CachedViews, run_search
+from ..search.symmetry import square_symmetry
 from ..search.wide_policies import lowest_layer
 from .wide_policy_probes import FUSION, NoisyRule, fit_adam, probe_parser, probe_setting, write_markdown
 
@@ -118,13 +119,6 @@ class CorrectionNet(nn.Module):
         return self.net(x)[:, 0] + x[:, 0]
 
 
-def dihedral(x: torch.Tensor, k: int) -> torch.Tensor:
-    """One of the square's 8 symmetries of (..., rows, cols) maps: a rotation by k % 4 quarter turns, mirrored
-    when k >= 4. The lattice and the grid share them, so a rotated map is another plausible search."""
-    x = torch.rot90(x, k % 4, dims=(-2, -1))
-    return torch.flip(x, dims=(-1,)) if k >= 4 else x
-
-
 def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) -> CorrectionNet:
     """Cross-entropy fit, each batch under a random symmetry of the square (the maps of 100 scenes are few
     enough for a net that sees a neighbourhood to learn where each scene's clutter lies)."""
@@ -133,7 +127,7 @@ def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) 
 
     def loss(b, gen):
         k = int(torch.randint(8, (), generator=gen)) if symmetries else 0
-        return nn.functional.binary_cross_entropy_with_logits(net(dihedral(X[b], k)), dihedral(Y[b], k))
+        return nn.functional.binary_cross_entropy_with_logits(net(square_symmetry(X[b], k)), square_symmetry(Y[b], k))
 
     return fit_adam(net, len(X), loss, seed, epochs, lr=3e-3, weight_decay=1e-4)
 

@@ -30,6 +30,7 @@ from uavsearch.errors import UavsearchError
 from .config import SearchConfig, config_from_dict
 from .fusion import fuse
 from .search_loop import PolicyInput, classification_reward, sample_actions
+from .symmetry import index_permutation, mirror_symmetry, square_symmetry
 
 MASKED = -1e9  # logit of a forbidden move: finite, so log p and the entropy stay finite
 PLANES = ("fused", "uncertainty", "max_p", "min_p", "views", "score", "last_p", "last_valid", "dist_camera",
@@ -136,12 +137,10 @@ class ReactivePolicyNet(nn.Module):
         return sample_actions(self.logits(inp), generator, greedy)
 
 
-def mirror_actions(config: SearchConfig, east_west: bool, north_south: bool) -> torch.Tensor | None:
+def mirror_actions(config: SearchConfig, east_west: bool, north_south: bool, device=None) -> torch.Tensor | None:
     """(A,) long: the move each move becomes when the grid is mirrored (None: the action set is not closed)."""
-    vec = config.action_vectors()
-    flipped = vec * np.array([-1 if east_west else 1, -1 if north_south else 1, 1])
-    perm = [next((b for b, w in enumerate(vec) if (w == v).all()), None) for v in flipped]
-    return None if None in perm else torch.as_tensor(perm)
+    perm = index_permutation(config.action_vectors(), mirror_symmetry(east_west, north_south))
+    return perm if perm is None or device is None else perm.to(device)
 
 
 def mirror_states(state: torch.Tensor, mask: torch.Tensor, actions: torch.Tensor, config: SearchConfig,
@@ -152,15 +151,14 @@ def mirror_states(state: torch.Tensor, mask: torch.Tensor, actions: torch.Tensor
     the per-move distance planes with them); a nadir camera over the grid has that symmetry. Returns the
     inputs unchanged when the action set is not closed under the mirror.
     """
-    perm = mirror_actions(config, east_west, north_south)
+    perm = mirror_actions(config, east_west, north_south, state.device)
     if perm is None or not (east_west or north_south):
         return state, mask, actions
     inv = torch.argsort(perm)  # new move b was old move inv[b]
     first = PLANES.index("dist_move_0")
-    chans = torch.arange(state.shape[1])
+    chans = torch.arange(state.shape[1], device=state.device)
     chans[first:first + len(perm)] = first + inv
-    dims = ([-1] if east_west else []) + ([-2] if north_south else [])  # columns run west -> east, rows north -> south
-    return state.flip(dims)[:, chans], mask[:, inv], perm[actions]
+    return square_symmetry(state, mirror_symmetry(east_west, north_south))[:, chans], mask[:, inv], perm[actions]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -188,16 +186,18 @@ class LabelGreedyTeacher:
     def __init__(self, cache, scene_rows, confidence: nn.Module, config: SearchConfig | None = None,
                  scores: torch.Tensor | None = None):
         config = config or SearchConfig()
-        self.rows = torch.as_tensor(np.asarray(scene_rows), dtype=torch.long).reshape(-1)
+        dev = cache.occupancy.device
+        rows = scene_rows if isinstance(scene_rows, torch.Tensor) else np.asarray(scene_rows)
+        self.rows = torch.as_tensor(rows, dtype=torch.long, device=dev).reshape(-1)
         uniq, self._inv = torch.unique(self.rows, return_inverse=True)
         self.p = cache.log_probs[uniq][..., 1].exp()  # (U, P, N)
         self.valid = cache.valid[uniq]
-        self.scores = scores[uniq] if scores is not None else score_table(cache.subset(uniq.numpy()), confidence)
+        self.scores = scores[uniq] if scores is not None else score_table(cache.subset(uniq.cpu().numpy()), confidence)
         self.labels = cache.occupancy[self.rows]
-        self.moves = config.lattice.moves
+        self.moves = config.lattice.moves.to(dev)
         A = self.moves.shape[1]
         # tie-breaks below the smallest reward difference (1, N_tp - N_fp is an integer)
-        self._tie = 0.01 * torch.arange(A, 0, -1, dtype=torch.float32)
+        self._tie = 0.01 * torch.arange(A, 0, -1, dtype=torch.float32, device=dev)
 
     @torch.no_grad()
     def rewards(self, inp: PolicyInput) -> torch.Tensor:
