@@ -309,10 +309,11 @@ SCENE_FILE = "scene.json"  # the vehicle's ground truth, beside its images (eval
 
 
 def background_scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: CameraIntrinsics, run_dir: Path,
-                              seed: int = 0, spec=None, seeds=None):
+                              seed: int = 0, spec=None, seeds=None, options=None):
     """scene_renderer's (render, close), built in a thread: the scene is generated (or `spec` taken), written
     to run_dir/scene.json, and its world built in the render worker while the vehicle starts up and takes
-    off; the first capture waits for it. The images are the same as scene_renderer's.
+    off; the first capture waits for it. The images are the same as scene_renderer's (with the same `options`:
+    a scene family's render options, so the flown camera draws what teleport draws).
 
     `seeds` (one noise seed per camera): a list of renders instead of one, all drawing the one scene (one
     world, one worker: a team of vehicles does not build the city once per vehicle)."""
@@ -329,7 +330,7 @@ def background_scene_renderer(scene_seed: int, occupied_cells: int, intrinsics: 
         tmp = Path(run_dir) / f".{SCENE_FILE}.tmp"
         save_scene(spec, tmp)
         tmp.replace(Path(run_dir) / SCENE_FILE)  # whole or not at all: a client may be waiting for it
-        return scene_renderer(scene_seed, occupied_cells, intrinsics, seed=seed, spec=spec,
+        return scene_renderer(scene_seed, occupied_cells, intrinsics, options, seed=seed, spec=spec,
                               seeds=[seed] if seeds is None else seeds)
 
     pool = ThreadPoolExecutor(1, thread_name_prefix="scene-world")

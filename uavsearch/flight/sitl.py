@@ -66,7 +66,7 @@ class SitlConfig:
     start_enu: tuple = (0.0, 0.0, 0.0)
     start_yaw_rad: float = 0.0
     intrinsics: CameraIntrinsics = field(default_factory=CameraIntrinsics)
-    setting: str | None = None  # a scene family ("wide") for scene_seed instead of the paper's generator
+    setting: str | None = None  # a scene family ("wide", "2"): scene_seed's scene and the images as the family draws them
     vehicles: int = 1  # simulated in this process on one clock
     instance: int = 0  # the first vehicle's instance number I (sysid, ports, seed and home follow it)
     one_api_port: bool = False  # every vehicle's API link sends to api_port itself (one client for the team)
@@ -249,18 +249,22 @@ class Sitl:
         renders = [render] * cfg.vehicles
         scene_params = {}
         if render is None and cfg.scene_seed is not None:
-            spec = None
+            spec, options = None, None
             if cfg.scene_file is not None:
                 from ..world.scene import load_scene  # lazy: ~0.4 s, only for --scene-file
 
                 spec = load_scene(cfg.scene_file)
                 cfg.scene_seed = spec.seed
             elif cfg.setting is not None:
-                from ..world.settings import generate_setting_scene  # lazy, as above
+                from ..world.settings import setting_params  # lazy, as above
 
-                spec = generate_setting_scene(cfg.setting, cfg.scene_seed)
+                fam = setting_params(cfg.setting)
+                options, cfg.occupied_cells = fam.task.render, fam.k  # the family's images, as teleport draws them
+                if not fam.generic_scenes:  # else seed and K make it, in the render worker (SIM_SCENE_HASH 0)
+                    spec = fam.scene(cfg.scene_seed)
             renders, self._close_render = background_scene_renderer(
-                cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, self.run_dir, spec=spec, seeds=[c.seed for c in team])
+                cfg.scene_seed, cfg.occupied_cells, cfg.intrinsics, self.run_dir, spec=spec, seeds=[c.seed for c in team],
+                options=options)
             scene_params = {"SIM_SCENE_SEED": cfg.scene_seed,
                             "SIM_SCENE_CELLS": cfg.occupied_cells if spec is None else int(spec.occupancy_array().sum()),
                             "SIM_SCENE_HASH": 0 if spec is None else scene_hash(spec)}
@@ -477,7 +481,7 @@ def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cells", type=int, default=5, metavar="K", help="occupied cells in the scene (default 5)")
     p.add_argument("--setting", default=None, metavar="FAMILY",
                    help="generate --scene from a scene family (e.g. wide: 150 m area, people in groups) instead of "
-                        "the paper's generator with --cells")
+                        "the paper's generator with --cells, and render it with the family's render options")
     p.add_argument("--vehicles", type=int, default=1, metavar="N",
                    help=f"simulate N vehicles on one clock (1-{MAX_VEHICLES}), PX4 SITL style: instance I has sysid "
                         "I+1, its API link on 14540+I, all on 14550, home 10 m east per instance")

@@ -272,6 +272,8 @@ def _start_sitl(run_dir: Path, mission, api_port: int, gcs_port: int, progress=N
     s, h, c = mission.flight, mission.home, mission.camera
     scene = ["--scene-file", str(mission.spec_path)] if mission.spec_path is not None else \
         ["--scene", str(mission.scene.seed), "--cells", str(mission.scene.k)]
+    if mission.spec_path is None and mission.scene.setting is not None and mission.scene.occupied_cells is None:
+        scene += ["--setting", str(mission.scene.setting)]  # the family's scene, drawn with its render options
     return SitlProcess(run_dir, *scene, "--seed", str(s.vehicle_seed), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}",
                        "--param", f"MPC_Z_VEL_MAX_DN={LAND_DESCENT_M_S:g}",
                        "--camera-hfov", f"{c.hfov_deg:g}", "--camera-size", f"{c.width_px}x{c.height_px}",

@@ -23,7 +23,7 @@ from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT, display_path
 from ..search.config import ACTIONS, SearchConfig
 from ..world.scene import generate_scene, load_scene
-from ..world.settings import SETTINGS
+from ..world.settings import SETTINGS, setting_key, setting_params
 from .vehicle import FlightSettings
 
 if TYPE_CHECKING:
@@ -98,33 +98,26 @@ class SceneRef(_Strict):
     def _setting(cls, v):
         if v is None:
             return v
-        if isinstance(v, str) and v.strip().isdigit():
-            v = int(v)
-        if isinstance(v, int) and not isinstance(v, bool):
-            if v not in SETTINGS:
-                raise ValueError(f"setting {v}: the paper's settings are {', '.join(map(str, SETTINGS))}")
-            return v
-        from ..world.settings import setting_params
-
+        if isinstance(v, int) and not isinstance(v, bool) and v not in SETTINGS:
+            raise ValueError(f"setting {v}: the paper's settings are {', '.join(map(str, SETTINGS))}")
         try:
-            return setting_params(v).name
+            return setting_key(v)  # 2 for "2": the declared name
         except UavsearchError as e:
             raise ValueError(str(e)) from None
 
     @property
     def family(self) -> str | None:
-        """The scene family a wide-area mission searches ("wide"), None for the paper's settings."""
-        return self.setting if isinstance(self.setting, str) else None
+        """The scene family a team's lattice mission searches ("wide"); None where the family's task is the
+        paper's kind (one vehicle's moves: settings 1-3 and their variants) or no setting is named."""
+        if self.setting is None or setting_params(self.setting).task.mission != "team":
+            return None
+        return str(self.setting)
 
     @property
     def k(self) -> int:
         if self.occupied_cells is not None:
             return int(self.occupied_cells)
-        if self.family is not None:
-            from ..world.settings import setting_params
-
-            return setting_params(self.family).k
-        return SETTINGS[int(self.setting or 2)]
+        return setting_params(self.setting if self.setting is not None else 2).k
 
 
 class SearchSection(_Strict):
@@ -343,11 +336,9 @@ class Mission(_Strict):
         return 1 if self.team is None else int(self.team.vehicles)
 
     @property
-    def setting_for_models(self) -> int:
+    def setting_for_models(self) -> int | str:
         if self.scene.setting is not None:
-            return int(self.scene.setting)
-        from ..world.settings import SETTINGS
-
+            return self.scene.setting  # its family names its checkpoints (a variant: its base's)
         k = self.scene.k
         return min(SETTINGS, key=lambda s: abs(SETTINGS[s] - k))  # nearest density's model
 
@@ -391,9 +382,11 @@ class Mission(_Strict):
             team = self.team or TeamSection()
             return dataclasses.replace(cfg, budget_T=team.max_views or cfg.lattice.num_positions,
                                        budget_s=float(team.mission_time_s), intrinsics=self.camera.intrinsics())
+        drawn = {} if self.scene.setting is None else {"render": setting_params(self.scene.setting).task.render}
         try:
             return SearchConfig(altitude_m=s.altitude_m, step_m=s.step_m, budget_T=s.budget_T, actions=tuple(s.actions),
-                                altitudes_m=tuple(float(a) for a in s.altitudes_m), intrinsics=self.camera.intrinsics())
+                                altitudes_m=tuple(float(a) for a in s.altitudes_m), intrinsics=self.camera.intrinsics(),
+                                **drawn)
         except UavsearchError as e:
             raise MissionError(f"mission {self.source}: search: {e}") from None
 
@@ -410,10 +403,10 @@ class Mission(_Strict):
         """The ground-truth scene (generated from the seed, or loaded from the spec file)."""
         if self.spec_path is not None:
             return load_scene(self.spec_path)
-        if self.family is not None:
-            from ..world.settings import generate_setting_scene
+        if self.family is not None or (self.scene.setting is not None and self.scene.occupied_cells is None):
+            from ..world.settings import generate_setting_scene  # the family's generator (1-3: generate_scene's)
 
-            return generate_setting_scene(self.family, int(self.scene.seed))
+            return generate_setting_scene(self.scene.setting, int(self.scene.seed))
         return generate_scene(int(self.scene.seed), self.scene.k)
 
     def agent(self, config: SearchConfig | None = None) -> LoadedAgent:

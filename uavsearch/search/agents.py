@@ -85,11 +85,13 @@ def check_names(fusion: str | None = None, policy: str | None = None) -> None:
         raise UavsearchError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
 
 
-def checkpoint_path(setting: int, fusion: str, models_dir=None, policy: str = "learned") -> Path:
-    """Where `policy` trained with `fusion` for `setting` lives (default: the shipped models/):
-    search_s<K>_<fusion>.pt for the paper's "learned" policy, search_s<K>_<fusion>_<policy>.pt otherwise."""
+def checkpoint_path(setting: int | str, fusion: str, models_dir=None, policy: str = "learned") -> Path:
+    """Where `policy` trained with `fusion` for `setting` lives (default: the shipped models/): the family's
+    declared stem (search_s<id>) + _<fusion>.pt for the paper's "learned" policy, + _<fusion>_<policy>.pt otherwise."""
+    from ..world.settings import setting_params
+
     suffix = "" if policy == "learned" else f"_{policy}"
-    return Path(models_dir or MODELS_DIR) / f"search_s{int(setting)}_{fusion}{suffix}.pt"
+    return Path(models_dir or MODELS_DIR) / f"{setting_params(setting).task.policies}_{fusion}{suffix}.pt"
 
 
 def loads_checkpoint(policy: str) -> bool:

@@ -163,10 +163,10 @@ def config_from_dict(d: dict) -> SearchConfig:
 
 
 def wide_config() -> SearchConfig:
-    """The wide family's search task: 150 m of 30 x 30 cells; 6 x 6 viewpoints 25 m apart at 70 m and 40 m
-    (plus the start above the centre at 70 m, lattice.py), any viewpoint next, T = 8 views, 240 s of flight."""
-    return SearchConfig(altitude_m=70.0, step_m=25.0, budget_T=8, grid=Grid(30, 5.0), altitudes_m=(70.0, 40.0),
-                        lattice_points=6, move_set="any", budget_s=240.0)
+    """The wide family's search task (scenes/settings.yaml): 150 m of 30 x 30 cells; 6 x 6 viewpoints 25 m apart
+    at 70 m and 40 m (plus the start above the centre at 70 m, lattice.py), any viewpoint next, T = 8 views, 240 s
+    of flight."""
+    return setting_config("wide")
 
 
 def wide_budgets(config: SearchConfig) -> dict[str, SearchConfig]:
@@ -179,12 +179,15 @@ def wide_budgets(config: SearchConfig) -> dict[str, SearchConfig]:
 
 
 def setting_config(setting) -> SearchConfig:
-    """The search task a scene setting is searched with: the paper's for its settings 1-3, the wide one for
-    the wide families (the grid is the family's: world/settings.py)."""
+    """The search task a scene family declares (world/settings.py's SearchTask) on the family's grid: the paper's
+    for settings 1-3, the wide one for the wide families, whatever a declared variant says."""
     fam = setting_params(setting)
-    if fam.name.isdigit():
-        return SearchConfig()
-    return dataclasses.replace(wide_config(), grid=fam.grid)
+    task, lat = fam.task, fam.task.lattice
+    layers = tuple(float(a) for a in lat.altitudes_m)
+    return SearchConfig(altitude_m=layers[0], step_m=float(lat.step_m), budget_T=int(task.budget.views), grid=fam.grid,
+                        actions=tuple(lat.actions) or PAPER_ACTIONS,  # "any" keeps them: checkpoints compare them
+                        render=task.render, altitudes_m=layers if len(layers) > 1 else (), lattice_points=lat.points,
+                        move_set=lat.moves, budget_s=task.budget.seconds)
 
 
 __all__ = ["ACTIONS", "MOVE_SETS", "PAPER_ACTIONS", "wide_config", "FlightSpeeds", "SearchConfig", "config_from_dict", "config_to_dict",

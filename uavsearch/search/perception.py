@@ -481,15 +481,13 @@ def load_perception(path, map_location: str = "cpu") -> tuple[PerceptionNet, dic
 
 
 def shipped_perception(setting=None) -> Path:
-    """The shipped net for a setting: a scene family's own (models/perception_<family>.pt, trained on its
-    altitudes; a variant such as wide-uniform shares its base family's, perception_wide.pt) where it exists,
-    else the paper's models/perception.pt."""
+    """The shipped net for a setting: the one its family declares (scenes/settings.yaml: the wide families'
+    perception_wide.pt, trained on their altitudes) where it exists, else the paper's models/perception.pt."""
     from uavsearch.paths import MODELS_DIR
+    from uavsearch.world.settings import setting_params
 
-    if isinstance(setting, str) and not setting.strip().isdigit():
-        for name in dict.fromkeys((setting, setting.split("-")[0])):
-            if (MODELS_DIR / f"perception_{name}.pt").is_file():
-                return MODELS_DIR / f"perception_{name}.pt"
+    if setting is not None and (MODELS_DIR / setting_params(setting).task.perception).is_file():
+        return MODELS_DIR / setting_params(setting).task.perception
     return MODELS_DIR / "perception.pt"
 
 

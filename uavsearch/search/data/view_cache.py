@@ -152,9 +152,10 @@ class CacheKey:
 
     @property
     def family(self) -> str | None:
-        """The scene family whose generator renders the scenes; None for the paper's settings 1-3."""
-        name = settings.setting_params(self.setting).name
-        return None if name.isdigit() else name
+        """The scene family whose generator renders the scenes; None where seed and K alone make them
+        (generate_scene's: the paper's settings 1-3 and their variants)."""
+        fam = settings.setting_params(self.setting)
+        return None if fam.generic_scenes else fam.name
 
 
 @functools.lru_cache(maxsize=8)
@@ -168,7 +169,7 @@ def world_tag(config: SearchConfig, family: str | None = None) -> str:
     h = hashlib.sha256(render_key.encode())
     h.update(probe_json.encode())
     h.update(image)
-    h.update(Path(settings.SETTINGS_FILE).read_bytes())
+    h.update(settings.scene_layout())
     return h.hexdigest()[:12]
 
 

@@ -48,9 +48,9 @@ def _as_scene(obj):
 
 
 def default_fusion(setting) -> str:
-    """The fusion an env fuses with unless told: the paper's learned confidence fusion (the setting's shipped
-    checkpoint, models/search_s<K>_learned.pt) for settings 1-3, Bayes for the scene families (Table III's)."""
-    return "learned" if settings.setting_params(setting).name.isdigit() else "bayes"
+    """The fusion an env fuses with unless told: the family's declared one (settings 1-3: the paper's learned
+    confidence fusion from the setting's shipped checkpoint; the wide families: Bayes, Table III's)."""
+    return settings.setting_params(setting).task.fusion
 
 
 def make_fusion(name: str, setting, models_dir=None) -> Fusion:
@@ -61,10 +61,10 @@ def make_fusion(name: str, setting, models_dir=None) -> Fusion:
     check_buildable(name)
     if not FUSIONS[name].trainable:
         return FUSIONS[name]()
-    sid = settings.setting_params(setting).name
-    if not sid.isdigit():
-        raise UavsearchError(f"{name} fusion has no shipped checkpoint for scene family {sid!r}; choose bayes")
-    return load_search_model(checkpoint_path(int(sid), name, models_dir)).fusion  # eval mode; saves whole
+    fam = settings.setting_params(setting)
+    if fam.task.mission != "moves":  # a lattice task's policies are map policies, saved per budget, not per fusion
+        raise UavsearchError(f"{name} fusion has no shipped checkpoint for scene family {fam.name!r}; choose bayes")
+    return load_search_model(checkpoint_path(setting, name, models_dir)).fusion  # eval mode; saves whole
 
 
 class SceneViews:
@@ -288,9 +288,7 @@ class ActiveSearchEnv(gym.Env):
         progress: bool = True,
         workers: int = 1,
     ):
-        settings.setting_params(setting)  # a bad setting is a one-line error now
-        if isinstance(setting, str) and setting.strip().isdigit():
-            setting = int(setting)
+        setting = settings.setting_key(setting)  # 2 for "2"; a bad setting is a one-line error now
         if obs not in OBS_MODES:
             raise UavsearchError(f"unknown observation mode {obs!r}; valid: {', '.join(OBS_MODES)}")
         if views not in VIEW_MODES:
@@ -508,7 +506,7 @@ class WideSearchEnv(ActiveSearchEnv):
 
     def __init__(self, config: SearchConfig | None = None, setting: int | str = "wide", split: str | None = None,
                  part: str = "train", obs: str = "cells", limit: int | None = None, **kwargs):
-        if settings.setting_params(setting).name.isdigit():
+        if settings.setting_params(setting).task.mission != "team":
             raise UavsearchError(f"WideSearchEnv searches a scene family, not setting {setting!r}")
         super().__init__(config=config, setting=setting, split=split, part=part, obs=obs, limit=limit, **kwargs)
 

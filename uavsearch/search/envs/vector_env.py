@@ -57,9 +57,7 @@ class SearchVectorEnv(VectorEnv):
                                  "gym.make_vec(..., vectorization_mode='sync') of the single env")
         if num_envs < 1:
             raise UavsearchError(f"num_envs must be at least 1, got {num_envs}")
-        settings.setting_params(setting)
-        if isinstance(setting, str) and setting.strip().isdigit():
-            setting = int(setting)
+        setting = settings.setting_key(setting)  # 2 for "2"; a bad setting is a one-line error
         self.num_envs = int(num_envs)
         self.config = config or getattr(cache, "config", None) or setting_config(setting)
         self.setting, self.split, self.part = setting, split or settings.setting_params(setting).split, part
