@@ -15,6 +15,7 @@ import argparse
 import ast
 import contextlib
 import io
+import os
 import re
 import shlex
 import subprocess
@@ -43,6 +44,7 @@ class Command:
     argv: list[str]  # its arguments
     sketch: bool
     inline: bool = False  # an inline span names a command in prose and may leave out what it requires
+    direct: bool = False  # a script run by its path, with no interpreter before it
 
 
 def _segments(text: str) -> list[list[str]] | None:
@@ -71,21 +73,22 @@ def _segments(text: str) -> list[list[str]] | None:
     return [s for s in out + [cur] if s]
 
 
-def _program(words: list[str]) -> tuple[str, list[str]] | None:
-    """(program, arguments) of `uavsearch ...`, `python -m uavsearch ...`, `[python] tools/x.py ...` (also after
-    `VAR=value` or behind a launcher's `--`); None for any other command."""
+def _program(words: list[str]) -> tuple[str, list[str], bool] | None:
+    """(program, arguments, run by its path) of `uavsearch ...`, `python -m uavsearch ...`, `[python|bash]
+    tools/x.py ...` (also after `VAR=value` or behind a launcher's `--`); None for any other command."""
     if "--" in words and _program(words[words.index("--") + 1:]):  # ray job submit ... -- uavsearch ...
         return _program(words[words.index("--") + 1:])
     while words and re.match(r"^[A-Za-z_]\w*=", words[0]):
         words = words[1:]
-    if words and re.match(r"^(python3?|\S*/python3?)$", words[0]):
+    direct = True
+    if words and re.match(r"^(python3?|\S*/python3?|bash|sh)$", words[0]):
         if words[1:3] == ["-m", "uavsearch"]:
-            return "uavsearch", words[3:]
-        words = words[1:]
+            return "uavsearch", words[3:], False
+        words, direct = words[1:], False
     if words and Path(words[0]).name == "uavsearch":
-        return "uavsearch", words[1:]
+        return "uavsearch", words[1:], False
     if words and re.match(r"^(\./)?tools/\w+\.(py|sh)$", words[0]):
-        return words[0].removeprefix("./"), words[1:]
+        return words[0].removeprefix("./"), words[1:], direct
     return None
 
 
@@ -99,10 +102,10 @@ def _commands_in(text: str, where: str, inline: bool = False) -> list[Command]:
     out = []
     for words in segments:
         if found := _program(words):
-            program, argv = found
+            program, argv, direct = found
             if argv or program != "uavsearch":
                 out.append(Command(where, text, program, argv, sketch or any(PLACEHOLDER.match(w) for w in argv),
-                                   inline))
+                                   inline, direct))
     return out
 
 
@@ -247,6 +250,8 @@ def check_tool(command: Command) -> str | None:
     script = ROOT / command.program
     if not script.is_file():
         return f"no script {command.program}"
+    if command.direct and not command.inline and not os.access(script, os.X_OK):
+        return f"{command.program} is not executable: write `python {command.program}`"
     if command.program == REPRODUCE:
         if command.sketch or command.inline and not command.argv:
             return None
@@ -306,6 +311,8 @@ def test_a_tools_flags_and_reproduce_steps_are_checked():
     assert c("tools/wide_fusion_probe.py --budget 8 --no-symmetries") is None
     assert "--train-views" in c("tools/wide_fusion_probe.py --train-views 8")
     assert "no script" in c("tools/no_such_tool.py")
+    assert "not executable" in check_tool(Command("x.md:1", "", "tools/seed_spread.py", [], False, direct=True))
+    assert check_tool(Command("x.md:1", "", "tools/seed_spread.py", [], False, direct=False)) is None
     assert c("tools/reproduce.sh --only search") is None
     assert "unknown step" in c("tools/reproduce.sh --only no_such_step")
 
