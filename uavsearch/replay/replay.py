@@ -40,6 +40,7 @@ from ..logs.flight_log import read_flight_log
 from ..search.agents import FUSIONS, check_names
 from ..search.fusion import Fusion, FusionViews, fusion_from_spec, fusion_name
 from ..search.metrics import map_accuracy, map_f1
+from ..search.perception import perceive
 from ..search.policy import load_search_model
 from ..search.views import make_view
 from ..viz import draw_grid_overlay, pyplot, save_figure, settle_tight_layout
@@ -344,9 +345,9 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
                 img = np.asarray(renderer.render(pose, None).rgb)
             view = make_view(img, pose, config.grid, config.intrinsics, None, config.min_cell_area_px)
             with torch.no_grad():
-                o = loaded.perception.forward_all(view.image[None], view.cell_label[None], altitude_m=view.position_enu[2])
-                p_list.append(o.log_probs[0, :, 1].exp().numpy())
-                valid_list.append(np.asarray(view.cells_in_view) & (o.cell_pixels[0].numpy() > 0))
+                o, valid, _ = perceive(loaded.perception, [view])
+                p_list.append(o.log_probs[0, :, 1].exp().cpu().numpy())
+                valid_list.append(valid[0].cpu().numpy())
                 area_list.append(view.cell_area_px)
                 if loaded.scores_net is not None:
                     score_list.append(loaded.scores_net(o.cell_features)[0].reshape(-1).numpy())

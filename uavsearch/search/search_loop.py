@@ -35,6 +35,7 @@ from uavsearch.errors import UavsearchError
 from .config import SearchConfig
 from .episode import SLACK_S, Observation, PolicyInput, SearchState, ViewSource, fusion_view
 from .fusion import Fusion, FusionViews
+from .perception import perceive
 
 
 # The rewards of Eq. 13-15 (stage 2 trains with these; the env and the flight log report them)
@@ -158,10 +159,8 @@ class LiveViews:
 @torch.no_grad()
 def observe_view(perception, view) -> Observation:
     """Perception on one captured View (B = 1), against the cell labels of the pose it REPORTS."""
-    o = perception.forward_all(view.image[None], view.cell_label[None], altitude_m=view.position_enu[2])
-    valid = torch.as_tensor(view.cells_in_view).reshape(1, -1) & (o.cell_pixels > 0)
-    return Observation(o.log_probs, o.cell_features, o.global_feature,
-                       torch.as_tensor(view.cell_area_px, dtype=torch.float32).reshape(1, -1), valid)
+    o, valid, area = perceive(perception, [view])
+    return Observation(o.log_probs, o.cell_features, o.global_feature, area, valid)
 
 
 # --------------------------------------------------------------------------------------------------

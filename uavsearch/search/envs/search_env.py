@@ -30,6 +30,7 @@ from ..cells import REWARD_MODES, SearchBatch, TableSource, cell_tables, observa
 from ..config import SearchConfig, setting_config
 from ..episode import Observation
 from ..fusion import FUSIONS, Fusion, check_buildable
+from ..perception import perceive
 from ..search_loop import R_FP, R_RE, R_TP
 from ..views import TeleportVehicle, View
 
@@ -149,13 +150,10 @@ class LiveSource:
     def view(self, idx: int) -> tuple[View, Observation]:
         if idx not in self._memo:
             view = self.vehicle.capture(self.positions[idx])
+            o, valid, area = perceive(self.perception, [view])
             with torch.no_grad():
-                o = self.perception.forward_all(view.image[None], view.cell_label[None],
-                                                altitude_m=view.position_enu[2])
-                valid = torch.as_tensor(view.cells_in_view).reshape(1, -1) & (o.cell_pixels > 0)
                 scores = None if self.scorer is None else self.scorer(o.cell_features.float())
-            self._memo[idx] = (view, Observation(None, None, None, torch.as_tensor(view.cell_area_px, dtype=torch.float32)[None],
-                                                 valid, scores, o.log_probs[..., 1].exp().float()))
+            self._memo[idx] = (view, Observation(None, None, None, area, valid, scores, o.log_probs[..., 1].exp().float()))
         return self._memo[idx]
 
     def observe(self, lattice_idx) -> Observation:

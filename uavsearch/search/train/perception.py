@@ -1,6 +1,8 @@
 """Stage 1 (paper Sec. V-A): one-view training of the perception backbone, its person head and the cell classifier.
 
-CleanRL-style: an Args dataclass, `train(args)` does everything.
+CleanRL-style: an Args dataclass, `train(args)` does everything. The net is any registered perception kind
+(`--net cnn`, the shipped nets' kind, or `--net resnet`), built and used only through the perception contract
+(search/perception.py: `build_perception`, `forward_all`, `dense_loss`, `shift_logit_margin`, `arguments`).
 
 Data: every lattice view of the large split's training scenes, the very renders the stage-2 view caches
 are built from (view_cache.render_lattice_views: 500 scenes x 25 positions x 3 settings = 37,500 views,
@@ -17,9 +19,9 @@ Loss, per mini-batch of `batch_size` crops:
   false alarms); and empty cells weighted up by `hard_negative_weight` x the share of their earlier
   views in which they were false alarms: a bench or a dark window that fools the net from every
   position is a persistent false alarm no second view can correct, so it is mined and weighted;
-- pixels: `person_weight` x the binary cross-entropy of the person head against the renderer's
-  per-pixel person fraction (dense supervision: every person pixel is a label, where a cell is one
-  label per 200 pixels), positives weighted by `person_pos_weight`.
+- pixels: `person_weight` x the kind's dense loss (both kinds: the binary cross-entropy of the person head
+  against the renderer's per-pixel person fraction; dense supervision: every person pixel is a label, where a
+  cell is one label per 200 pixels), positives weighted by `person_pos_weight`.
 
 The checkpoint kept is the one with the best validation cell average precision (threshold-free); at the
 end its decision threshold is calibrated on the validation views: a shift of the classifier's logit
@@ -35,7 +37,6 @@ names: losses/, charts/, eval/), learning_curve.png and the best checkpoint. Onl
 from __future__ import annotations
 
 import csv
-import dataclasses
 import json
 import time
 from dataclasses import asdict, dataclass
@@ -58,8 +59,9 @@ from ..data.view_cache import CACHE_DIR, CacheKey, render_lattice_views, world_t
 from ..fusion import DEFAULT_PRIOR
 from ..metrics import average_metrics, average_precision, cell_correct
 from ..perception import (
-    PerceptionConfig,
-    PerceptionNet,
+    PERCEPTIONS,
+    TrainablePerception,
+    build_perception,
     cell_pooling,
     images_to_tensor,
     load_perception,
@@ -104,7 +106,9 @@ class Args(ScaleOutArgs):
     altitude_feature: bool = opt(False, "the camera altitude as a cell feature (for nets trained across altitudes)")
     init: str | None = opt(None, "start from this perception checkpoint's weights (e.g. the paper's models/perception.pt "
                                  "to fine-tune across altitudes) instead of from scratch")
-    layers: tuple = opt(factory=lambda: PerceptionConfig().layers, help="backbone (out, kernel, stride)", cli=False)
+    net: str = opt("cnn", "perception kind to train (the registry in search/perception.py; cnn: the shipped nets')",
+                   choices=sorted(PERCEPTIONS))
+    net_args: dict = opt(factory=dict, help="the kind's constructor arguments (default: its own defaults)", cli=False)
 
 
 def augment_batch(rng: np.random.Generator, *arrays: np.ndarray) -> list[np.ndarray]:
@@ -137,14 +141,23 @@ def random_crops(rng: np.random.Generator, size: int, step: int, *arrays: np.nda
     return [np.stack([x[b, r0[b]:r0[b] + size, c0[b]:c0[b] + size] for b in range(V)]) for x in arrays]
 
 
-def init_from(net: PerceptionNet, path) -> None:
-    """Copy a checkpoint's weights into `net`. Layers of the same shape are copied whole; a layer that reads
-    more inputs than the checkpoint's (the classifier's and confidence net's first layer once the altitude
-    feature is added) gets the checkpoint's weights for the inputs both have and zeros for the new ones, so
-    the net starts out computing exactly what the checkpoint did."""
+# Constructor arguments a checkpoint may differ in from the net it initialises: no weight's shape depends on them,
+# or init_from widens the layers that read the new inputs.
+INIT_FREE_ARGUMENTS = ("num_cells", "altitude_feature", "dropout")
+
+
+def init_from(net: TrainablePerception, path) -> None:
+    """Copy a checkpoint's weights into `net` (the same kind and architecture). Layers of the same shape are
+    copied whole; a layer that reads more inputs than the checkpoint's (the classifier's first layer once the
+    altitude feature is added) gets the checkpoint's weights for the inputs both have and zeros for the new
+    ones, so the net starts out computing exactly what the checkpoint did."""
     src, _ = load_perception(path)
-    if src.cfg.layers != net.cfg.layers or src.cfg.person_head != net.cfg.person_head:
-        raise UavsearchError(f"--init {path}: its backbone {src.cfg.layers} differs from this run's {net.cfg.layers}")
+    mine, theirs = net.arguments(), src.arguments()
+    differ = sorted(k for k in {*mine, *theirs} - set(INIT_FREE_ARGUMENTS) if mine.get(k) != theirs.get(k))
+    if src.kind != net.kind or differ:
+        raise UavsearchError(f"--init {path}: its net ({src.kind}: " + ", ".join(f"{k}={theirs.get(k)}" for k in differ)
+                             + f") differs from this run's ({net.kind}: "
+                             + ", ".join(f"{k}={mine.get(k)}" for k in differ) + ")")
     own = net.state_dict()
     for k, v in src.state_dict().items():
         if k not in own:
@@ -191,7 +204,7 @@ class HardNegatives:
         np.add.at(self.false_alarms, scene_rows, (empty & alarm).astype(np.float32))
 
 
-def batch_loss(net: PerceptionNet, images, labels, occupancy, args: Args, person=None, geometry=None,
+def batch_loss(net: TrainablePerception, images, labels, occupancy, args: Args, person=None, geometry=None,
                negative_weight=None, altitude_m=None):
     """Stage 1's loss on a batch: weighted cell NLL (+ hard negatives) + the dense person loss.
     Returns (loss, parts dict, log_probs, trained-cell mask)."""
@@ -208,21 +221,13 @@ def batch_loss(net: PerceptionNet, images, labels, occupancy, args: Args, person
         w = w * torch.as_tensor(negative_weight, dtype=w.dtype)
     w = w * mask
     loss_cells = (nll * w).sum() / w.sum().clamp(min=1.0)
-    loss_person = torch.zeros(())
-    if person is not None and out.person_logits is not None and args.person_weight > 0:
-        s = net.cfg.head_stride
-        target = torch.as_tensor(np.asarray(person), dtype=torch.float32) / 255.0
-        if s > 1:
-            target = F.avg_pool2d(target.unsqueeze(1), s)
-        else:
-            target = target.unsqueeze(1)
-        loss_person = F.binary_cross_entropy_with_logits(
-            out.person_logits, target, pos_weight=torch.tensor(args.person_pos_weight))
+    dense = net.dense_loss(out, person, args.person_pos_weight) if person is not None and args.person_weight > 0 else None
+    loss_person = torch.zeros((), device=loss_cells.device) if dense is None else dense
     loss = loss_cells + args.person_weight * loss_person
     return loss, {"cells": float(loss_cells.detach()), "person": float(loss_person.detach())}, out.log_probs, mask
 
 
-def evaluate(net: PerceptionNet, views: ViewSet, centre_index: int) -> dict[str, float]:
+def evaluate(net: TrainablePerception, views: ViewSet, centre_index: int) -> dict[str, float]:
     """Single-view Aacc/AF1 on every view and on the start views only, plus cell-level numbers (average
     precision over the cells in view, false alarms per view, precision and recall at 0.5)."""
     p, _ = predict_views(net, views)
@@ -244,7 +249,7 @@ def view_metrics(p: np.ndarray, y: np.ndarray, seen: np.ndarray, start: np.ndarr
     }
 
 
-def calibration_shift(net: PerceptionNet, views: ViewSet, shifts=np.linspace(-3.0, 3.0, 61)) -> tuple[float, float]:
+def calibration_shift(net: TrainablePerception, views: ViewSet, shifts=np.linspace(-3.0, 3.0, 61)) -> tuple[float, float]:
     """The logit-margin shift with the best single-view AF1 at 0.5 on these (validation) views: (shift, AF1)."""
     p, _ = predict_views(net, views)
     z = np.log(np.clip(p, 1e-7, 1.0)) - np.log(np.clip(1.0 - p, 1e-7, 1.0))
@@ -252,14 +257,6 @@ def calibration_shift(net: PerceptionNet, views: ViewSet, shifts=np.linspace(-3.
     best = max(((average_metrics(np.where(seen, 1.0 / (1.0 + np.exp(-(z + b))), DEFAULT_PRIOR), y)[1], -abs(b), b)
                 for b in shifts))
     return float(best[2]), float(best[0])
-
-
-def apply_shift(net: PerceptionNet, shift: float) -> None:
-    """Add `shift` to the classifier's logit margin log p(1) - log p(0) (its last layer's biases)."""
-    last = net.classifier[-1]
-    with torch.no_grad():
-        last.bias[1] += shift / 2.0
-        last.bias[0] -= shift / 2.0
 
 
 def shipped_path(settings: str) -> Path:
@@ -322,14 +319,19 @@ def prepare_data(args: Args) -> tuple[ViewSet, ViewSet, int]:
     return sets["train"], sets["val"], key.search_config.lattice.start_index
 
 
-def train(args: Args) -> dict:
-    """Run stage 1; returns the final report (validation metrics of the best checkpoint, times, paths)."""
+def train(args: Args, views: tuple[ViewSet, ViewSet, int] | None = None) -> dict:
+    """Run stage 1; returns the final report (validation metrics of the best checkpoint, times, paths).
+    `views` (train, val, start-view index) replaces the split's rendered views (prepare_data), e.g. a few
+    views a test makes."""
     if args.batch_size < 1 or args.steps < 1:
         raise UavsearchError("batch_size and steps must be positive")
     torch.set_num_threads(max(1, args.threads))
-    cfg = PerceptionConfig(layers=tuple(tuple(x) for x in args.layers), altitude_feature=args.altitude_feature)
-    if args.crop and args.crop % cfg.stride:
-        raise UavsearchError(f"--crop {args.crop} must be a multiple of the net's stride {cfg.stride}")
+    # the kind's constructor arguments; num_cells follows the views trained on (below), and the altitude is
+    # asked of a kind only when wanted, so a kind that cannot read it still trains without
+    net_args = {**args.net_args, **({"altitude_feature": True} if args.altitude_feature else {})}
+    stride = build_perception(args.net, **net_args).stride  # before seeding: checks the arguments early
+    if args.crop and args.crop % stride:
+        raise UavsearchError(f"--crop {args.crop} must be a multiple of the net's stride {stride}")
     rng = seed_everything(args.seed)
     if args.resume:
         run_dir = Path(args.resume)
@@ -340,15 +342,15 @@ def train(args: Args) -> dict:
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "args.json").write_text(json.dumps(asdict(args), indent=1))
     t_start = time.perf_counter()
-    train_set, val_set, centre = prepare_data(args)
+    train_set, val_set, centre = prepare_data(args) if views is None else views
     t_data = time.perf_counter() - t_start
     scene_row = np.unique(train_set.scene_seed, return_inverse=True)[1]
     shows = np.flatnonzero(((train_set.occupancy == 1) & (train_set.person_px > 0)).any(1))  # views showing a person
     n_pos = int(round(args.positive_share * args.batch_size)) if len(shows) else 0
-    cfg = dataclasses.replace(cfg, num_cells=int(train_set.occupancy.shape[1]))  # the grid of the views trained on
-    hard = HardNegatives(int(scene_row.max()) + 1, cfg.num_cells)
+    num_cells = int(train_set.occupancy.shape[1])  # the grid of the views trained on
+    hard = HardNegatives(int(scene_row.max()) + 1, num_cells)
 
-    net = PerceptionNet(cfg)
+    net = build_perception(args.net, **net_args, num_cells=num_cells)
     if args.init:
         init_from(net, args.init)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
@@ -391,9 +393,9 @@ def train(args: Args) -> dict:
         imgs, labs, pers = train_set.images[rows_b], train_set.label_images(rows_b), train_set.person_frac[rows_b]
         if args.augment:
             imgs, labs, pers = augment_batch(rng, imgs, labs, pers)
-        pooling = cell_pooling(torch.as_tensor(np.ascontiguousarray(labs)), cfg.stride, cfg.num_cells)
+        pooling = cell_pooling(torch.as_tensor(np.ascontiguousarray(labs)), net.stride, net.num_cells)
         y = train_set.occupancy[rows_b]
-        imgs, labs, pers = random_crops(rng, args.crop, cfg.stride, imgs, labs, pers,
+        imgs, labs, pers = random_crops(rng, args.crop, net.stride, imgs, labs, pers,
                                         centres=positive_centres(rng, n_pos, y, train_set.person_px[rows_b], pooling))
         sr = scene_row[rows_b]
         neg_w = hard.weights(sr, y == 0, args.hard_negative_weight)
@@ -431,7 +433,7 @@ def train(args: Args) -> dict:
     net, extra = load_perception(ckpt)
     shift, cal_af1 = (calibration_shift(net, val_set) if args.calibrate else (0.0, best["eval/af1"]))
     if shift:
-        apply_shift(net, shift)
+        net.shift_logit_margin(shift)
         val = {**extra["val"], **evaluate(net, val_set, centre)}
         save_perception(net, ckpt, extra={**extra, "calibration_shift": shift, "val": val,
                                           "val_before_calibration": extra["val"]})
