@@ -40,7 +40,7 @@ from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import display_path
 from uavsearch.viz import pyplot, save_figure
-from uavsearch.world.settings import SETTINGS, parse_settings, setting_params
+from uavsearch.world.settings import parse_settings, setting_params
 
 from ..data.view_cache import PARTS, get_view_cache
 from ..metrics import average_precision, rate_by_bin
@@ -370,7 +370,7 @@ def eval_perception(args: EvalArgs, caches: dict | None = None) -> dict:
     if args.part not in PARTS:
         raise UavsearchError(f"unknown part {args.part!r}; valid: {', '.join(PARTS)}")
     torch.set_num_threads(1)
-    families = [s for s in settings if isinstance(s, str)]
+    families = [s for s in settings if setting_params(s).task.mission == "team"]  # a lattice family's report
     if families:
         if len(settings) > 1:
             raise UavsearchError("--setting: evaluate one scene family at a time, apart from the paper's settings")
@@ -385,7 +385,7 @@ def eval_perception(args: EvalArgs, caches: dict | None = None) -> dict:
     missing = [s for s in settings if s not in caches]
     if missing:
         raise UavsearchError(f"no view cache for setting {missing[0]}")
-    stats = {f"setting {s} ({SETTINGS[s]} cells)": perception_stats([caches[s]]) for s in settings}
+    stats = {f"setting {s} ({setting_params(s).k} cells)": perception_stats([caches[s]]) for s in settings}
     if len(settings) > 1:
         stats["all"] = perception_stats([caches[s] for s in settings])
     out = Path(args.out)

@@ -54,7 +54,7 @@ from uavsearch.errors import UavsearchError, run_command
 from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import MODELS_DIR, display_path
 from uavsearch.viz import pyplot, save_figure
-from uavsearch.world.settings import SETTINGS, parse_settings
+from uavsearch.world.settings import parse_settings, setting_params
 
 from ..agents import POLICIES, build_agent, checkpoint_path, trained_fusion
 from ..config import SearchConfig
@@ -269,7 +269,7 @@ def _paired_lines(paired: list[dict], settings: list[int], meta: dict) -> list[s
             lines += [f"- setting {s}: no paired comparison (neither fixed route was evaluated)", ""]
             continue
         first = here[0]
-        lines += [f"Setting {s} ({SETTINGS[s]} cells): paired over {first['scenes']} test scenes, "
+        lines += [f"Setting {s} ({setting_params(s).k} cells): paired over {first['scenes']} test scenes, "
                   f"{first['episodes_per_scene']} episodes per scene x {first['seeds']} seeds per row (a fixed "
                   "route scores the same on each).", "",
                   "| method | AF1 | " + " | ".join(f"Δ AF1 vs {LABELS[r].split(' + ')[-1]} [95% CI] | W/T/L"
@@ -295,7 +295,7 @@ def _bounds_lines(bounds: dict[int, dict], settings: list[int]) -> list[str]:
 
     pct = lambda x: _num(100 * x, ".0f") + ("%" if np.isfinite(x) else "")  # noqa: E731
     lines = ["## Difficulty and upper bounds (learned confidence fusion)", "",
-             "| | " + " | ".join(f"setting {s} ({SETTINGS[s]} cells)" for s in settings) + " |",
+             "| | " + " | ".join(f"setting {s} ({setting_params(s).k} cells)" for s in settings) + " |",
              "|---|" + "---|" * len(settings),
              row("single-view AF1", lambda b: _num(b["single_view_af1"], ".3f")),
              row("occupied cells hidden from the start view (no person pixel)", lambda b: pct(b["hidden_start"])),
@@ -325,7 +325,7 @@ def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict, pa
         cand = [r for r in rows if r["key"] in NON_ORACLE and np.isfinite(r[f"s{s}_af1"])]
         best[s] = (max(cand, key=lambda r: r[f"s{s}_aacc"])["key"] if cand else None,
                    max(cand, key=lambda r: r[f"s{s}_af1"])["key"] if cand else None)
-    head = " | ".join(f"{SETTINGS[s]} cells Aacc (%) ↑ | {SETTINGS[s]} cells AF1 ↑" for s in settings)
+    head = " | ".join(f"{setting_params(s).k} cells Aacc (%) ↑ | {setting_params(s).k} cells AF1 ↑" for s in settings)
     lines = [f"# Table II (our testbed): T = {meta['T']}, {meta['split']} split, test scenes only", "",
              f"| method | {head} |", "|---|" + "---|---|" * len(settings)]
     for r in rows:
@@ -343,7 +343,7 @@ def write_table(rows: list[dict], settings: list[int], out: Path, meta: dict, pa
               "—: left out (checkpoint not found).", ""]
     for s in settings:
         r0 = next((r for r in rows if r[f"s{s}_scenes"]), rows[0])
-        lines.append(f"- setting {s} ({SETTINGS[s]} cells): {r0[f's{s}_scenes']} test scenes, "
+        lines.append(f"- setting {s} ({setting_params(s).k} cells): {r0[f's{s}_scenes']} test scenes, "
                      f"{r0[f's{s}_episodes']} episodes per method ({meta['episodes']} per scene x {meta['seeds']} "
                      f"seeds); single view -> oracle fusion + policy AF1 gap closed by ours: "
                      f"{_num(100 * gap_closure(rows, s), '.0f')}% (paper: 37% / 52% / 41%)")
@@ -387,7 +387,7 @@ def fig6_figure(results: dict[int, dict[str, dict]]):
             for i, (name, scale) in enumerate((("acc", 100.0), ("f1", 1.0))):
                 axes[i, j].plot(x, r[name].mean((0, 1)) * scale, styles.get(key, "-"), marker="o", ms=3, lw=lw,
                                 label=labels[key])
-        axes[0, j].set_title(f"setting {s}: {SETTINGS[s]} occupied cells")
+        axes[0, j].set_title(f"setting {s}: {setting_params(s).k} occupied cells")
         axes[0, j].set_ylabel("Aacc (%)")
         axes[1, j].set_ylabel("AF1")
         for i in range(2):
@@ -409,7 +409,7 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
     """Table II + Fig. 6 into args.out (Table III for scene families: evaluate/wide.py); `caches`
     ({setting: ViewCache}) skips perception and rendering."""
     chosen = parse_settings(args.setting, families=True)
-    families = [s for s in chosen if isinstance(s, str)]
+    families = [s for s in chosen if setting_params(s).task.mission == "team"]  # Table III's kind of task
     if families and len(families) != len(chosen):
         raise UavsearchError("--setting: evaluate the paper's settings and the scene families in separate runs")
     if families:
