@@ -222,8 +222,7 @@ def _blocky_views(n: int, seed: int = 0) -> np.ndarray:
     return rng.integers(0, 256, (n, 28, 28, 3), dtype=np.uint8).repeat(8, 1).repeat(8, 2)
 
 
-@pytest.mark.parametrize("kind", ["cnn", "resnet"])
-@pytest.mark.parametrize("altitude", [False, True])
+@pytest.mark.parametrize("kind,altitude", [("cnn", False), ("resnet", True)])  # the CNN's altitude: test above
 def test_every_kind_keeps_the_contract(kind, altitude):
     from uavsearch.search.perception import Perception, TrainablePerception, ViewOutputs, build_perception
 
@@ -411,3 +410,17 @@ def test_train_perception_with_net_resnet_writes_a_checkpoint_of_that_kind(tmp_p
     assert isinstance(net, ResNetPerception) and net.kind == "resnet" and extra["args"]["net"] == "resnet"
     with torch.no_grad():
         assert torch.isfinite(net.forward_all(views[1].images, views[1].labels).log_probs).all()
+
+
+def test_altitudes_may_come_as_a_tensor_and_stay_in_torch():
+    # numpy never touches a tensor of altitudes (np.asarray of a CUDA tensor raises): the same values either way
+    from uavsearch.search.perception import PooledPerception, build_perception
+
+    alt = torch.tensor([70.0, 40.0], dtype=torch.float64)
+    assert torch.equal(PooledPerception.altitudes(alt, 2), torch.tensor([70.0, 40.0]))
+    assert PooledPerception.altitudes(torch.tensor(55.0), 3).tolist() == [55.0] * 3
+    net = build_perception("cnn", altitude_feature=True).eval()
+    img, lab = _blocky_views(2), _labels((0.0, 0.0), (0.0, 10.0))
+    with torch.no_grad():
+        assert torch.equal(net.forward_all(img, lab, altitude_m=alt).log_probs,
+                           net.forward_all(img, lab, altitude_m=[70.0, 40.0]).log_probs)
