@@ -1,7 +1,8 @@
 """One search loop, two vehicles: observe -> fuse -> choose the next view, for T views.
 
 `run_search(source, agent, T, generator)` is the whole episode of the paper's method (Fig. 2) and of
-every baseline. It is batched over B episodes and differentiable where it must be (the confidence
+every baseline, one vehicle on the episode engine (episode.SearchState, which the team and the envs step
+too). It is batched over B episodes and differentiable where it must be (the confidence
 scores through learned fusion, the policy's log-probabilities), so stage-2 training, the Table II
 evaluation and the flying mission controller all run this same function:
 
