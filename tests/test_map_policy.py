@@ -13,7 +13,8 @@ import torch
 from test_wide_search import WIDE, wide_cache
 from uavsearch.errors import UavsearchError
 from uavsearch.search.config import config_to_dict, wide_budgets
-from uavsearch.search.fusion import FUSIONS, FusionViews, make_fusion
+from uavsearch.search.agents import make_fusion
+from uavsearch.search.fusion import FUSIONS, FusionViews
 from uavsearch.search.map_policy import MAP_PLANES, VIEWPOINT_FEATURES, MapPolicyConfig, MapPolicyNet, wide_checkpoint
 from uavsearch.search.policy import ArgmaxPolicy, load_search_model, save_search_model
 from uavsearch.search.search_loop import Agent, CachedViews, classification_reward, run_search

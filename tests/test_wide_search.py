@@ -19,17 +19,14 @@ from uavsearch.search.search_loop import Agent, CachedViews, PolicyInput, run_se
 from uavsearch.search.wide_policies import (RULE_VARIANTS, SURVEY_OUTER_M, DescendRule, EntropyPerSecond, RoutePolicy,
                                             footprints, greedy_view_set, label_routes, lawnmower,
                                             survey_then_lawnmower, viewpoints_at)
-from uavsearch.testing.synthetic_views import synthetic_cache
+from uavsearch.testing.synthetic_views import synthetic_cache, synthetic_wide_cache
 
 WIDE = setting_config("wide")
 
 
 def wide_cache(num_scenes=4, seed=0, config=WIDE, k=10):
     """A synthetic cache on the wide lattice where each view measures only its footprint."""
-    c = synthetic_cache(num_scenes, k=k, seed=seed, config=config)
-    valid = footprints(config)[None].expand(num_scenes, -1, -1).clone()
-    px = (c.occupancy[:, None, :] & valid).int() * 5
-    return c._replace(valid=valid, person_px=px)
+    return synthetic_wide_cache(num_scenes, seed, config, k)
 
 
 def test_wide_lattice_has_72_viewpoints_plus_the_start():
@@ -243,7 +240,7 @@ def test_family_perception_report_judges_each_altitude_on_its_own_views(tmp_path
 
 def test_wide_fusion_specs():
     from uavsearch.search.fusion import fusion_name
-    from uavsearch.search.fusion import make_fusion
+    from uavsearch.search.agents import make_fusion
 
     assert fusion_name(make_fusion("bayes")) == "bayes:0.1"
     assert fusion_name(make_fusion("bayes:0.02")) == "bayes:0.02" and make_fusion("size").name == "size"
@@ -275,7 +272,8 @@ def test_table3_chooses_its_fusion_on_validation(tmp_path):
 
 
 def test_table3_calibrated_fusion_is_fitted_on_the_training_scenes():
-    from uavsearch.search.fusion import calibrated_candidates, make_fusion
+    from uavsearch.search.agents import make_fusion
+    from uavsearch.search.fusion import calibrated_candidates
 
     train = wide_cache(2, 3)
     fits = calibrated_candidates(train)

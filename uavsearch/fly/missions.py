@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationIn
 
 from ..errors import MissionError, UavsearchError, format_validation_error, read_user_file
 from ..geometry import CameraIntrinsics, GeodeticOrigin
-from ..paths import MISSIONS_DIR, MODELS_DIR, REPO_ROOT, display_path
+from ..paths import MISSIONS_DIR, REPO_ROOT, display_path
 from ..search.config import ACTIONS, SearchConfig
 from ..world.scene import generate_scene, load_scene
 from ..world.settings import SETTINGS, setting_key, setting_params
@@ -201,7 +201,8 @@ class FlightSection(_Strict):
 
 
 class TeamSection(_Strict):
-    """A scene family's mission: how many vehicles search it together, for how long."""
+    """How many vehicles fly the mission (every mission: 1 without this section), and on a scene family with a
+    team's task for how long. The paper's settings search with one vehicle and count their budget in views."""
 
     vehicles: int = Field(1, ge=1, le=16)  # `uavsearch fly --vehicles N` overrides it
     # simulated seconds of flight: on the vehicles' own clock when flown, the lattice's flight times in teleport
@@ -232,7 +233,7 @@ class Mission(_Strict):
     camera: CameraSection = CameraSection()
     flight: FlightSection = FlightSection()
     plan: str | None = None  # a QGroundControl .plan (relative to this file): `uavsearch mission upload` flies it
-    team: TeamSection | None = None  # a scene family's mission (scene.setting: wide): the team and its time
+    team: TeamSection | None = None  # the vehicles (1 without it); a team's family: also its mission time
     source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
 
     @field_validator("fusion", "policy")
@@ -243,8 +244,7 @@ class Mission(_Strict):
         scene = info.data.get("scene")
         if scene is not None and scene.family is not None:  # a team's fusion spec and planner (search/team.py)
             from ..search.config import setting_config
-            from ..search.evaluate.team import make_planner
-            from ..search.fusion import make_fusion
+            from ..search.agents import make_fusion, make_planner
 
             if v == {"fusion": FROM_CHECKPOINT, "policy": WIDE_POLICY}[info.field_name]:
                 return v  # the learned wide-area policy and the fusion saved with it (checked in _consistent)
@@ -283,8 +283,12 @@ class Mission(_Strict):
             if learned and self.vehicles != 1:
                 raise ValueError(f"team.vehicles: the learned wide-area policy flies one vehicle, not {self.vehicles}")
             return self
-        if self.team is not None:
-            raise ValueError("team: only a scene family's mission (scene.setting: wide) flies a team")
+        if self.vehicles != 1:
+            raise ValueError(f"team.vehicles: the {self.policy} policy flies one vehicle, not {self.vehicles}; a team "
+                             "flies a scene family's mission with a team planner (missions/wide_team.yaml)")
+        for name in ("mission_time_s", "max_views"):
+            if self.team is not None and getattr(self.team, name) != TeamSection.model_fields[name].default:
+                raise ValueError(f"team.{name}: a paper setting's mission counts its budget in views (search.budget_T)")
         if _checks_registry(info) and _registry().trained_fusion(self.fusion) and \
                 not _registry().loads_checkpoint(self.policy) and self.checkpoint is None and s.setting is None:
             raise ValueError(f"{self.fusion} fusion needs a checkpoint (no setting to pick a shipped one)")
@@ -347,10 +351,10 @@ class Mission(_Strict):
         if self.checkpoint:
             return self._resolve(self.checkpoint)
         if self.family is not None:  # the shipped learned wide-area policy of the mission's budget
-            from ..search.map_policy import wide_checkpoint
+            from ..search.checkpoints import shipped
 
             views = self.team.max_views if self.team is not None else None
-            return wide_checkpoint(str(views) if views is not None else f"{self.search_config().budget_s:g}")
+            return shipped("map", budget=str(views) if views is not None else f"{self.search_config().budget_s:g}")
         agents = _registry()
         trained = self.policy in agents.POLICIES and agents.loads_checkpoint(self.policy)
         return agents.checkpoint_path(self.setting_for_models, self.fusion, policy=self.policy if trained else "learned")
@@ -359,11 +363,9 @@ class Mission(_Strict):
     def perception_path(self) -> Path:
         if self.perception:
             return self._resolve(self.perception)
-        if self.family is not None:
-            from ..search.perception import shipped_perception  # lazy: torch
+        from ..search.checkpoints import shipped
 
-            return shipped_perception(self.family)
-        return MODELS_DIR / "perception.pt"
+        return shipped("perception", self.family)  # the paper's models/perception.pt unless the family ships one
 
     @property
     def plan_path(self) -> Path | None:
@@ -424,8 +426,8 @@ class Mission(_Strict):
         """A scene family's mission's fusion and planner (search/team.py's run_team flies them): a team planner
         with its fusion spec, or the learned wide-area policy with the fusion saved in its checkpoint (one
         vehicle; the checkpoint must have been trained for the mission's budget)."""
-        from ..search.evaluate.team import make_planner
-        from ..search.fusion import fusion_name, make_fusion
+        from ..search.agents import make_fusion, make_planner
+        from ..search.fusion import fusion_name
         from ..search.team import EachVehicle
 
         config = config or self.search_config()

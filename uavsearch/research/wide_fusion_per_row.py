@@ -26,7 +26,8 @@ from ..search.evaluate.bounds import bootstrap_ci, scene_af1
 from ..search.config import wide_budgets
 from ..search.evaluate.wide import FIXED, FUSION_CANDIDATES, LABELS, RULE, fixed_agents, rule_agent, run_rows
 from ..search.fusion import fusion_name
-from ..search.fusion import calibrated_candidates, make_fusion
+from ..search.agents import make_fusion
+from ..search.fusion import calibrated_candidates
 from ..search.wide_policies import choose_rule
 from ..search.perception import load_perception, shipped_perception
 

@@ -40,7 +40,8 @@ from ..paths import display_path
 from ..search.agents import budget_text
 from ..search.data.view_cache import get_view_cache
 from ..search.evaluate.bounds import bootstrap_ci
-from ..search.fusion import SAME_SCALE, calibrated_logit, make_fusion
+from ..search.agents import make_fusion
+from ..search.fusion import SAME_SCALE, calibrated_logit
 from ..search.map_policy import MAP_PLANES, MapPolicyConfig, MapPolicyNet
 from ..search.config import config_to_dict
 from ..search.perception import load_perception, shipped_perception

@@ -1,4 +1,5 @@
-"""THE registry of fusion methods and policies, and the one `build_agent(...)` every user goes through.
+"""THE registry of fusion methods, policies and team planners, and the one `build_agent(...)` every user goes
+through.
 
 Evaluation (the rows of Table II), flying (a mission's method), replay (re-running perception + fusion on a
 log) and training all build their agents here, so a fusion method or a policy is named in one place:
@@ -11,7 +12,12 @@ log) and training all build their agents here, so a fusion method or a policy is
   gymnasium env) from search_s<K>_<fusion>_external.pt, "map" (map_policy.MapPolicyNet, the wide-area
   search's) from the checkpoint a wide mission or Table III names; the others are built from the search config.
 
-Adding a fusion method is one class and one entry in fusion.py's FUSIONS; adding a policy is one entry here.
+- fusion specs: `make_fusion(spec)` builds every fusion a user names: "name" or "name:prior" (bayes:0.02),
+  "calibrated:GAMMA" fitted on training views, and (given a setting) a trained one from its shipped checkpoint.
+- team planners: `PLANNERS` below (search/team.py's), "name" or "name:VALUE" for a planner with a parameter.
+
+Adding a fusion method is one class and one entry in fusion.py's FUSIONS; adding a policy or a team planner is
+one entry here.
 """
 
 from __future__ import annotations
@@ -23,14 +29,17 @@ from typing import Callable, NamedTuple
 from torch import nn
 
 from uavsearch.errors import UavsearchError
-from uavsearch.paths import MODELS_DIR, display_path
+from uavsearch.paths import display_path
+from uavsearch.world.settings import setting_params
 
+from .checkpoints import checkpoint_path
 from .config import SearchConfig, config_from_dict
-from .fusion import FUSIONS, Fusion, check_buildable
+from .fusion import FUSIONS, Fusion, calibrated_candidates, calibrated_gamma, check_buildable, fusion_from_spec
 from .perception import load_perception
 from .policy import (ArgmaxPolicy, CoverageRoute, GreedyUncertainty, PolicyConfig, PolicyNet, RandomPolicy,
                      load_search_model)
 from .search_loop import Agent, Policy
+from .team import EachVehicle, Partition, TeamEntropy, TeamPlanner, TeamRule
 from .wide_policies import (SURVEY_INNER_M, SURVEY_OUTER_M, DescendRule, EntropyPerSecond, MaskedRandom, RoutePolicy,
                             lawnmower, survey_then_lawnmower)
 from .perception import perception_tag
@@ -38,7 +47,7 @@ from .perception import perception_tag
 
 class PolicyKind(NamedTuple):
     """How a policy is made: from the config, or (build None) loaded from a search checkpoint whose net is of
-    kind `net` (policy.POLICY_NETS)."""
+    kind `net` (checkpoints.POLICY_NETS)."""
 
     build: Callable[[SearchConfig], Policy] | None
     description: str
@@ -72,6 +81,66 @@ POLICIES: dict[str, PolicyKind] = {
 }
 
 
+class PlannerKind(NamedTuple):
+    """How a team planner is made from the search config and the VALUE of "name:VALUE" ("" without one)."""
+
+    build: Callable[[SearchConfig, str], TeamPlanner]
+    description: str
+    parameter: str | None = None  # what VALUE sets (None: the planner takes none)
+
+
+def _team_entropy(config: SearchConfig, value: str) -> TeamPlanner:
+    try:
+        shared = float(value) if value else 0.8
+    except ValueError:
+        shared = float("nan")
+    if not 0.0 <= shared <= 1.0:
+        raise UavsearchError(f"team planner team_entropy:{value}: the discount must be a number in [0, 1]")
+    return TeamEntropy(config, shared)
+
+
+PLANNERS: dict[str, PlannerKind] = {
+    "rule": PlannerKind(lambda c, _: TeamRule(c), "the rule for a team (nearest free survey viewpoint, then the "
+                                                  "descent score)"),
+    "rule_per_s": PlannerKind(lambda c, _: TeamRule(c, per_second=True),
+                              "the rule for a team, descent score per second of flight"),
+    "partition": PlannerKind(lambda c, _: Partition(c), "fixed partition (each vehicle the 40 m lawnmower of its "
+                                                        "strip)"),
+    "entropy_per_s": PlannerKind(lambda c, _: EachVehicle(EntropyPerSecond(c)), "entropy per second, each vehicle "
+                                                                                "in turn"),
+    "team_entropy": PlannerKind(_team_entropy, "entropy per second, cells others are about to see discounted",
+                                "SHARED"),
+}
+
+
+def make_planner(spec: str, config: SearchConfig) -> TeamPlanner:
+    """A team planner from its name, or name:VALUE for one with a parameter (team_entropy:0.8)."""
+    key, _, value = str(spec).partition(":")
+    if key not in PLANNERS or (value and PLANNERS[key].parameter is None):
+        with_value = ", ".join(f"{k}:{p.parameter}" for k, p in PLANNERS.items() if p.parameter)
+        raise UavsearchError(f"unknown team planner {spec!r}; valid: {', '.join(PLANNERS)} ({with_value})")
+    return PLANNERS[key].build(config, value)
+
+
+def make_fusion(spec: str, train=None, *, setting=None, models_dir=None, device="cpu") -> Fusion:
+    """The fusion a name or spec says. Without `setting`: fusion.fusion_from_spec's ("name" or "name:prior" of a
+    fusion without weights or labels), or "calibrated[:GAMMA]" fitted on the training view cache `train` (Table
+    III's --wide-fusion, a wide mission's fusion, the map policy's). With `setting` (an env's): any method of
+    FUSIONS by name, a trained one with the weights of the setting's shipped checkpoint (its net on `device`)."""
+    if setting is None:
+        gamma = calibrated_gamma(spec)
+        if gamma is not None and train is not None:
+            return calibrated_candidates(train, (gamma,))[0]
+        return fusion_from_spec(spec, "--wide-fusion")
+    check_buildable(spec)
+    if not FUSIONS[spec].trainable:
+        return FUSIONS[spec]()
+    family = setting_params(setting)
+    if family.task.mission != "moves":  # a lattice task's policies are map policies, saved per budget, not per fusion
+        raise UavsearchError(f"{spec} fusion has no shipped checkpoint for scene family {family.name!r}; choose bayes")
+    return load_search_model(checkpoint_path(setting, spec, models_dir), device).fusion  # eval mode; saves whole
+
+
 def trained_fusion(fusion: str) -> bool:
     """Whether the fusion method has trained weights (loaded from a search checkpoint)."""
     return FUSIONS[fusion].trainable
@@ -83,15 +152,6 @@ def check_names(fusion: str | None = None, policy: str | None = None) -> None:
         check_buildable(fusion)
     if policy is not None and policy not in POLICIES:
         raise UavsearchError(f"unknown policy {policy!r}; choose one of {', '.join(POLICIES)}")
-
-
-def checkpoint_path(setting: int | str, fusion: str, models_dir=None, policy: str = "learned") -> Path:
-    """Where `policy` trained with `fusion` for `setting` lives (default: the shipped models/): the family's
-    declared stem (search_s<id>) + _<fusion>.pt for the paper's "learned" policy, + _<fusion>_<policy>.pt otherwise."""
-    from ..world.settings import setting_params
-
-    suffix = "" if policy == "learned" else f"_{policy}"
-    return Path(models_dir or MODELS_DIR) / f"{setting_params(setting).task.policies}_{fusion}{suffix}.pt"
 
 
 def loads_checkpoint(policy: str) -> bool:
@@ -128,7 +188,7 @@ def _warn_tag(extra, perception, path) -> None:
 
 def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=None, confidence_checkpoint=None,
                 greedy: bool = False, perception=None, scores_net: bool = False,
-                error: type[UavsearchError] = UavsearchError, where: str = "") -> LoadedAgent:
+                error: type[UavsearchError] = UavsearchError, where: str = "", device="cpu") -> LoadedAgent:
     """The agent named by (fusion, policy).
 
     checkpoint: the learned policy's search checkpoint (its fusion must be `fusion`).
@@ -138,6 +198,7 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
     perception: a checkpoint path (or a loaded net) to load with the agent; the policy checkpoint's
         perception tag is checked against it.
     error, where: the error class and message prefix (a mission says which file is wrong).
+    device: where the nets it loads live (the episodes it acts in must live there too).
     """
     try:
         check_names(fusion, policy)
@@ -145,13 +206,13 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
         raise error(f"{where}{e}") from None
     net = None
     if perception is not None and not isinstance(perception, nn.Module):
-        perception, _ = load_perception(perception)
+        perception, _ = load_perception(perception, device)
     trained: Fusion | None = None  # a fusion with weights, from a checkpoint
     kind = POLICIES[policy]
     if kind.build is None:
         if checkpoint is None:
             raise error(f"{where}the {policy!r} policy needs a checkpoint")
-        trained, net, extra = load_search_model(checkpoint)
+        trained, net, extra = load_search_model(checkpoint, device)
         if perception is not None:
             _warn_tag(extra, perception, checkpoint)
         if trained.name != fusion:
@@ -179,7 +240,7 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
     if trained is None and confidence_checkpoint is not None and \
             (needed or (scores_net and Path(confidence_checkpoint).is_file())):
         try:
-            trained = load_search_model(confidence_checkpoint).fusion
+            trained = load_search_model(confidence_checkpoint, device).fusion
         except UavsearchError:
             if needed:
                 raise
@@ -195,14 +256,14 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
 
 
 def load_wide_agent(path, config: SearchConfig, error: type[UavsearchError] = UavsearchError,
-                    where: str = "") -> Agent | None:
+                    where: str = "", device="cpu") -> Agent | None:
     """The learned wide-area policy of a checkpoint (map_policy.MapPolicyNet) as an agent: its most likely
     viewpoint, with the fusion it was trained with (saved beside it). None where the file is missing; a
     checkpoint of another kind, or one trained for another lattice, grid or budget than `config`, is a one-line
     error (Table III and a wide mission both load it here)."""
     if not Path(path).is_file():
         return None
-    fusion, net, _ = load_search_model(path)
+    fusion, net, _ = load_search_model(path, device)
     if net.KIND != "map":
         raise error(f"{where}{display_path(path)} holds a {net.KIND!r} policy, not the wide family's map policy")
     trained = net.cfg.search_config()

@@ -44,7 +44,7 @@ class ExternalConfig:
 class ExternalPolicyNet(nn.Module):
     """An MLP actor on the flattened "cells" observation (module docstring)."""
 
-    KIND = "external"  # the checkpoint's policy kind (policy.POLICY_NETS)
+    KIND = "external"  # the checkpoint's policy kind (checkpoints.POLICY_NETS)
 
     def __init__(self, cfg: ExternalConfig):
         super().__init__()

@@ -357,7 +357,7 @@ class CalibratedFusion(Fusion):
             raise UavsearchError("calibrating a fusion needs views of both occupied and empty cells")
         p = torch.as_tensor(views.p)[v].double()
         a = torch.as_tensor(views.area_px)[v].double()
-        w = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.double, requires_grad=True)
+        w = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.double, device=p.device, requires_grad=True)
         opt = torch.optim.LBFGS([w], max_iter=200, line_search_fn="strong_wolfe")
 
         def loss():
@@ -494,15 +494,6 @@ def calibrated_candidates(train, gammas=CALIBRATED_GAMMAS) -> list[Fusion]:
 def fusion_name(fusion: Fusion) -> str:
     """The spec that names a fusion object ("calibrated:0.75", "bayes:0.1"): what tables and logs print."""
     return getattr(fusion, "spec", None) or f"{fusion.name}:{fusion.prior:g}"
-
-
-def make_fusion(spec: str, train=None) -> Fusion:
-    """A fusion from a spec: fusion_from_spec's ("name" or "name:prior"), or "calibrated[:GAMMA]" fitted on the
-    training view cache `train` (Table III's --wide-fusion, a wide mission's fusion, the map policy's)."""
-    gamma = calibrated_gamma(spec)
-    if gamma is not None and train is not None:
-        return calibrated_candidates(train, (gamma,))[0]
-    return fusion_from_spec(spec, "--wide-fusion")
 
 
 def calibrated_gamma(spec: str) -> float | None:

@@ -18,14 +18,13 @@ runs on the view cache; train/map_policy.py trains it.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from torch import nn
 
 from uavsearch.errors import UavsearchError
-from uavsearch.paths import MODELS_DIR
 
+from .checkpoints import wide_checkpoint
 from .config import SearchConfig, config_from_dict
 from .search_loop import PolicyInput, sample_actions
 from .wide_policies import binary_entropy, candidates, footprints
@@ -37,11 +36,6 @@ VIEWPOINT_FEATURES = ("descent_score", "mean_p", "entropy", "flight_time", "is_l
 VIEWS_SCALE = 4.0  # a cell's view count enters as n / 4 (a 70 m lawnmower sees a cell up to ~10 times)
 TIME_SCALE_S = 60.0  # flight times enter as seconds / 60
 BUDGETS = ("8", "240")  # Table III's two conditions: T = 8 views, or the family's time budget (one net each)
-
-
-def wide_checkpoint(budget: str, models_dir=None) -> Path:
-    """Where the learned wide-area policy of a budget lives (default: the shipped one in models/)."""
-    return Path(models_dir or MODELS_DIR) / f"search_wide_{'T8' if budget == '8' else f'{budget}s'}_map.pt"
 
 
 @dataclass(frozen=True)

@@ -28,14 +28,13 @@ import numpy as np
 import torch
 from torch import nn
 
+from uavsearch.devices import follow, resolve_device
 from uavsearch.errors import UavsearchError
 
+from .checkpoints import policy_net
 from .config import SearchConfig
-from .external_policy import ExternalConfig, ExternalPolicyNet
 from .fusion import Fusion, load_fusion
 from .perception import EMBED_DIM, ImageEmbedding
-from .map_policy import MapPolicyConfig, MapPolicyNet
-from .reactive import ReactiveConfig, ReactivePolicyNet
 from .search_loop import PolicyInput, sample_actions
 
 
@@ -78,7 +77,7 @@ class PolicyNet(nn.Module):
         if self.cfg.extras:
             B = inp.fused.shape[0]
             pos = torch.nn.functional.one_hot(inp.lattice_idx, self.cfg.num_positions).float()
-            step = torch.zeros(B, self.cfg.budget_T)
+            step = torch.zeros(B, self.cfg.budget_T, device=inp.fused.device)
             step[:, min(inp.step, self.cfg.budget_T - 1)] = 1.0
             parts += [pos, inp.visited.float(), step]
         return self.action(self.state(torch.cat(parts, dim=-1)))
@@ -105,7 +104,7 @@ class RandomPolicy:
 
     def act(self, inp: PolicyInput, generator: torch.Generator | None = None):
         B = inp.lattice_idx.shape[0]
-        return torch.randint(self.num_actions, (B,), generator=generator), None, None
+        return torch.randint(self.num_actions, (B,), generator=generator, device=inp.lattice_idx.device), None, None
 
 
 def coverage_route(config: SearchConfig, budget_T: int | None = None) -> tuple[int, ...]:
@@ -141,7 +140,8 @@ class CoverageRoute:
 
     def act(self, inp: PolicyInput, generator=None):
         B = inp.lattice_idx.shape[0]
-        return torch.full((B,), self.route[min(inp.step, len(self.route) - 1)], dtype=torch.long), None, None
+        return torch.full((B,), self.route[min(inp.step, len(self.route) - 1)], dtype=torch.long,
+                          device=inp.lattice_idx.device), None, None
 
 
 class GreedyUncertainty:
@@ -152,6 +152,7 @@ class GreedyUncertainty:
         self.weight = -config.lattice.cell_distances  # (P, N): nearer is better
 
     def act(self, inp: PolicyInput, generator=None):
+        follow(self, inp.fused.device)
         p = inp.fused.clamp(1e-6, 1 - 1e-6)
         H = -(p * p.log() + (1 - p) * (1 - p).log())  # (B, N) binary entropy of M-bar
         nxt = self.moves[inp.lattice_idx]  # (B, A)
@@ -168,13 +169,6 @@ class GreedyUncertainty:
 
 FORMAT = "uavsearch-search-model/2"
 FORMAT_V1 = "uavsearch-search-model/1"  # fusion as a name, learned fusion's confidence net by layer sizes
-# policy kind stored in a checkpoint -> (net, its config); files without a kind hold the paper's PolicyNet
-POLICY_NETS: dict[str, tuple[type[nn.Module], type]] = {
-    PolicyNet.KIND: (PolicyNet, PolicyConfig),
-    ReactivePolicyNet.KIND: (ReactivePolicyNet, ReactiveConfig),
-    ExternalPolicyNet.KIND: (ExternalPolicyNet, ExternalConfig),
-    MapPolicyNet.KIND: (MapPolicyNet, MapPolicyConfig),
-}
 
 
 class SearchModel(NamedTuple):
@@ -185,10 +179,11 @@ class SearchModel(NamedTuple):
 
 def _half(sd: dict) -> dict:
     """float16 storage halves the shipped files; loading casts back to float32 (what evaluation then uses)."""
-    return {k: (v.detach().half() if v.is_floating_point() else v.detach()).clone() for k, v in sd.items()}
+    return {k: (v.detach().cpu().half() if v.is_floating_point() else v.detach().cpu()).clone() for k, v in sd.items()}
 
 
-def save_search_model(path, fusion: Fusion, policy: PolicyNet | ReactivePolicyNet, extra: dict | None = None) -> Path:
+def save_search_model(path, fusion: Fusion, policy: nn.Module, extra: dict | None = None) -> Path:
+    """The policy net (its KIND, config and weights) and the fusion it was trained with, in one file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fused = fusion.save_dict()
@@ -208,16 +203,18 @@ def _fusion_v1(ck: dict) -> dict:
             "state_dict": {f"net.{k}": v for k, v in c["state_dict"].items()}}
 
 
-def load_search_model(path) -> SearchModel:
-    """The policy and fusion of a search checkpoint (either layout), in eval mode."""
+def load_search_model(path, device="cpu") -> SearchModel:
+    """The policy and fusion of a search checkpoint (either layout), in eval mode, on `device` (a torch.device or
+    devices.resolve_device's names)."""
     path = Path(path)
     if not path.is_file():
         raise UavsearchError(f"search model {path} not found (train one: uavsearch train policy)")
     try:
-        ck = torch.load(path, map_location="cpu", weights_only=True)
+        device = resolve_device(device)
+        ck = torch.load(path, map_location=device, weights_only=True)
         if ck.get("format") not in (FORMAT, FORMAT_V1):
             raise KeyError("format")
-        net_cls, cfg_cls = POLICY_NETS[ck.get("policy_kind", PolicyNet.KIND)]
+        net_cls, cfg_cls = policy_net(ck.get("policy_kind", PolicyNet.KIND))  # its module imported now
         policy = net_cls(cfg_cls(**ck["policy_config"]))
         policy.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in ck["policy_state"].items()})
         fusion = load_fusion(ck["fusion"] if ck["format"] == FORMAT else _fusion_v1(ck))
@@ -225,7 +222,9 @@ def load_search_model(path) -> SearchModel:
         raise
     except Exception as e:  # noqa: BLE001 - any corrupt file is one clear line
         raise UavsearchError(f"{path} is not a uavsearch search model ({type(e).__name__}: {e})") from None
-    policy.eval()
+    policy.eval().to(device)
+    if isinstance(fusion, nn.Module):
+        fusion.to(device)
     return SearchModel(fusion, policy, ck.get("extra", {}))
 
 
@@ -237,5 +236,5 @@ def round_trip_half(module: nn.Module) -> nn.Module:
     return module
 
 
-__all__ = ["POLICY_NETS", "SearchModel", "ArgmaxPolicy", "CoverageRoute", "GreedyUncertainty", "PolicyConfig", "PolicyNet",
+__all__ = ["SearchModel", "ArgmaxPolicy", "CoverageRoute", "GreedyUncertainty", "PolicyConfig", "PolicyNet",
            "RandomPolicy", "coverage_route", "load_search_model", "round_trip_half", "save_search_model"]

@@ -23,13 +23,15 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from ...devices import resolve_device, to_device
 from ...errors import SceneError, UavsearchError
 from ...world import settings
 from ...world.scene import SceneSpec, scene_from_json, scene_to_json
 from ..cells import REWARD_MODES, SearchBatch, TableSource, cell_tables, observation_keys
 from ..config import SearchConfig, setting_config
 from ..episode import Observation
-from ..fusion import FUSIONS, Fusion, check_buildable
+from ..agents import make_fusion
+from ..fusion import Fusion
 from ..perception import perceive
 from ..search_loop import R_FP, R_RE, R_TP
 from ..views import TeleportVehicle, View
@@ -54,20 +56,6 @@ def default_fusion(setting) -> str:
     return settings.setting_params(setting).task.fusion
 
 
-def make_fusion(name: str, setting, models_dir=None) -> Fusion:
-    """The fusion object `name` (search/fusion.py's FUSIONS); a trained one comes from the setting's checkpoint."""
-    from ..agents import checkpoint_path
-    from ..policy import load_search_model
-
-    check_buildable(name)
-    if not FUSIONS[name].trainable:
-        return FUSIONS[name]()
-    fam = settings.setting_params(setting)
-    if fam.task.mission != "moves":  # a lattice task's policies are map policies, saved per budget, not per fusion
-        raise UavsearchError(f"{name} fusion has no shipped checkpoint for scene family {fam.name!r}; choose bayes")
-    return load_search_model(checkpoint_path(setting, name, models_dir)).fusion  # eval mode; saves whole
-
-
 class SceneViews:
     """Where an env's scenes come from: the view cache of one (setting, split, part) under a config, loaded on
     first use (built then if missing, with progress bars), plus the scene seeds it holds.
@@ -77,8 +65,9 @@ class SceneViews:
     ``if __name__ == "__main__":`` guard cannot start spawned workers)."""
 
     def __init__(self, setting, split, part, config: SearchConfig, fusion: Fusion, perception=None, limit=None,
-                 cache_dir=None, cache=None, progress: bool = True, workers: int = 1):
+                 cache_dir=None, cache=None, progress: bool = True, workers: int = 1, device="cpu"):
         self.setting, self.split, self.part, self.config, self.fusion = setting, split, part, config, fusion
+        self.device = torch.device(device)  # where the tables (and so the episodes) live; the cache stays on the CPU
         self.limit, self.cache_dir, self.progress, self.workers = limit, cache_dir, progress, workers
         self._perception, self._cache = perception, cache
         self._tables = None
@@ -112,7 +101,7 @@ class SceneViews:
                                              cache_dir=self.cache_dir, progress=self.progress, config=self.config,
                                              workers=self.workers,
                                              features=self.fusion.scorer is not None, limit=self.limit)
-            self._tables = cell_tables(self._cache, self.fusion)
+            self._tables = cell_tables(to_device(self._cache, self.device), self.fusion)
         return self._tables
 
     @property
@@ -141,8 +130,9 @@ class SceneViews:
 class LiveSource:
     """One episode on a scene outside the caches (a ViewSource): render at the viewpoint, run perception (B = 1)."""
 
-    def __init__(self, vehicle: TeleportVehicle, perception, fusion: Fusion):
+    def __init__(self, vehicle: TeleportVehicle, perception, fusion: Fusion, device="cpu"):
         self.vehicle, self.perception, self.scorer = vehicle, perception, fusion.frozen().scorer
+        self.device = torch.device(device)
         self.positions = vehicle.config.lattice.positions_enu
         self._memo: dict[int, tuple[View, Observation]] = {}
         self.batch_size = 1
@@ -152,8 +142,9 @@ class LiveSource:
             view = self.vehicle.capture(self.positions[idx])
             o, valid, area = perceive(self.perception, [view])
             with torch.no_grad():
-                scores = None if self.scorer is None else self.scorer(o.cell_features.float())
-            self._memo[idx] = (view, Observation(None, None, None, area, valid, scores, o.log_probs[..., 1].exp().float()))
+                scores = None if self.scorer is None else self.scorer(o.cell_features.float().to(self.device))
+            self._memo[idx] = (view, to_device(Observation(None, None, None, area, valid, scores,
+                                                           o.log_probs[..., 1].exp().float()), self.device))
         return self._memo[idx]
 
     def observe(self, lattice_idx) -> Observation:
@@ -253,7 +244,9 @@ class ActiveSearchEnv(gym.Env):
     ``models_dir`` (where a trained fusion's checkpoint lives), ``cache_dir``, ``cache`` (a ViewCache in
     memory instead), ``r_tp`` / ``r_fp`` / ``r_revisit``, ``render_mode`` (``"rgb_array"``: the last view's
     image; image mode), ``cache_scenes`` (live scenes whose renders are kept), ``progress``, ``workers`` (render
-    processes when a cache is built; 1 renders in this process).
+    processes when a cache is built; 1 renders in this process), ``device`` (where the episode's tensors live:
+    ``"cpu"`` (default), ``"cuda"``, ``"cuda:N"`` or ``"auto"``, devices.resolve_device; observations are numpy
+    whatever it is, and on the CPU the same numbers as ever).
 
     **Info.** ``occupancy`` (N*N,) int8 ground truth; ``f1`` / ``acc`` of the fused map after this view
     (search/metrics.py); ``revisit`` bool; ``scene_seed``; ``occupied_cells``; ``lattice_index`` of the camera
@@ -285,6 +278,7 @@ class ActiveSearchEnv(gym.Env):
         cache_scenes: int = 8,
         progress: bool = True,
         workers: int = 1,
+        device: str = "cpu",
     ):
         setting = settings.setting_key(setting)  # 2 for "2"; a bad setting is a one-line error now
         if obs not in OBS_MODES:
@@ -302,10 +296,12 @@ class ActiveSearchEnv(gym.Env):
         self.obs_mode, self.reward_mode, self.views_mode = obs, reward, views
         self.r_revisit = float(r_revisit)
         self.render_mode = render_mode
-        self.fusion = make_fusion(fusion or default_fusion(setting), setting, models_dir)
+        self.device = resolve_device(device)
+        self.fusion = make_fusion(fusion or default_fusion(setting), setting=setting, models_dir=models_dir,
+                                  device=self.device)
         self.scenes = SceneViews(setting, self.split, part, self.config, self.fusion, perception, limit, cache_dir,
-                                 cache, progress, workers)
-        self._batch = SearchBatch(self.config, self.fusion, 1, reward, r_tp, r_fp, r_revisit)
+                                 cache, progress, workers, self.device)
+        self._batch = SearchBatch(self.config, self.fusion, 1, reward, r_tp, r_fp, r_revisit, device=self.device)
         self._vehicles: OrderedDict[str, TeleportVehicle] = OrderedDict()  # live scenes' renderers
         self._cache_scenes = cache_scenes
         self._images: OrderedDict[int, Any] = OrderedDict()  # cached scenes' renders (ViewSets), by row
@@ -410,7 +406,7 @@ class ActiveSearchEnv(gym.Env):
     def _info(self) -> dict[str, Any]:
         sc = self._batch.scores()
         info = {
-            "occupancy": self._batch.labels[0].numpy().astype(np.int8),
+            "occupancy": self._batch.labels[0].cpu().numpy().astype(np.int8),
             "f1": float(sc["f1"][0]), "acc": float(sc["acc"][0]),
             "revisit": bool(self._batch.revisit[0]),
             "scene_seed": self._scene_seed,
@@ -422,7 +418,7 @@ class ActiveSearchEnv(gym.Env):
             else self._last_view.person_mask.copy(),
         }
         if self.config.budget_s is not None:
-            info["action_mask"] = self._batch.allowed[0].numpy().astype(np.int8)
+            info["action_mask"] = self._batch.allowed[0].cpu().numpy().astype(np.int8)
         return info
 
     # ----------------------------------------------------------------------------------------------
@@ -438,7 +434,7 @@ class ActiveSearchEnv(gym.Env):
                               f"view caches of setting {self.setting} {self.split}/{self.part}; rendering it live "
                               "(about a second a view)", stacklevel=2)
                 self._warned = True
-            self._live = LiveSource(self._vehicle_for(self.scene), self.scenes.perception, self.fusion)
+            self._live = LiveSource(self._vehicle_for(self.scene), self.scenes.perception, self.fusion, self.device)
             self._batch.source = self._live
             labels = self.scene.occupancy_array()
         else:
@@ -510,4 +506,4 @@ class WideSearchEnv(ActiveSearchEnv):
 
 
 __all__ = ["ActiveSearchEnv", "OBS_MODES", "SceneViews", "VIEW_MODES", "WideSearchEnv", "cells_space",
-           "default_fusion", "make_fusion"]
+           "default_fusion"]

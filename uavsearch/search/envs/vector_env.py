@@ -15,11 +15,13 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from ...devices import resolve_device
 from ...errors import UavsearchError
 from ...world import settings
 from ..cells import SearchBatch, TableSource
 from ..config import SearchConfig, setting_config
-from .search_env import SceneViews, cells_space, default_fusion, make_fusion
+from ..agents import make_fusion
+from .search_env import SceneViews, cells_space, default_fusion
 from ..search_loop import R_FP, R_RE, R_TP
 
 
@@ -51,7 +53,8 @@ class SearchVectorEnv(VectorEnv):
                  split: str | None = None, part: str = "train", obs: str = "cells", reward: str = "terminal",
                  fusion: str | None = None, limit: int | None = None, perception=None, models_dir=None,
                  cache_dir=None, cache=None, r_tp: float = R_TP, r_fp: float = R_FP, r_revisit: float = R_RE,
-                 progress: bool = True, views: str = "cache", render_mode: str | None = None, workers: int = 1):
+                 progress: bool = True, views: str = "cache", render_mode: str | None = None, workers: int = 1,
+                 device: str = "cpu"):
         if obs != "cells" or views != "cache":
             raise UavsearchError("the native vector env steps cached 'cells' observations only; for images use "
                                  "gym.make_vec(..., vectorization_mode='sync') of the single env")
@@ -61,15 +64,18 @@ class SearchVectorEnv(VectorEnv):
         self.num_envs = int(num_envs)
         self.config = config or getattr(cache, "config", None) or setting_config(setting)
         self.setting, self.split, self.part = setting, split or settings.setting_params(setting).split, part
-        self.fusion = make_fusion(fusion or default_fusion(setting), setting, models_dir)
+        self.device = resolve_device(device)
+        self.fusion = make_fusion(fusion or default_fusion(setting), setting=setting, models_dir=models_dir,
+                                  device=self.device)
         self.scenes = SceneViews(setting, self.split, part, self.config, self.fusion, perception, limit, cache_dir,
-                                 cache, progress, workers)
+                                 cache, progress, workers, self.device)
         self.render_mode = render_mode
         self.single_observation_space = cells_space(self.config)
         self.single_action_space = gym.spaces.Discrete(self.config.num_actions)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
-        self._batch = SearchBatch(self.config, self.fusion, self.num_envs, reward, r_tp, r_fp, r_revisit)
+        self._batch = SearchBatch(self.config, self.fusion, self.num_envs, reward, r_tp, r_fp, r_revisit,
+                                  device=self.device)
         self._source: TableSource | None = None
         self._rngs = [seeding.np_random(None)[0] for _ in range(self.num_envs)]
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
@@ -81,20 +87,20 @@ class SearchVectorEnv(VectorEnv):
             self._source = TableSource(tables, self.num_envs)
             self._batch.source = self._source
         S = len(self.scenes.seeds)
-        rows = torch.as_tensor([int(self._rngs[i].integers(S)) for i in envs], dtype=torch.long)
-        envs_t = torch.as_tensor(envs, dtype=torch.long)
+        rows = torch.as_tensor([int(self._rngs[i].integers(S)) for i in envs], dtype=torch.long, device=self.device)
+        envs_t = torch.as_tensor(envs, dtype=torch.long, device=self.device)
         self._source.rows[envs_t] = rows
         self._batch.start(envs_t, tables.labels[rows])
 
     def _info(self) -> dict[str, Any]:
         b = self._batch
         sc = b.scores()
-        info = {"f1": sc["f1"], "acc": sc["acc"], "revisit": b.revisit.numpy().copy(),
-                "scene_seed": self.scenes.tables.scene_seed[self._source.rows.numpy()],
-                "lattice_index": b.idx.numpy().copy(), "step": b.t.numpy().copy(),
-                "occupancy": b.labels.numpy().astype(np.int8)}
+        info = {"f1": sc["f1"], "acc": sc["acc"], "revisit": b.revisit.cpu().numpy().copy(),
+                "scene_seed": self.scenes.tables.scene_seed[self._source.rows.cpu().numpy()],
+                "lattice_index": b.idx.cpu().numpy().copy(), "step": b.t.cpu().numpy().copy(),
+                "occupancy": b.labels.cpu().numpy().astype(np.int8)}
         if self.config.budget_s is not None:
-            info["action_mask"] = b.allowed.numpy().astype(np.int8)
+            info["action_mask"] = b.allowed.cpu().numpy().astype(np.int8)
         ones = np.ones(self.num_envs, dtype=bool)
         return {**info, **{f"_{k}": ones for k in list(info)}}
 
@@ -128,7 +134,7 @@ class SearchVectorEnv(VectorEnv):
         if ((actions < 0) | (actions >= self.single_action_space.n))[~again].any():
             raise gym.error.InvalidAction(f"actions outside {self.single_action_space}: {actions}")
         rewards, terminated = self._batch.step(np.where(again, 0, actions), active=torch.as_tensor(~again))
-        rewards, terminated = rewards.numpy().astype(np.float64), terminated.numpy().copy()
+        rewards, terminated = rewards.cpu().numpy().astype(np.float64), terminated.cpu().numpy().copy()
         if again.any():
             self._start(np.flatnonzero(again))
         truncated = np.zeros(self.num_envs, dtype=bool)

@@ -50,6 +50,7 @@ import torch
 from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.devices import resolve_device, to_device
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.parallel import Executor, ScaleOutArgs
 from uavsearch.paths import MODELS_DIR, display_path
@@ -97,8 +98,6 @@ def policy_checkpoint(setting: int, fusion: str, policy: str, models_dir=None) -
     """The checkpoint a row's policy loads (None for a policy built from the config)."""
     if POLICIES[policy].build is not None:
         return None
-    if policy == "learned":
-        return checkpoint_path(setting, fusion, models_dir)
     return checkpoint_path(setting, fusion, models_dir, policy=policy)
 
 
@@ -123,12 +122,12 @@ def available_rows(setting: int, models_dir=None) -> tuple[list[str], list[str]]
 
 
 def methods(setting: int, config: SearchConfig, models_dir=None, argmax: bool = False,
-            keys=None) -> dict[str, Agent]:
+            keys=None, device="cpu") -> dict[str, Agent]:
     """Every Table II row (plus coverage and greedy; only `keys` when given) as an Agent, from the checkpoints
-    in `models_dir`."""
+    in `models_dir`, its nets on `device`."""
     return {key: build_agent(fusion, policy, config, checkpoint=policy_checkpoint(setting, fusion, policy, models_dir),
                              confidence_checkpoint=checkpoint_path(setting, "learned", models_dir),
-                             greedy=argmax or policy in ARGMAX_POLICIES).agent
+                             greedy=argmax or policy in ARGMAX_POLICIES, device=device).agent
             for key, _, fusion, policy in ROWS if keys is None or key in keys}
 
 
@@ -166,7 +165,7 @@ def evaluate_setting(setting: int, cache, args: EvalArgs, keys=None) -> dict[str
     """{row key: {"acc": (seeds, E, T), "f1": ..., "revisit": (seeds,), "scenes": S}} on one setting's cache,
     for the rows `keys` (default every row)."""
     config = cache.config
-    agents = methods(setting, config, args.models_dir, args.argmax, keys)
+    agents = methods(setting, config, args.models_dir, args.argmax, keys, device=cache.occupancy.device)
     res: dict[str, dict] = {}
     for key, agent in tqdm(agents.items(), desc=f"eval setting {setting}", disable=not args.progress, leave=False):
         single = key == "single_view"
@@ -241,7 +240,8 @@ def setting_bounds(setting: int, cache, res: dict[str, dict], args: EvalArgs) ->
     else:
         b["hidden_start"], b["hidden_all"] = hidden
     conf_path = checkpoint_path(setting, "learned", args.models_dir)
-    confidence = load_search_model(conf_path).fusion if args.bounds and conf_path.is_file() else None
+    confidence = load_search_model(conf_path, cache.occupancy.device).fusion if args.bounds and conf_path.is_file() \
+        else None
     if not args.bounds:
         b["notes"].append("route bounds not computed (--bounds false)")
     elif confidence is None:
@@ -436,6 +436,8 @@ def eval_search(args: EvalArgs, caches: dict | None = None) -> dict:
         caches = {s: get_view_cache(net, s, split, "test", cache_dir=args.cache_dir, progress=args.progress,
                                     executor=Executor.from_args(args))
                   for s in settings}
+    device = resolve_device(getattr(args, "device", "auto"))
+    caches = {s: to_device(caches[s], device) for s in settings}
     results = {s: evaluate_setting(s, caches[s], args, keys[s]) for s in settings}
     rows = summarise(results, args.episodes)
     paired = [{"setting": s, **p} for s in settings

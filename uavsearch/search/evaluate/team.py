@@ -20,29 +20,21 @@ from pathlib import Path
 import numpy as np
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.devices import resolve_device, to_device
 from uavsearch.errors import UavsearchError, run_command
 from uavsearch.parallel import ScaleOutArgs
 from uavsearch.paths import display_path
 from uavsearch.viz import pyplot, save_figure
 
-from ..config import SearchConfig
+from ..agents import PLANNERS, make_fusion, make_planner
 from ..data.view_cache import ViewCache
 from ..metrics import map_f1
 from ..search_loop import CachedViews
-from ..team import EachVehicle, Partition, TeamEntropy, TeamRule, run_team
-from ..wide_policies import EntropyPerSecond
+from ..team import run_team
 from .bounds import RESAMPLES, bootstrap_ci
 from .tables import write_csv
-from ..fusion import make_fusion
 from .wide import FUSION_CANDIDATES, family_caches
 
-PLANNERS = {
-    "rule": "the rule for a team (nearest free survey viewpoint, then the descent score)",
-    "rule_per_s": "the rule for a team, descent score per second of flight",
-    "partition": "fixed partition (each vehicle the 40 m lawnmower of its strip)",
-    "entropy_per_s": "entropy per second, each vehicle in turn",
-    "team_entropy": "entropy per second, cells others are about to see discounted",
-}
 CHOSEN = tuple(PLANNERS)  # what "the team planner" is chosen among on validation
 # Table III's candidates and two higher Bayes priors: with many views per map (a team) validation's best prior
 # sat at Table III's highest, 0.5
@@ -51,36 +43,14 @@ TEAM_FUSIONS = (*FUSION_CANDIDATES, "bayes:0.6", "bayes:0.7")
 VARIANTS = {"team_entropy": ("team_entropy:0.5", "team_entropy:0.8", "team_entropy:1")}
 
 
-def make_planner(spec: str, config: SearchConfig):
-    """A team planner from its name, or name:value for a variant (team_entropy:0.8)."""
-    key, _, value = str(spec).partition(":")
-    if key not in PLANNERS or (value and key not in VARIANTS):
-        raise UavsearchError(f"unknown team planner {spec!r}; valid: {', '.join(PLANNERS)} (team_entropy:SHARED)")
-    if key == "rule":
-        return TeamRule(config)
-    if key == "rule_per_s":
-        return TeamRule(config, per_second=True)
-    if key == "partition":
-        return Partition(config)
-    if key == "entropy_per_s":
-        return EachVehicle(EntropyPerSecond(config))
-    try:
-        shared = float(value) if value else 0.8
-    except ValueError:
-        shared = float("nan")
-    if not 0.0 <= shared <= 1.0:
-        raise UavsearchError(f"team planner {spec}: the discount must be a number in [0, 1]")
-    return TeamEntropy(config, shared)
-
-
 def team_scores(cache: ViewCache, planner: str, fusion_spec: str, vehicles: int, budget_s: float) -> dict:
     """Per-scene final AF1 and Aacc, views and flight of one team on every scene of `cache`."""
     config = dataclasses.replace(cache.config, budget_T=cache.config.lattice.num_positions)
     ep = run_team(CachedViews(cache, np.arange(cache.num_scenes), config), make_fusion(fusion_spec),
                   make_planner(planner, config), vehicles, budget_s)
-    final = ep.map_at(budget_s).numpy()
-    y = cache.occupancy.numpy()
-    return {"f1": map_f1(final, y), "acc": ((final > 0.5) == y).mean(1), "views": ep.views().numpy()}
+    final = ep.map_at(budget_s).cpu().numpy()
+    y = cache.occupancy.cpu().numpy()
+    return {"f1": map_f1(final, y), "acc": ((final > 0.5) == y).mean(1), "views": ep.views().cpu().numpy()}
 
 
 def choose_fusion(val: ViewCache, planner: str, vehicles: int, budget_s: float,
@@ -164,7 +134,7 @@ def table_lines(res: dict, sizes, times, family: str, scenes: dict) -> list[str]
                 c = conds[(v, t)]
                 a = f"{c[key]['f1'].mean():.3f}"
                 cells.append(f"**{a}**" if c["chosen"] == key else a)
-            lines.append(f"| {v} | {PLANNERS[key]} | " + " | ".join(cells) + " |")
+            lines.append(f"| {v} | {PLANNERS[key].description} | " + " | ".join(cells) + " |")
     lines += ["", f"Team planner against one vehicle at {ref[1]:g} s (Δ AF1 [95% CI]; fusion; views per episode):", "",
               "| vehicles | mission time | planner | fusion | AF1 | views | Δ vs 1 vehicle at "
               f"{ref[1]:g} s |", "|---|---|---|---|---|---|---|"]
@@ -215,6 +185,7 @@ def eval_team(args: TeamEvalArgs, caches: dict | None = None) -> dict:
         raise UavsearchError("--vehicles: at most 16")
     t0 = time.perf_counter()
     caches = caches if caches is not None else family_caches(args, args.setting)
+    caches = {part: to_device(c, resolve_device(getattr(args, "device", "auto"))) for part, c in caches.items()}
     fusions = [f.strip() for f in args.fusions.split(",") if f.strip()]
     for f in fusions:
         make_fusion(f)  # a bad name is a one-line error before any work

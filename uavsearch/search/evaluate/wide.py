@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from uavsearch.devices import make_generator, resolve_device, to_device
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor
 from uavsearch.paths import display_path
@@ -42,7 +43,8 @@ from uavsearch.world.settings import setting_params
 from ..agents import build_agent, load_wide_agent
 from ..config import SearchConfig, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
-from ..fusion import Fusion, OracleFusion, calibrated_candidates, calibrated_gamma, fusion_name, make_fusion
+from ..agents import make_fusion
+from ..fusion import Fusion, OracleFusion, calibrated_candidates, calibrated_gamma, fusion_name
 from ..map_policy import BUDGETS, wide_checkpoint
 from ..perception import load_perception, shipped_perception
 from ..policy import load_search_model
@@ -92,12 +94,12 @@ def run_rows(cache: ViewCache, config: SearchConfig, agents: dict[str, tuple[Age
         rows = np.repeat(np.arange(cache.num_scenes), episodes)
         acc, f1, views, flight, by_view, by_s = [], [], [], [], [], []
         for s in range(seeds if episodes > 1 else 1):
-            ep = run_search(CachedViews(cache, rows, config), agent, generator=torch.Generator().manual_seed(s))
+            ep = run_search(CachedViews(cache, rows, config), agent, generator=make_generator(s, cache.occupancy.device))
             sc = score_episode(ep)
             acc.append(sc.acc[:, -1:])
             f1.append(sc.f1[:, -1:])
-            views.append(ep.taken.sum(1).numpy() if ep.taken is not None else np.full(len(rows), ep.maps.shape[1]))
-            flight.append(ep.flight_s.numpy() if ep.flight_s is not None else flight_seconds(config, ep.lattice_idx))
+            views.append(ep.taken.sum(1).cpu().numpy() if ep.taken is not None else np.full(len(rows), ep.maps.shape[1]))
+            flight.append(ep.flight_s.cpu().numpy() if ep.flight_s is not None else flight_seconds(config, ep.lattice_idx))
             by_view.append(sc.f1.mean(0))
             by_s.append(f1_by_seconds(config, ep.lattice_idx, sc.f1, curve_seconds(config)).mean(0))
         out[key] = {"acc": np.stack(acc), "f1": np.stack(f1), "views": np.concatenate(views),
@@ -117,7 +119,7 @@ def curve_seconds(config: SearchConfig) -> np.ndarray:
 def arrival_seconds(config: SearchConfig, lattice_idx) -> np.ndarray:
     """(B, T') seconds of flight before each view of each episode (0 for the start view; an ended episode's
     later columns repeat its last viewpoint, so its clock stops there)."""
-    idx = np.asarray(lattice_idx)
+    idx = lattice_idx.cpu().numpy() if isinstance(lattice_idx, torch.Tensor) else np.asarray(lattice_idx)
     legs = config.lattice.flight_time_s[idx[:, :-1], idx[:, 1:]]
     return np.concatenate([np.zeros((len(idx), 1)), legs.cumsum(1)], 1)
 
@@ -355,6 +357,7 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
     tag = ""
     for fam in families:
         cs = caches[fam] if caches is not None else family_caches(args, fam)
+        cs = {part: to_device(c, resolve_device(getattr(args, "device", "auto"))) for part, c in cs.items()}
         tag = cs["test"].perception_tag
         config = cs["test"].config
         for name, cfg in wide_budgets(config).items():
@@ -364,7 +367,7 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
             else:
                 chosen, scores = make_fusion(args.wide_fusion, cs["train"]), {}
             path = wide_checkpoint(BUDGETS[list(wide_budgets(config)).index(name)], getattr(args, "wide_policy_dir", None))
-            learned = load_wide_agent(path, cfg)
+            learned = load_wide_agent(path, cfg, device=cs["test"].occupancy.device)
             cond = evaluate_condition(cs, cfg, chosen, args.episodes, args.seeds, args.bootstrap,
                                       args.bootstrap_seed, learned)
             cond.update(fusion=fusion_name(chosen), fusion_scores=scores,

@@ -55,7 +55,8 @@ from uavsearch.viz import pyplot
 
 from ..config import SearchConfig, config_to_dict, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
-from ..fusion import Fusion, make_fusion
+from ..agents import make_fusion
+from ..fusion import Fusion
 from ..map_policy import BUDGETS, MASKED, MapPolicyConfig, MapPolicyNet, wide_checkpoint
 from ..perception import load_perception, shipped_perception
 from ..policy import ArgmaxPolicy, save_search_model
