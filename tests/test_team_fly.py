@@ -76,3 +76,16 @@ def test_team_flags_and_mission_errors_are_one_line(tmp_path):
     paper = load_mission()
     with pytest.raises(UavsearchError, match="team"):
         mission_from_dict({**paper.model_dump(mode="json"), "team": {"vehicles": 2}}, "x.yaml")
+
+
+def test_every_mission_names_its_vehicles_and_one_is_the_default():
+    """One controller flies every mission with `mission.vehicles`: 1 by default, also with a `team` block on a paper
+    setting; what a paper setting's agent cannot fly is a one-line error naming the field."""
+    paper = load_mission().model_dump(mode="json")
+    assert load_mission().vehicles == 1 and load_mission(MISSIONS_DIR / "wide.yaml").vehicles == 1
+    one = mission_from_dict({**paper, "team": {"vehicles": 1}}, "x.yaml")
+    assert one.vehicles == 1 and one.search_config() == load_mission().search_config()
+    for team, words in (({"vehicles": 2}, "team.vehicles: the learned policy flies one vehicle"),
+                        ({"mission_time_s": 60}, "team.mission_time_s"), ({"max_views": 8}, "team.max_views")):
+        with pytest.raises(UavsearchError, match=words):
+            mission_from_dict({**paper, "team": team}, "x.yaml")

@@ -102,16 +102,9 @@ def _cmd_fly(args) -> int:
 
     mission = load_mission(args.mission, check_registry=False)
     mission = mission.with_overrides(check_registry=False, **{"scene.seed": args.scene, "flight.speed": args.speed})
-    if args.vehicles is not None or args.mission_time is not None:
-        if mission.family is None:
-            raise UavsearchError(f"--vehicles / --mission-time: {mission.source} searches the paper's setting with one "
-                                 "vehicle; a team flies a scene family's mission (--mission missions/wide_team.yaml)")
-        team = {"vehicles": args.vehicles, "mission_time_s": args.mission_time}
-        mission = mission.with_team(**{k: v for k, v in team.items() if v is not None})
-    if mission.family is not None:  # a scene family's mission: its team flies it
-        if args.connect is not None:
-            raise UavsearchError("--connect: a scene family's mission starts its own vehicles, one per team member")
-        from .fly.team_controller import fly_team as fly  # noqa: F811 - the team's flight, the same result
+    team = {k: v for k, v in (("vehicles", args.vehicles), ("mission_time_s", args.mission_time)) if v is not None}
+    if team:  # the mission's validation says what its method can fly
+        mission = mission.with_team(**team)
     try:
         r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
                 progress=lambda line: print(line, flush=True))
@@ -161,7 +154,8 @@ def _add_fly_parser(sub) -> None:
     p.add_argument("--gcs-port", type=int, default=14550,
                    help="the started vehicle's ground-station link sends here (QGroundControl; 0: off)")
     p.add_argument("--vehicles", type=int, default=None, metavar="N",
-                   help="(a scene family's mission, e.g. missions/wide_team.yaml) fly a team of N vehicles on one map")
+                   help="fly N vehicles on one map (default: the mission's team.vehicles, else 1; a team planner's "
+                        "mission, e.g. missions/wide_team.yaml)")
     p.add_argument("--mission-time", type=float, default=None, metavar="S",
                    help="(a scene family's mission) simulated seconds of flight the team searches for")
     p.set_defaults(func=_cmd_fly, exit_at_once=True)

@@ -1,14 +1,22 @@
-"""The mission controller: the teleport search loop (search_loop.run_search) flown on a MAVLink vehicle.
+"""The mission controller: one flown search, by one vehicle or a team, on any scene family.
 
-There is no second loop here. `run_search` runs with `LiveViews(MavlinkVehicle, perception)` as its view
-source; this module only adds what a flight needs around it:
+There is no second loop here. A mission's method searches with the teleport loop's own episode, given views that
+fly:
 
-- the agent from the mission (fusion + policy + checkpoints, built by agents.build_agent like every agent);
-- recording: run_search's `on_step` hook hands over each fused map M-bar^t and the move chosen after view t,
-  so every step is written to search.jsonl (a StepRecord, flushed) before the vehicle flies on;
-- the vehicle's life cycle: connect, take off, the search, then land / RTL even when a step fails;
-- `fly()`: by default it starts `uavsearch sitl` as a SEPARATE process on a free UDP port (real UDP,
-  nothing shared but the run directory) and flies the mission over MAVLink.
+- on the paper's settings, its agent (fusion + policy + checkpoints, built by agents.build_agent like every
+  agent) in `search_loop.run_search` with `LiveViews(MavlinkVehicle, perception)` (`AgentSearch`, below);
+- on a scene family with a team's task, its team planner (or its learned wide-area policy on each vehicle) in
+  `search.team.run_team` with live views of N vehicles (team_controller.py).
+
+This module is everything else a flight needs, once for every mission:
+
+- the run directory and its flight log (logs/flight_log.py): mission.json, the header, one StepRecord per view
+  written (flushed) before the vehicles fly on (`FlightRecorder`), the failures, the summary;
+- the vehicles: by default `uavsearch sitl --vehicles N --one-api-port` as a SEPARATE process (real UDP,
+  nothing shared but the run directory), every vehicle's API link on this controller's one free UDP port; one
+  MavlinkConnection demultiplexes them by system id (I + 1) into N MavlinkVehicles. With `connect`, vehicles
+  someone else started;
+- their life cycle: connect, take off together, the search, then land / RTL together even when a step fails.
 
 The only thing taken from outside MAVLink is the TRUE camera pose for the log: the simulated camera
 writes it to captures.jsonl beside its images (the file:// URL of CAMERA_IMAGE_CAPTURED says where), and
@@ -38,7 +46,9 @@ from ..logs.step_record import StepRecord, TruePose
 from ..paths import RUNS_DIR
 from ..search.metrics import map_accuracy, map_f1
 from ..world.scene import load_scene
-from .vehicle import FlightError, MavlinkVehicle, StepFailed, VehicleLost
+from .connection import MavlinkConnection
+from .team_controller import TeamSearch
+from .vehicle import FlightError, MavlinkVehicle, StepFailed, VehicleLost, climb_grant
 
 if TYPE_CHECKING:
     from ..search.agents import LoadedAgent
@@ -91,42 +101,91 @@ class MissionResult:
     photos_received: int = 0  # good captures it answered with
 
 
-class SearchRecorder:
-    """Writes one StepRecord per view: run_search's on_step hook, called before the vehicle flies on."""
+class FlightRecorder:
+    """The flight log's step lines: one StepRecord per view, scored against the ground truth and written (flushed)
+    before the vehicles fly on; the mission's method gives its own fields and progress line."""
 
-    def __init__(self, log, vehicle: MavlinkVehicle, loaded: LoadedAgent, labels, config, run_dir: Path, progress,
-                 T: int):
-        self.log, self.vehicle, self.loaded = log, vehicle, loaded
+    def __init__(self, log: FlightLogWriter, labels, run_dir: Path, progress):
+        self.log, self.run_dir, self.progress = log, run_dir, progress
         self.labels = np.asarray(labels, dtype=bool)
-        self.config, self.run_dir, self.progress, self.T = config, run_dir, progress, T
         self.records: list[StepRecord] = []
 
-    def step(self, info) -> None:
-        """Record view `info.t` (a search_loop.StepInfo of one episode)."""
-        cap, t = self.vehicle.last_capture, info.t
-        fused = np.asarray(info.fused[0].float(), dtype=float)
+    def record(self, cap, fused, **fields) -> StepRecord:
+        """Write the view of capture `cap` (a CaptureInfo) with `fused`, the (N,) map after it."""
+        fused = np.asarray(fused.float(), dtype=float)
+        rec = StepRecord(**capture_fields(cap, self.run_dir), fused=fused, acc=float(map_accuracy(fused, self.labels)),
+                         f1=float(map_f1(fused, self.labels)), **fields)
+        self.log.step(rec)
+        self.records.append(rec)
+        return rec
+
+    def found(self, rec: StepRecord) -> str:
+        f = np.asarray(rec.fused) > 0.5
+        return f"cells found {int(f.sum())} ({int((f & self.labels).sum())} of {int(self.labels.sum())} true)"
+
+
+# The vehicle this controller starts for an agent descends at this speed above MPC_LAND_ALT1 (PX4's
+# MPC_Z_VEL_MAX_DN, default 1.5 m/s here, PX4 allows 0.5-4): a 70 m landing takes 29 instead of 59 simulated
+# seconds. The search never descends, so its views are the same.
+LAND_DESCENT_M_S = 3.0
+
+
+class AgentSearch:
+    """How a mission on one of the paper's settings searches (fly asks it): its agent in run_search over LiveViews,
+    on one vehicle; the log's agent header and summary."""
+
+    names_vehicles = False  # one vehicle: its lines and its end text need no system id
+    view_noun = "step"  # what its progress lines call a view
+    flown_plan = True  # the flown route as a QGroundControl plan (plan_files.write_flown_plan)
+    sitl_params = (f"MPC_Z_VEL_MAX_DN={LAND_DESCENT_M_S:g}",)
+
+    def __init__(self, mission, config):
+        self.mission, self.config, self.loaded = mission, config, None
+
+    def load(self, mission, progress) -> None:
+        self.mission, self.loaded = mission, mission.agent(self.config)
+
+    def header(self) -> dict:
+        c = self.config
+        return dict(config={"altitude_m": c.altitude_m, "step_m": c.step_m, "budget_T": c.budget_T,
+                            "actions": list(c.actions)},
+                    agent=self.loaded.description, fusion=self.mission.fusion, policy=self.mission.policy)
+
+    def at(self, views: int) -> str:
+        """Where a failure ended the search, after `views` views."""
+        return f"{self.view_noun} {views + 1} of {self.config.budget_T}"
+
+    def fly(self, vehicles: list[MavlinkVehicle], recorder: FlightRecorder) -> None:
+        import torch
+
+        from ..search.search_loop import LiveViews, run_search
+
+        (vehicle,) = vehicles
+        gen = torch.Generator().manual_seed(int(self.mission.policy_seed))
+        run_search(LiveViews(vehicle, self.loaded.perception, recorder.labels), self.loaded.agent,
+                   self.config.budget_T, generator=gen, on_step=lambda info: self._step(vehicle, info, recorder))
+
+    def _step(self, vehicle: MavlinkVehicle, info, recorder: FlightRecorder) -> None:
+        """run_search's on_step: view `info.t` (a search_loop.StepInfo of one episode) and the move after it."""
+        cap, t, T = vehicle.last_capture, info.t, self.config.budget_T
         scores = info.scores
         if scores is None and self.loaded.scores_net is not None:  # logged for replay's re-fusion
             scores = self.loaded.scores_net(info.observation.cell_features)
-        acc = float(map_accuracy(fused, self.labels))
-        f1 = float(map_f1(fused, self.labels))
         action = None if info.action is None else int(info.action[0])
-        rec = StepRecord(
-            t=t, lattice_idx=int(info.viewpoint[0]), **capture_fields(cap, self.run_dir), p_occ=info.p[0].numpy(), scores=None if scores is None else scores.reshape(-1).numpy(),
-            valid=info.valid[0].numpy(), cell_area_px=info.observation.cell_area_px[0].numpy(),
-            fused=fused, action=action, action_name=self.config.actions[action] if action is not None else None,
-            revisit=bool(info.revisit[0]), reward=None if info.reward is None else float(info.reward[0]),
-            acc=acc, f1=f1,
-        )
-        self.log.step(rec)
-        self.records.append(rec)
-        found = int((fused > 0.5).sum())
-        hits = int(((fused > 0.5) & self.labels).sum())
+        rec = recorder.record(
+            cap, info.fused[0], t=t, lattice_idx=int(info.viewpoint[0]), p_occ=info.p[0].numpy(),
+            scores=None if scores is None else scores.reshape(-1).numpy(), valid=info.valid[0].numpy(),
+            cell_area_px=info.observation.cell_area_px[0].numpy(), action=action,
+            action_name=self.config.actions[action] if action is not None else None, revisit=bool(info.revisit[0]),
+            reward=None if info.reward is None else float(info.reward[0]))
         e, n, u = cap.reported_position_enu
         nxt = f" -> {rec.action_name}" if action is not None else ""
-        self.progress(f"step {t + 1}/{self.T}  at E {e:6.1f} N {n:6.1f} U {u:5.1f} m  "
-                      f"flew {cap.flight_time_s:5.1f} s  cells found {found} ({hits} of {int(self.labels.sum())} true)"
-                      f"  acc {acc:.2f} F1 {f1:.2f}{nxt}")
+        recorder.progress(f"step {t + 1}/{T}  at E {e:6.1f} N {n:6.1f} U {u:5.1f} m  flew {cap.flight_time_s:5.1f} s  "
+                          f"{recorder.found(rec)}  acc {rec.acc:.2f} F1 {rec.f1:.2f}{nxt}")
+
+    def summary(self, records: list) -> dict:
+        return dict(budget_T=self.config.budget_T, first_view_sim_time_s=records[0].sim_time_s if records else None,
+                    agent=self.loaded.description)
 
 
 def check_vehicle_scene(vehicle: MavlinkVehicle, spec, config, mission_uses_spec_file: bool = False) -> str:
@@ -164,53 +223,83 @@ def check_vehicle_scene(vehicle: MavlinkVehicle, spec, config, mission_uses_spec
     return f"vehicle simulates scene {want[0]} ({want[1]} occupied cells), camera as trained"
 
 
-def fly_search(vehicle: MavlinkVehicle, loaded: LoadedAgent, config, labels, log, run_dir: Path,
-               policy_seed: int = 0, progress=print, phases: dict | None = None,
-               wall0: float = 0.0, before_takeoff=None) -> tuple[SearchRecorder, str]:
-    """Take off, run the search loop on the vehicle, record every step. Returns (recorder, status).
-    `phases` gets the wall time (since `wall0`) at which the take-off and the search ended; `before_takeoff()`
-    runs once the link is up (a MissionError from it ends the mission on the ground)."""
+def fly_search(vehicles: list[MavlinkVehicle], method, recorder: FlightRecorder, progress=print,
+               phases: dict | None = None, wall0: float = 0.0, before_takeoff=None) -> str:
+    """Connect, take off together, search with `method` (AgentSearch, TeamSearch), every view recorded; returns the
+    status. `phases` gets the wall time (since `wall0`) at which the take-off and the search ended;
+    `before_takeoff()` runs once the links are up (a MissionError from it ends the mission on the ground)."""
     import torch
 
-    from ..search.search_loop import LiveViews, run_search
-
     phases = {} if phases is None else phases
-    T = config.budget_T
-    views = LiveViews(vehicle, loaded.perception, labels)
-    rec = SearchRecorder(log, vehicle, loaded, labels, config, run_dir, progress, T)
-    gen = torch.Generator().manual_seed(int(policy_seed))
-    status = "completed"
+    log, run_dir, lead = recorder.log, recorder.run_dir, vehicles[0]
     try:
-        vehicle.connect()
+        for v in vehicles:
+            v.connect()
         if before_takeoff is not None:
             before_takeoff()
-        vehicle.take_off()
+        _take_off(vehicles)
         phases["took_off_s"] = time.monotonic() - wall0
         with torch.no_grad():
-            run_search(views, loaded.agent, T, generator=gen, on_step=rec.step)
+            method.fly(vehicles, recorder)
         phases["searched_s"] = time.monotonic() - wall0
+        return "completed"
     except VehicleLost as e:
-        status = f"{VEHICLE_LOST} at step {len(rec.records) + 1} of {T}: {e}"
-        _log_failure(log, step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
-    except StepFailed as e:
+        status = f"{VEHICLE_LOST} at {method.at(len(recorder.records))}: {e}"
+        _log_failure(log, step=len(recorder.records), error=str(e), sim_time_s=lead.sim_time_s)
+    except FlightError as e:  # a step that failed cleanly, or something the vehicle could not do
         full = disk_full(run_dir)
         status = f"failed: {full or e}"
-        _log_failure(log, step=len(rec.records), error=full or str(e), sim_time_s=vehicle.sim_time_s)
-        if full is None:  # a full disk is said once, at the end
-            progress(f"step {len(rec.records) + 1} failed: {e}")
-    except OSError as e:  # the run directory's disk: the flight log cannot grow, the vehicle still flies
+        _log_failure(log, step=len(recorder.records), error=full or str(e), sim_time_s=lead.sim_time_s)
+        if isinstance(e, StepFailed) and full is None:  # a full disk is said once, at the end
+            progress(f"{method.view_noun} {len(recorder.records) + 1} failed: {e}")
+    except OSError as e:  # the run directory's disk: the flight log cannot grow, the vehicles still fly
         full = disk_full(run_dir, e)
         if full is None:
             raise
         status = f"failed: {full}"
-    except FlightError as e:
-        status = f"failed: {e}"
-        _log_failure(log, step=len(rec.records), error=str(e), sim_time_s=vehicle.sim_time_s)
     except KeyboardInterrupt:
         status = "interrupted"
-        _log_failure(log, step=len(rec.records), error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
+        _log_failure(log, step=len(recorder.records), error="interrupted (Ctrl-C)", sim_time_s=lead.sim_time_s)
         progress("interrupted (Ctrl-C): ending the mission")
-    return rec, status
+    return status
+
+
+def _all(vehicles: list[MavlinkVehicle], cond, what: str, sim_timeout_s: float, tick_s=None):
+    """One wait until cond(), on the first vehicle's clock (in lockstep its grants run every vehicle)."""
+    lead = vehicles[0]
+    return lead.system.wait_until(cond, lead.settings.wall_timeout_s, what, sim_timeout_s=sim_timeout_s,
+                                  tick_s=tick_s, say=lead._say)
+
+
+def _take_off(vehicles: list[MavlinkVehicle]) -> None:
+    """Every vehicle is sent up, then one wait until all are there (one vehicle: its own take-off and its lines)."""
+    if len(vehicles) == 1:
+        vehicles[0].take_off()
+        return
+    for v in vehicles:
+        v.begin_take_off()
+    _all(vehicles, lambda: all(v.took_off() for v in vehicles), "take-off of the team",
+         vehicles[0].settings.takeoff_timeout_s, tick_s=lambda: climb_grant(vehicles))
+
+
+def _land(vehicles: list[MavlinkVehicle]) -> list[str]:
+    """Every vehicle's end action (land / RTL / none) at once, then one wait until all are disarmed: what each did
+    (one vehicle: its own finish(), with its lines). A vehicle that refuses says so in its entry."""
+    if len(vehicles) == 1:
+        return [vehicles[0].finish()]
+    ends = []
+    for v in vehicles:
+        try:
+            ends.append(v.begin_finish())
+        except VehicleLost:
+            raise
+        except FlightError as e:
+            ends.append(f"end action failed: {e or type(e).__name__}")
+    waiting = [v for v, end in zip(vehicles, ends) if end is None]
+    if waiting:
+        _all(waiting, lambda: not any(v.armed for v in waiting), "landing of the team", 300.0,
+             tick_s=waiting[0].settings.land_tick_s)
+    return [v.end_text() if end is None else end for v, end in zip(vehicles, ends)]
 
 
 VEHICLE_LOST = "vehicle lost"
@@ -260,25 +349,31 @@ def _watch(sitl: SitlProcess):
 # Starting the simulated vehicle as its own process
 
 
-# The vehicle this controller starts descends at this speed above MPC_LAND_ALT1 (PX4's MPC_Z_VEL_MAX_DN,
-# default 1.5 m/s here, PX4 allows 0.5-4): a 70 m landing takes 29 instead of 59 simulated seconds. The
-# search never descends, so its views are the same.
-LAND_DESCENT_M_S = 3.0
-
-
-def _start_sitl(run_dir: Path, mission, api_port: int, gcs_port: int, progress=None) -> SitlProcess:
-    """The simulated vehicle for `mission`: its scene, noise seed, home, pacing and lockstep. Returns at once:
-    the vehicle starts while the controller loads its agent (`wait_ready()` before flying)."""
-    s, h, c = mission.flight, mission.home, mission.camera
-    scene = ["--scene-file", str(mission.spec_path)] if mission.spec_path is not None else \
-        ["--scene", str(mission.scene.seed), "--cells", str(mission.scene.k)]
-    if mission.spec_path is None and mission.scene.setting is not None and mission.scene.occupied_cells is None:
-        scene += ["--setting", str(mission.scene.setting)]  # the family's scene, drawn with its render options
-    return SitlProcess(run_dir, *scene, "--seed", str(s.vehicle_seed), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}",
-                       "--param", f"MPC_Z_VEL_MAX_DN={LAND_DESCENT_M_S:g}",
+def _start_sitl(run_dir: Path, mission, sitl_params, api_port: int, gcs_port: int, progress=None) -> SitlProcess:
+    """The simulated vehicles of `mission`, one process (`sitl --vehicles N`, every API link to `api_port`): their
+    scene, noise seed, home, pacing and lockstep. Returns at once: they start while the controller loads its
+    models (`wait_ready()` before flying)."""
+    s, h, c, sc = mission.flight, mission.home, mission.camera, mission.scene
+    if mission.spec_path is not None:
+        scene = ["--scene-file", str(mission.spec_path)]
+    elif sc.setting is not None and sc.occupied_cells is None:  # the family's scene, drawn with its render options
+        scene = ["--setting", str(sc.setting), "--scene", str(sc.seed)]
+    else:
+        scene = ["--scene", str(sc.seed), "--cells", str(sc.k)]
+    params = [arg for p in sitl_params for arg in ("--param", p)]
+    return SitlProcess(run_dir, "--vehicles", str(mission.vehicles), "--one-api-port", *scene,
+                       "--seed", str(s.vehicle_seed), "--home", f"{h.lat_deg},{h.lon_deg},{h.alt_m}", *params,
                        "--camera-hfov", f"{c.hfov_deg:g}", "--camera-size", f"{c.width_px}x{c.height_px}",
                        speed="max" if s.speed == "max" else f"{float(s.speed):g}", lockstep=s.lockstep,
                        api_port=api_port, gcs_port=gcs_port, wait=False, progress=progress)
+
+
+def _scene_text(mission) -> str:
+    if mission.spec_path is not None:
+        return f"scene {mission.spec_path}"
+    if mission.family is not None:
+        return f"{mission.family} scene {mission.scene.seed}"
+    return f"scene {mission.scene.seed}, {mission.scene.k} occupied cells"
 
 
 def default_run_dir(mission) -> Path:
@@ -288,82 +383,87 @@ def default_run_dir(mission) -> Path:
 
 def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port: int = 14550,
         torch_threads: int = 1) -> MissionResult:
-    """Fly `mission`: start the simulated vehicle (unless `connect` names one), search, land, log.
+    """Fly `mission` with its `mission.vehicles` vehicles: start them (unless `connect` names the link of vehicles
+    someone else started), search with the mission's method, land, log; the result scores the one map.
 
     The vehicle process starts first, so its start-up (imports, physics; its camera's scene is generated
-    and built during take-off) runs while this process loads the agent. The scene's ground truth (the
+    and built during take-off) runs while this process loads the models. The scene's ground truth (the
     log's labels) is the one the vehicle generated (its scene.json); with `connect`, generated here.
     `torch_threads`: perception on one 224 px image gains nothing from more, and on a 2-core machine two
     threads fight the vehicle process for the cores.
     """
-    if mission.family is not None:
-        raise MissionError("a scene family's mission is flown by its team: team_controller.fly_team "
-                           "(`uavsearch fly` chooses it)")
     wall0 = time.monotonic()
     phases = {"start_unix": time.time()}  # then: wall seconds since the start at which each stage ended
     config = mission.search_config()
+    method = (AgentSearch if mission.family is None else TeamSearch)(mission, config)
+    n = mission.vehicles
     run_dir = Path(out) if out else default_run_dir(mission)
     made_run_dir = not run_dir.exists()
     log = FlightLogWriter(run_dir)
     (run_dir / "mission.json").write_text(mission.model_dump_json(indent=2) + "\n")
-    url = connect or "udpin:127.0.0.1:0"
     try:
-        vehicle = MavlinkVehicle(url, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
-                                 image_dir=run_dir / "images", progress=progress)
+        conn = MavlinkConnection(connect or "udpin:127.0.0.1:0", tlog=log.tlog)
     except FlightError:
         _discard(log, run_dir, made_run_dir)
         raise
+    # one System of the link per vehicle: system id I + 1 (one vehicle: the autopilot that heartbeats), images
+    # where `uavsearch sitl` keeps them (copied there from a vehicle someone else started)
+    vehicles = [MavlinkVehicle(None, config, mission.origin(), mission.flight_settings(), tlog=log.tlog,
+                               image_dir=(run_dir if n == 1 else run_dir / f"vehicle{i + 1}") / "images",
+                               progress=progress, system_id=None if n == 1 else i + 1, connection=conn)
+                for i in range(n)]
     sitl = None
-    rec, status, end, fwall0 = None, "not started", "", None
+    recorder, status, end, fwall0 = None, "not started", "", None
     try:
         if connect is None:
-            port = vehicle.conn.port.getsockname()[1]
-            desc = f"scene {mission.scene.seed}, {mission.scene.k} occupied cells" if mission.spec_path is None \
-                else f"scene {mission.spec_path}"
-            progress(f"starting uavsearch sitl ({desc}, speed {mission.flight.speed}) -> API link udp "
-                     f"127.0.0.1:{port}")
-            sitl = _start_sitl(run_dir, mission, api_port=port, gcs_port=gcs_port, progress=progress)
-            vehicle.watch(_watch(sitl))
+            port = conn.port.getsockname()[1]
+            progress(f"starting uavsearch sitl ({_scene_text(mission)}, {n} vehicle{'s' if n > 1 else ''}, speed "
+                     f"{mission.flight.speed}) -> API link udp 127.0.0.1:{port}")
+            sitl = _start_sitl(run_dir, mission, method.sitl_params, port, gcs_port, progress)
+            for v in vehicles:
+                v.watch(_watch(sitl))
         progress(f"models    loading {mission.fusion} fusion + {mission.policy} policy (torch)"
                  + (" while the vehicle starts ..." if sitl is not None else " ..."))
         import torch  # while the vehicle starts (see the note at the imports)
 
         torch.set_num_threads(int(torch_threads))
         mission = mission.check_registry()  # its names, if it was read without the registry (REGISTRY)
-        loaded = mission.agent(config)
+        method.load(mission, progress)
         import_rotation_in_background()  # the first view's pose needs it; the vehicle's start and take-off hide it
         phases["agent_s"] = time.monotonic() - wall0
         spec = mission.scene_spec() if sitl is None else load_scene(sitl.wait_file(SCENE_FILE))
         labels = np.asarray(spec.occupancy_array(), dtype=bool)
         phases["scene_s"] = time.monotonic() - wall0
+        family = {} if mission.family is None else {"setting": mission.family}
         log.header(mission=mission.model_dump(mode="json"), mission_file=mission.source, connect=connect,
-                   scene={"seed": spec.seed, "occupied_cells": int(labels.sum())}, labels=labels.astype(int),
-                   grid={"n": config.grid.n, "cell_m": config.grid.cell_m},
-                   config={"altitude_m": config.altitude_m, "step_m": config.step_m, "budget_T": config.budget_T,
-                           "actions": list(config.actions)},
-                   agent=loaded.description, fusion=mission.fusion, policy=mission.policy,
+                   scene={"seed": spec.seed, **family, "occupied_cells": int(labels.sum())}, labels=labels.astype(int),
+                   grid={"n": config.grid.n, "cell_m": config.grid.cell_m}, **method.header(),
                    home=mission.home.model_dump(), started_utc=datetime.now(timezone.utc).isoformat(),
                    tlog_clock="simulated (vehicle time_boot_ms from the start's wall time)")
         if sitl is not None:
             sitl.wait_ready()
         phases["vehicle_ready_s"] = time.monotonic() - wall0
         fwall0 = time.monotonic()
+        recorder = FlightRecorder(log, labels, run_dir, progress)
         try:
-            check = None if connect is None else \
-                lambda: progress(check_vehicle_scene(vehicle, spec, config, mission.spec_path is not None))
-            rec, status = fly_search(vehicle, loaded, config, labels, log, run_dir, mission.policy_seed, progress,
-                                     phases=phases, wall0=wall0, before_takeoff=check)
+            check = None if connect is None else lambda: [
+                progress(check_vehicle_scene(v, spec, config, mission.spec_path is not None)) for v in vehicles]
+            status = fly_search(vehicles, method, recorder, progress, phases=phases, wall0=wall0, before_takeoff=check)
         except KeyboardInterrupt:
             status = "interrupted"
-            _log_failure(log, step=None, error="interrupted (Ctrl-C)", sim_time_s=vehicle.sim_time_s)
+            _log_failure(log, step=None, error="interrupted (Ctrl-C)", sim_time_s=vehicles[0].sim_time_s)
         except FlightError as e:
             status = f"failed: {e}"
-            _log_failure(log, step=None, error=str(e), sim_time_s=vehicle.sim_time_s)
+            _log_failure(log, step=None, error=str(e), sim_time_s=vehicles[0].sim_time_s)
         try:
-            lost = status.startswith(VEHICLE_LOST)
-            end = "not landed: the vehicle is gone" if lost else vehicle.finish()
-            if end != "not flown" and not lost:  # a lost vehicle is said once, by the caller
-                progress(end)
+            if status.startswith(VEHICLE_LOST):  # said once, by the caller
+                end = f"not landed: {'the' if n == 1 else 'a'} vehicle is gone"
+            else:
+                ends = _land(vehicles)
+                end = "; ".join(f"vehicle {v.target_system}: {e}" if method.names_vehicles else e
+                                for v, e in zip(vehicles, ends))
+                if any(e != "not flown" for e in ends):
+                    progress(end)
         except VehicleLost as e:
             end = f"end action failed: {e}"
             status = status if status.startswith(VEHICLE_LOST) else f"{VEHICLE_LOST} while ending the mission: {e}"
@@ -371,43 +471,47 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             end = f"end action failed: {e or type(e).__name__}"
             progress(end)
         except KeyboardInterrupt:
-            left = "the vehicle is left as it is" if connect else "the vehicle process is stopped in the air"
+            left = ("the vehicle is left as it is" if n == 1 else "the vehicles are left as they are") if connect \
+                else "the vehicle process is stopped in the air"
             end = f"end action abandoned: Ctrl-C again during the {mission.flight.end_action}; {left}"
             progress(end)
         phases["landed_s"] = time.monotonic() - wall0
     finally:
-        vehicle.close()
+        for v in vehicles:
+            v.close()
+        conn.close()
         if sitl is not None:
             sitl.stop(wait=False)  # it closes its links and exits on its own; nothing here needs its exit
-    if connect is not None and vehicle.mode() is None and made_run_dir:
+    if connect is not None and all(v.mode() is None for v in vehicles) and made_run_dir:
         # Nothing answered: no flight happened, so no flight log is left behind to be mistaken for one.
         _discard(log, run_dir, made_run_dir)
         if status == "interrupted":
             raise KeyboardInterrupt
         raise FlightError(f"{status.removeprefix('failed: ')}; nothing flown, no flight log kept "
-                          f"(is a vehicle running and sending to {vehicle.link_text}?)")
-    fused = None if rec is None or not rec.records else np.asarray(rec.records[-1].fused)
+                          f"(is a vehicle running and sending to {conn.link_text}?)")
+    records = recorder.records
+    fused = np.asarray(records[-1].fused) if records else None
     acc = None if fused is None else float(map_accuracy(fused, labels))
     f1 = None if fused is None else float(map_f1(fused, labels))
-    t_first = rec.records[0].sim_time_s if rec and rec.records else None
+    sims = [v.sim_time_s - v.connected_sim_s for v in vehicles
+            if v.sim_time_s is not None and v.connected_sim_s is not None]
     result = MissionResult(
-        run_dir=run_dir, status=status, fused=fused, labels=labels, acc=acc, f1=f1,
-        steps=len(rec.records) if rec else 0, positions=[r.waypoint_enu for r in rec.records] if rec else [],
-        sim_time_s=None if vehicle.sim_time_s is None or vehicle.connected_sim_s is None
-        else vehicle.sim_time_s - vehicle.connected_sim_s, wall_s=time.monotonic() - wall0,
-        flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end, phases=phases,
-        photos_asked=vehicle.photos_asked, photos_received=vehicle.photos_received)
+        run_dir=run_dir, status=status, fused=fused, labels=labels, acc=acc, f1=f1, steps=len(records),
+        positions=[r.waypoint_enu for r in records], sim_time_s=max(sims) if sims else None,
+        wall_s=time.monotonic() - wall0, flight_wall_s=(time.monotonic() - fwall0) if fwall0 else 0.0, end=end,
+        phases=phases, photos_asked=sum(v.photos_asked for v in vehicles),
+        photos_received=sum(v.photos_received for v in vehicles))
     from .plan_files import write_flown_plan
 
-    summary = dict(status=status, end=end, steps=result.steps, budget_T=config.budget_T, acc=acc, f1=f1,
-                   fused=fused, labels=labels.astype(int), positions=result.positions,
-                   sim_time_s=result.sim_time_s, first_view_sim_time_s=t_first, wall_s=result.wall_s,
-                   flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
-                   agent=loaded.description, scene_seed=spec.seed,
-                   occupied_cells=int(labels.sum()), speed=mission.flight.speed,
-                   photos_asked=result.photos_asked, photos_received=result.photos_received)
+    summary = dict(status=status, end=end, steps=result.steps, acc=acc, f1=f1, fused=fused,
+                   labels=labels.astype(int), positions=result.positions, sim_time_s=result.sim_time_s,
+                   wall_s=result.wall_s, flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
+                   **method.summary(records), scene_seed=spec.seed, occupied_cells=int(labels.sum()),
+                   speed=mission.flight.speed, photos_asked=result.photos_asked,
+                   photos_received=result.photos_received)
     # the flown search, once the log is closed, as a QGroundControl plan
-    return finish_log(log, run_dir, result, summary, after=lambda: write_flown_plan(run_dir))
+    return finish_log(log, run_dir, result, summary, after=(lambda: write_flown_plan(run_dir)) if method.flown_plan
+                      else None)
 
 
 def finish_log(log: FlightLogWriter, run_dir: Path, result: MissionResult, summary: dict, after=None) -> MissionResult:
@@ -452,4 +556,5 @@ def format_maps(fused, labels, n: int) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["LoadedAgent", "MissionResult", "SitlProcess", "fly", "fly_search", "format_maps"]
+__all__ = ["AgentSearch", "FlightRecorder", "LoadedAgent", "MissionResult", "SitlProcess", "fly", "fly_search",
+           "format_maps"]

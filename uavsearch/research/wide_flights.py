@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..fly.mission_controller import fly
 from ..fly.missions import load_mission
-from ..fly.team_controller import fly_team
 from ..logs.flight_log import read_flight_log
 from ..paths import MISSIONS_DIR, display_path
 from ..search.evaluate.bounds import bootstrap_ci
@@ -62,7 +62,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for i, seed in enumerate(tqdm(seeds, desc=f"{mission.name} flights", unit="flight")):
             m = mission.with_overrides(**{"scene.seed": seed})
-            r = fly_team(m, out=Path(tmp) / f"run{seed}", progress=lambda line: None, gcs_port=0)
+            r = fly(m, out=Path(tmp) / f"run{seed}", progress=lambda line: None, gcs_port=0)
             flown = [s.lattice_idx for s in read_flight_log(r.run_dir).steps]
             mission_s = json.loads((r.run_dir / "summary.json").read_text()).get("mission_time_s") or float("nan")
             tf1, tele = teleport(cache, i, mission, config)
