@@ -1,8 +1,9 @@
 """THE registry of fusion methods, policies and team planners, and the one `build_agent(...)` every user goes
 through.
 
-Evaluation (the rows of Table II), flying (a mission's method), replay (re-running perception + fusion on a
-log) and training all build their agents here, so a fusion method or a policy is named in one place:
+Evaluation (the rows of Table II, Table III, the team table), flying (a mission's method, one vehicle or a team),
+replay (re-running perception + fusion on a log), the envs and training all look names up here, so a fusion
+method, a policy or a team planner is named in one place (where its checkpoint lives: checkpoints.py):
 
 - fusion methods: `FUSIONS` in fusion.py (name -> Fusion class). A `trainable` one (learned fusion) comes
   with its weights from a search checkpoint, which saves the fusion object whole.
@@ -11,7 +12,6 @@ log) and training all build their agents here, so a fusion method or a policy is
   search_s<K>_<fusion>_reactive.pt, "external" (external_policy.ExternalPolicyNet, a PPO actor trained on the
   gymnasium env) from search_s<K>_<fusion>_external.pt, "map" (map_policy.MapPolicyNet, the wide-area
   search's) from the checkpoint a wide mission or Table III names; the others are built from the search config.
-
 - fusion specs: `make_fusion(spec)` builds every fusion a user names: "name" or "name:prior" (bayes:0.02),
   "calibrated:GAMMA" fitted on training views, and (given a setting) a trained one from its shipped checkpoint.
 - team planners: `PLANNERS` below (search/team.py's), "name" or "name:VALUE" for a planner with a parameter.

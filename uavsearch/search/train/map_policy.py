@@ -57,8 +57,9 @@ from ..config import SearchConfig, config_to_dict, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
 from ..agents import make_fusion
 from ..fusion import Fusion
-from ..map_policy import BUDGETS, MASKED, MapPolicyConfig, MapPolicyNet, wide_checkpoint
-from ..perception import load_perception, shipped_perception
+from ..checkpoints import shipped_perception, wide_checkpoint
+from ..map_policy import BUDGETS, MASKED, MapPolicyConfig, MapPolicyNet
+from ..perception import load_perception
 from ..policy import ArgmaxPolicy, save_search_model
 from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward
 from ..scoring import evaluate_agent

@@ -41,10 +41,10 @@ from tqdm import tqdm
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.devices import resolve_device, to_device
 from uavsearch.errors import UavsearchError, run_command
-from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot
 
-from ..agents import check_names, checkpoint_path, new_agent
+from ..agents import check_names, new_agent
+from ..checkpoints import checkpoint_path, shipped_perception
 from ..config import config_to_dict
 from ..fusion import BY_NAME, Fusion
 from ..metrics import map_f1
@@ -63,7 +63,7 @@ class Args(RunArgs):
     # for the shipped models: on the paper's 20 training scenes the confidence net and policy overfit
     # within 50-150 iterations (train AF1 0.7, validation falling).
     split: str = opt("large", "scene split: trains on its train part, selects on its val part")
-    perception: str = opt(str(MODELS_DIR / "perception.pt"), "frozen stage-1 checkpoint")
+    perception: str = opt(str(shipped_perception()), "frozen stage-1 checkpoint")
     out: str | None = opt(None, "also copy the best checkpoint here (it always stays in the run directory)")
     ship: bool = opt(False, "copy the best checkpoint over the shipped models/search_s<setting>_<fusion>.pt")
     name: str | None = opt(None, "run name (default policy_s<setting>_<fusion>)")

@@ -40,10 +40,9 @@ from torch.nn import functional as F
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.devices import resolve_device, to_device
 from uavsearch.errors import UavsearchError, run_command
-from uavsearch.paths import MODELS_DIR
 from uavsearch.viz import pyplot
 
-from ..agents import checkpoint_path
+from ..checkpoints import checkpoint_path, shipped_perception
 from ..config import SearchConfig, config_to_dict
 from ..fusion import LearnedFusion
 from ..policy import ArgmaxPolicy, CoverageRoute, load_search_model, save_search_model
@@ -61,7 +60,7 @@ FUSION = "learned"
 class Args(RunArgs):
     setting: int = opt(2, "paper setting 1 | 2 | 3 (2, 5, 10 occupied cells)")
     split: str = opt("large", "scene split: trains on its train part, selects on its val part")
-    perception: str = opt(str(MODELS_DIR / "perception.pt"), "frozen stage-1 checkpoint (builds the view caches)")
+    perception: str = opt(str(shipped_perception()), "frozen stage-1 checkpoint (builds the view caches)")
     confidence: str | None = opt(None, "learned-fusion checkpoint whose frozen confidence net fuses the views "
                                        "(default models/search_s<setting>_learned.pt)")
     out: str | None = opt(None, "also copy the best checkpoint here (it always stays in the run directory)")
