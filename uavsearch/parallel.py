@@ -41,14 +41,16 @@ import numpy as np
 from tqdm import tqdm
 
 from .cli_args import opt
+from .devices import DeviceArgs
 from .errors import UavsearchError
 
 EXECUTORS = ("local", "ray")
 
 
 @dataclass
-class ScaleOutArgs:
-    """The executor flags every per-scene command shares (a base class of its Args dataclass)."""
+class ScaleOutArgs(DeviceArgs):
+    """The executor flags every per-scene command shares (a base class of its Args dataclass), with the device its
+    tensors live on (devices.DeviceArgs)."""
     workers: int = opt(2, "local processes (one per scene in flight)")
     ray: bool = opt(False, "run the per-scene tasks on Ray (pip install uavsearch[ray]); a local Ray unless "
                            "--ray-address")

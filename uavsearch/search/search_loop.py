@@ -31,6 +31,7 @@ from typing import NamedTuple, Protocol
 import numpy as np
 import torch
 
+from uavsearch.devices import device_of
 from uavsearch.errors import UavsearchError
 
 from .config import SearchConfig
@@ -87,7 +88,9 @@ class CachedViews:
     def __init__(self, cache, scene_rows, config: SearchConfig | None = None, confidence=None, features: bool = False):
         """`config` defaults to the one the cache was made for (a cache records it)."""
         self.cache, self.features = cache, features
-        self.rows = torch.as_tensor(np.asarray(scene_rows), dtype=torch.long).reshape(-1)
+        self.device = cache.occupancy.device  # the cache's: every tensor of its episodes lives there
+        rows = scene_rows if isinstance(scene_rows, torch.Tensor) else np.asarray(scene_rows)
+        self.rows = torch.as_tensor(rows, dtype=torch.long, device=self.device).reshape(-1)
         self.config = config if config is not None else getattr(cache, "config", None)
         if self.config is None:
             raise UavsearchError("the view cache records no search config; pass the one it was made for")
@@ -100,8 +103,8 @@ class CachedViews:
         if confidence is not None:
             uniq, inv = torch.unique(self.rows, return_inverse=True)
             self._rows_u, self._key0 = uniq, inv * cache.num_positions  # score table row of (episode, position 0)
-            self._scores = torch.empty(len(uniq) * cache.num_positions, cache.occupancy.shape[-1])
-            self._have = torch.zeros(len(self._scores), dtype=torch.bool)
+            self._scores = torch.empty(len(uniq) * cache.num_positions, cache.occupancy.shape[-1], device=self.device)
+            self._have = torch.zeros(len(self._scores), dtype=torch.bool, device=self.device)
 
     def _scores_at(self, lattice_idx: torch.Tensor) -> torch.Tensor:
         key = self._key0 + lattice_idx
@@ -146,7 +149,9 @@ class LiveViews:
         self.vehicle, self.perception = vehicle, perception.eval()
         self.config: SearchConfig = vehicle.config
         self.batch_size = 1
-        self.labels = None if labels is None else torch.as_tensor(np.asarray(labels)).bool().reshape(1, -1)
+        self.device = device_of(perception)  # the net's: its outputs, and so the episode, live there
+        self.labels = None if labels is None else \
+            torch.as_tensor(np.asarray(labels), device=self.device).bool().reshape(1, -1)
         self._lattice = self.config.lattice.positions_enu
         self.views: list = []
 

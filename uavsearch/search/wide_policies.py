@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from uavsearch.devices import follow
 from uavsearch.errors import UavsearchError
 
 from .config import SearchConfig
@@ -93,6 +94,7 @@ class RoutePolicy:
         self.routes = r[None] if r.dim() == 1 else r
 
     def act(self, inp: PolicyInput, generator=None):
+        follow(self, inp.lattice_idx.device)
         B = inp.lattice_idx.shape[0]
         if inp.step >= self.routes.shape[1]:
             return inp.lattice_idx.clone(), None, None
@@ -140,6 +142,7 @@ class DescendRule:
         self.cost = config.lattice.flight_time_t.float()
 
     def act(self, inp: PolicyInput, generator=None):
+        follow(self, inp.fused.device)
         if inp.step < len(self.survey):
             return torch.full_like(inp.lattice_idx, self.survey[inp.step]), None, None
         score, pick = self.descend_scores(inp)
@@ -160,6 +163,7 @@ class DescendRule:
 
     def descend_scores(self, inp: PolicyInput) -> tuple[torch.Tensor, torch.Tensor]:
         """(score (B, P), the viewpoints to pick among (B, P) bool) of the descent after the survey."""
+        follow(self, inp.fused.device)
         allowed = candidates(inp)
         low_views = self.low[inp.view_positions][..., None] & inp.view_valid  # (B, t+1, N)
         open_ = (~low_views.any(1)).float()  # cells no low view has measured
@@ -212,6 +216,7 @@ class EntropyPerSecond:
         self.cost = torch.as_tensor(config.lattice.flight_time_s, dtype=torch.float32)
 
     def act(self, inp: PolicyInput, generator=None):
+        follow(self, inp.fused.device)
         gain = binary_entropy(inp.fused) @ self.foot.T  # (B, P)
         score = gain / self.cost[inp.lattice_idx].clamp(min=1.0)
         return argmax_allowed(score, candidates(inp)), None, None
@@ -240,18 +245,20 @@ def greedy_view_set(cache, fusion: Fusion, config: SearchConfig, per_second: boo
     lat = config.lattice
     cost = lat.flight_time_t
     S, P = cache.num_scenes, lat.num_positions
-    rows = torch.arange(S)
-    y = cache.occupancy.numpy()
+    dev = cache.occupancy.device
+    rows = torch.arange(S, device=dev)
+    y = cache.occupancy.cpu().numpy()
     route, here = [lat.start_index], lat.start_index
     left = float("inf") if config.budget_s is None else float(config.budget_s)
-    base = map_f1(fusion.fuse(route_views(cache, rows, torch.tensor([route]).expand(S, -1))).numpy(), y).mean()
+    base = map_f1(fusion.fuse(route_views(cache, rows, torch.tensor([route], device=dev).expand(S, -1))).cpu().numpy(),
+                  y).mean()
     while len(route) < config.budget_T:
         cand = [c for c in range(P) if c not in route and float(cost[here, c]) <= left + 1e-9]
         if not cand:
             break
-        pos = torch.tensor([route + [c] for c in cand])  # (C, t+1)
+        pos = torch.tensor([route + [c] for c in cand], device=dev)  # (C, t+1)
         views = route_views(cache, rows.repeat(len(cand)), pos.repeat_interleave(S, 0))
-        f1 = map_f1(fusion.fuse(views).numpy(), np.tile(y, (len(cand), 1))).reshape(len(cand), S).mean(1)
+        f1 = map_f1(fusion.fuse(views).cpu().numpy(), np.tile(y, (len(cand), 1))).reshape(len(cand), S).mean(1)
         gain = f1 - base
         if per_second:
             gain = gain / np.maximum(cost[here, cand].numpy(), 1.0)
@@ -274,7 +281,7 @@ def label_routes(cache, fusion: Fusion, config: SearchConfig, beam: int = 1) -> 
     budget = float("inf") if config.budget_s is None else float(config.budget_s)
     out = []
     for s in range(cache.num_scenes):
-        y = cache.occupancy[s].numpy()[None]
+        y = cache.occupancy[s].cpu().numpy()[None]
         states = [([start], budget, -np.inf)]  # (route, seconds left, AF1)
         done: list = []
         while states:
@@ -287,8 +294,9 @@ def label_routes(cache, fusion: Fusion, config: SearchConfig, beam: int = 1) -> 
                 if not cand:
                     done.append((route, left, _))
                     continue
-                pos = torch.tensor([route + [c] for c in cand])
-                f1 = map_f1(fusion.fuse(route_views(cache, torch.full((len(cand),), s), pos)).numpy(),
+                dev = cache.occupancy.device
+                pos = torch.tensor([route + [c] for c in cand], device=dev)
+                f1 = map_f1(fusion.fuse(route_views(cache, torch.full((len(cand),), s, device=dev), pos)).cpu().numpy(),
                             np.repeat(y, len(cand), 0))
                 grow += [(route + [c], left - cost[route[-1], c], f) for c, f in zip(cand, f1)]
             grow.sort(key=lambda st: (-st[2], -st[1]))

@@ -38,3 +38,16 @@ def synthetic_cache(num_scenes: int = 4, k: int = 5, seed: int = 0, cell_dim: in
         cell_area_px=torch.full((num_scenes, P, N), 192.0), valid=torch.ones(num_scenes, P, N, dtype=torch.bool),
         perception_tag="synthetic", config=config,
     )
+
+
+def synthetic_wide_cache(num_scenes: int = 4, seed: int = 0, config: SearchConfig | None = None,
+                         k: int = 10) -> ViewCache:
+    """A synthetic cache on a wide lattice (default: the wide family's) where each view measures only its
+    footprint, with K people's pixels in the occupied cells it sees."""
+    from uavsearch.search.config import setting_config
+    from uavsearch.search.wide_policies import footprints
+
+    config = config or setting_config("wide")
+    c = synthetic_cache(num_scenes, k=k, seed=seed, config=config)
+    valid = footprints(config)[None].expand(num_scenes, -1, -1).clone()
+    return c._replace(valid=valid, person_px=(c.occupancy[:, None, :] & valid).int() * 5)

@@ -182,7 +182,7 @@ def perception_outputs(net, images: np.ndarray, labels: np.ndarray, altitudes_m:
     for i in range(0, len(images), batch):
         o = net.forward_all(images[i : i + batch], labels[i : i + batch], altitude_m=altitudes_m[i : i + batch])
         for k in out:
-            out[k].append(getattr(o, k).numpy())
+            out[k].append(getattr(o, k).cpu().numpy())
     return {k: np.concatenate(v).astype(np.float32) for k, v in out.items()}
 
 

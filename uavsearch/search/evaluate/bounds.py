@@ -23,6 +23,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from uavsearch.devices import follow, make_generator
 from uavsearch.errors import UavsearchError
 
 from ..config import SearchConfig
@@ -96,6 +97,7 @@ class FixedRoutes:
         self.routes = torch.as_tensor(np.asarray(routes), dtype=torch.long)
 
     def act(self, inp, generator=None):
+        follow(self, inp.lattice_idx.device)
         return self.routes[:, inp.step], None, None
 
 
@@ -133,7 +135,7 @@ def route_af1(cache, fusion: Fusion | None, config: SearchConfig | None = None,
         rows = np.repeat(np.arange(s0, s1), R)
         ep = run_search(CachedViews(cache, rows, config, conf), Agent(fusion, FixedRoutes(np.tile(routes, (s1 - s0, 1)))),
                         config.budget_T)
-        out[s0:s1] = map_f1(ep.maps[:, -1].numpy(), ep.labels.numpy()).reshape(s1 - s0, R)
+        out[s0:s1] = map_f1(ep.maps[:, -1].cpu().numpy(), ep.labels.cpu().numpy()).reshape(s1 - s0, R)
     return out
 
 
@@ -165,8 +167,8 @@ def label_greedy_af1(cache, fusion: Fusion, config: SearchConfig | None = None, 
     rows = np.arange(cache.num_scenes)
     teacher = LabelGreedyTeacher(cache, rows, fusion.scorer, config)
     ep = run_search(CachedViews(cache, rows, config, fusion.scorer), Agent(fusion, teacher),
-                    config.budget_T, generator=torch.Generator().manual_seed(int(seed)))
-    return map_f1(ep.maps[:, -1].numpy(), ep.labels.numpy())
+                    config.budget_T, generator=make_generator(seed, cache.occupancy.device))
+    return map_f1(ep.maps[:, -1].cpu().numpy(), ep.labels.cpu().numpy())
 
 
 def hidden_shares(cache, config: SearchConfig | None = None) -> tuple[float, float] | None:
@@ -174,8 +176,8 @@ def hidden_shares(cache, config: SearchConfig | None = None) -> tuple[float, flo
     cache without person_px."""
     if cache.person_px is None:
         return None
-    occ = cache.occupancy.numpy().astype(bool)
-    px = cache.person_px.numpy()
+    occ = cache.occupancy.cpu().numpy().astype(bool)
+    px = cache.person_px.cpu().numpy()
     n = max(int(occ.sum()), 1)
     start = px[:, (config or cache.config).lattice.start_index] == 0
     return float((start & occ).sum() / n), float(((px.max(1) == 0) & occ).sum() / n)

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.devices import resolve_device
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs, Store
 from uavsearch.paths import MODELS_DIR, display_path
@@ -78,7 +79,7 @@ def evaluate_single_view(args: EvalArgs) -> dict:
 
 
     torch.set_num_threads(max(1, args.threads))
-    net, extra = load_perception(args.checkpoint)
+    net, extra = load_perception(args.checkpoint, resolve_device(getattr(args, "device", "auto")))
     scenes, _ = density_test_scenes(args.scenes_per_pair)
     spec = ViewSetSpec(f"density_v{args.views_per_scene}_s{args.seed}", tuple(scenes),
                        views_per_scene=args.views_per_scene, seed=args.seed)

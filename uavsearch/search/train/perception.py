@@ -48,6 +48,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
+from uavsearch.devices import cpu_state, device_of, resolve_device
 from uavsearch.errors import UavsearchError
 from uavsearch.parallel import Executor, ScaleOutArgs, Store
 from uavsearch.paths import MODELS_DIR, RUNS_DIR
@@ -208,17 +209,18 @@ def batch_loss(net: TrainablePerception, images, labels, occupancy, args: Args, 
                negative_weight=None, altitude_m=None):
     """Stage 1's loss on a batch: weighted cell NLL (+ hard negatives) + the dense person loss.
     Returns (loss, parts dict, log_probs, trained-cell mask)."""
-    lab = torch.as_tensor(np.asarray(labels))
-    y = torch.as_tensor(np.asarray(occupancy), dtype=torch.long)
+    dev = device_of(net)
+    lab = torch.as_tensor(np.asarray(labels), device=dev)
+    y = torch.as_tensor(np.asarray(occupancy), dtype=torch.long, device=dev)
     B, N = y.shape
-    keys = (torch.arange(B)[:, None, None] * (N + 1) + lab.long() + 1).reshape(-1)
+    keys = (torch.arange(B, device=dev)[:, None, None] * (N + 1) + lab.long() + 1).reshape(-1)
     in_crop = torch.bincount(keys, minlength=B * (N + 1)).view(B, N + 1)[:, 1:]
     mask = in_crop >= args.min_cell_px
     out = net.forward_all(images, lab, geometry, altitude_m, cells=mask)
     nll = F.nll_loss(out.log_probs.reshape(-1, 2), y.reshape(-1), reduction="none").view_as(y)
     w = torch.where(y == 1, torch.full_like(nll, args.pos_weight), torch.ones_like(nll))
     if negative_weight is not None:
-        w = w * torch.as_tensor(negative_weight, dtype=w.dtype)
+        w = w * torch.as_tensor(negative_weight, dtype=w.dtype, device=dev)
     w = w * mask
     loss_cells = (nll * w).sum() / w.sum().clamp(min=1.0)
     dense = net.dense_loss(out, person, args.person_pos_weight) if person is not None and args.person_weight > 0 else None
@@ -326,6 +328,7 @@ def train(args: Args, views: tuple[ViewSet, ViewSet, int] | None = None) -> dict
     if args.batch_size < 1 or args.steps < 1:
         raise UavsearchError("batch_size and steps must be positive")
     torch.set_num_threads(max(1, args.threads))
+    device = resolve_device(args.device)
     # the kind's constructor arguments; num_cells follows the views trained on (below), and the altitude is
     # asked of a kind only when wanted, so a kind that cannot read it still trains without
     net_args = {**args.net_args, **({"altitude_feature": True} if args.altitude_feature else {})}
@@ -353,6 +356,7 @@ def train(args: Args, views: tuple[ViewSet, ViewSet, int] | None = None) -> dict
     net = build_perception(args.net, **net_args, num_cells=num_cells)
     if args.init:
         init_from(net, args.init)
+    net.to(device)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: 0.05 + 0.95 * 0.5 * (1 + np.cos(np.pi * min(s, args.steps) / args.steps)))
@@ -365,10 +369,10 @@ def train(args: Args, views: tuple[ViewSet, ViewSet, int] | None = None) -> dict
               "eval/recall", "eval/precision", "eval/cell_ap", "eval/false_alarms_per_view"]
     first, t_before = 1, 0.0
     if args.resume:
-        st = torch.load(last, map_location="cpu", weights_only=False)
+        st = torch.load(last, map_location=device, weights_only=False)
         net.load_state_dict(st["net"]), opt.load_state_dict(st["opt"]), sched.load_state_dict(st["sched"])
         rng.bit_generator.state = st["rng"]
-        torch.set_rng_state(st["torch_rng"])
+        torch.set_rng_state(st["torch_rng"].cpu())
         hard.false_alarms, hard.seen = st["hard"]
         rows, best, first, t_before = st["rows"], st["best"], st["step"] + 1, st["time_s"]
         print(f"resuming {run_dir} at step {first}")
@@ -400,15 +404,16 @@ def train(args: Args, views: tuple[ViewSet, ViewSet, int] | None = None) -> dict
         sr = scene_row[rows_b]
         neg_w = hard.weights(sr, y == 0, args.hard_negative_weight)
         loss, parts, log_probs, mask = batch_loss(
-            net, images_to_tensor(np.ascontiguousarray(imgs)), np.ascontiguousarray(labs), y, args,
-            person=np.ascontiguousarray(pers), geometry=(pooling.pixels, pooling.centroid), negative_weight=neg_w,
+            net, images_to_tensor(np.ascontiguousarray(imgs)).to(device), np.ascontiguousarray(labs), y, args,
+            person=np.ascontiguousarray(pers), geometry=(pooling.pixels.to(device), pooling.centroid.to(device)),
+            negative_weight=neg_w,
             altitude_m=train_set.position_enu[rows_b, 2])
         opt.zero_grad()
         loss.backward()
         opt.step()
         sched.step()
-        m = mask.numpy()
-        hard.update(sr, (y == 0) & m, (log_probs[..., 1].detach().exp().numpy() > 0.5) & m)
+        m = mask.cpu().numpy()
+        hard.update(sr, (y == 0) & m, (log_probs[..., 1].detach().exp().cpu().numpy() > 0.5) & m)
         elapsed = time.perf_counter() - t_train
         row = {"step": step, "time_s": round(elapsed, 2), "losses/train_loss": loss.item(),
                "losses/cells": parts["cells"], "losses/person": parts["person"], "charts/lr": sched.get_last_lr()[0],
@@ -422,7 +427,7 @@ def train(args: Args, views: tuple[ViewSet, ViewSet, int] | None = None) -> dict
                 save_perception(net, ckpt, extra={"args": asdict(args), "step": step,
                                                   "val": {k: v for k, v in row.items() if k.startswith("eval/")}})
             log(row)
-            torch.save({"net": net.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+            torch.save({"net": cpu_state(net), "opt": opt.state_dict(), "sched": sched.state_dict(),
                         "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
                         "hard": (hard.false_alarms, hard.seen), "rows": rows, "best": best, "step": step,
                         "time_s": time.perf_counter() - t_train}, last)
@@ -430,7 +435,7 @@ def train(args: Args, views: tuple[ViewSet, ViewSet, int] | None = None) -> dict
             log(row)
     bar.close()
     train_s = time.perf_counter() - t_train
-    net, extra = load_perception(ckpt)
+    net, extra = load_perception(ckpt, device)
     shift, cal_af1 = (calibration_shift(net, val_set) if args.calibrate else (0.0, best["eval/af1"]))
     if shift:
         net.shift_logit_margin(shift)
