@@ -29,7 +29,8 @@ NO_CUDA = not torch.cuda.is_available()
 def test_auto_is_cuda_where_torch_sees_one_else_the_cpu():
     assert resolve_device("auto") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
     assert resolve_device(None) == resolve_device("auto")
-    assert resolve_device("cpu") == resolve_device(" CPU ") == resolve_device(torch.device("cpu")) == torch.device("cpu")
+    cpu = torch.device("cpu")
+    assert resolve_device("cpu") == resolve_device(" CPU ") == resolve_device(cpu) == cpu
 
 
 @pytest.mark.skipif(not NO_CUDA, reason="this machine has CUDA")
@@ -219,7 +220,8 @@ def test_vector_envs_and_team_search_keep_every_tensor_on_the_runs_device():
     _host_lattices(WIDE, TIMED, setting_config(2))
     rng = np.random.default_rng(0)
     with HostVsDevice():
-        for kw in ({"setting": "wide", "config": TIMED, "cache": wide}, {"setting": 2, "cache": paper, "fusion": "bayes"}):
+        for kw in ({"setting": "wide", "config": TIMED, "cache": wide},
+                   {"setting": 2, "cache": paper, "fusion": "bayes"}):
             env = SearchVectorEnv(num_envs=4, device="cpu", progress=False, **kw)
             _, info = env.reset(seed=0)
             for _ in range(6):
