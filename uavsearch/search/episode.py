@@ -120,12 +120,10 @@ class SearchState:
         self.max_views = max_views if team else int(max_views or config.budget_T)
         self.budget_s = config.budget_s if budget_s is ... else budget_s
         self.timed = self.budget_s is not None
-        self.cost_s = lat.flight_time_t  # (P, P) float64
-        self.moves = lat.moves
         self.start_idx = lat.start_index if start_idx is None else int(start_idx)
         B, V, P, N = self.B, self.V, self.P, self.N
         self.device = dev = torch.device("cpu") if device is None else torch.device(device)
-        self.cost_s, self.moves = self.cost_s.to(dev), self.moves.to(dev)
+        self.cost_s, self.moves = lat.flight_time_t.to(dev), lat.moves.to(dev)  # (P, P) float64 seconds, (P, A)
         self._ar = torch.arange(B, device=dev)
         self.labels = labels if not buffered else torch.zeros(B, N, dtype=torch.bool, device=dev)
         self.pos = torch.full((B, V), self.start_idx, dtype=torch.long, device=dev)
@@ -161,6 +159,7 @@ class SearchState:
         return v, live, torch.where(live, t_ev[self._ar, v], torch.zeros(self.B, dtype=torch.float64, device=self.device))
 
     def time_left_s(self, now: torch.Tensor) -> torch.Tensor:
+        """(B,) float64 seconds of the time budget left at mission time `now`."""
         return self.budget_s - now
 
     # -- views -------------------------------------------------------------------------------------
@@ -180,7 +179,7 @@ class SearchState:
             o = o._replace(valid=o.valid & m[:, None])
         revisit = (self.visits[self._ar, idx] > 0) & m
         if self.buffered:
-            self._buffer(m.nonzero().reshape(-1), idx, o)
+            self._buffer(m.nonzero().reshape(-1), o)
         else:
             self.state, new = self.fusion.update(self.state, fusion_view(o, idx, self.labels))
             self.fused = new if every else torch.where(m[:, None], new, self.fused)
@@ -192,7 +191,7 @@ class SearchState:
         self.last = o
         return o, revisit
 
-    def _buffer(self, envs: torch.Tensor, idx: torch.Tensor, o: Observation) -> None:
+    def _buffer(self, envs: torch.Tensor, o: Observation) -> None:
         """Episodes `envs` write their view into the buffers at their own index and re-fuse their views."""
         t = self.views[envs]
         self.hist_p[envs, t], self.hist_valid[envs, t] = o.prob()[envs].double(), o.valid[envs]
@@ -224,7 +223,9 @@ class SearchState:
     def choices(self, visited: torch.Tensor, idx: torch.Tensor, now: torch.Tensor) -> torch.Tensor:
         """(B, P) bool: the viewpoints not in `visited` that a vehicle at `idx` can reach in the time left (and in a
         team, while views are left once the pending flights have taken theirs)."""
-        allowed = ~visited & (self.cost_s[idx] <= self.time_left_s(now)[:, None] + SLACK_S)
+        allowed = ~visited
+        if self.timed:
+            allowed = allowed & (self.cost_s[idx] <= self.time_left_s(now)[:, None] + SLACK_S)
         if self.team and self.max_views is not None:
             pending = (self.active & self.capture).sum(1)
             allowed &= (self.views + pending < self.max_views)[:, None]
