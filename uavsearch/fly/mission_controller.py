@@ -184,8 +184,10 @@ class AgentSearch:
                           f"{recorder.found(rec)}  acc {rec.acc:.2f} F1 {rec.f1:.2f}{nxt}")
 
     def summary(self, records: list) -> dict:
-        return dict(budget_T=self.config.budget_T, first_view_sim_time_s=records[0].sim_time_s if records else None,
-                    agent=self.loaded.description)
+        """The summary's own fields, each after the common field that names it."""
+        return {"steps": {"budget_T": self.config.budget_T},
+                "sim_time_s": {"first_view_sim_time_s": records[0].sim_time_s if records else None},
+                "wall_phases_s": {"agent": self.loaded.description}}
 
 
 def check_vehicle_scene(vehicle: MavlinkVehicle, spec, config, mission_uses_spec_file: bool = False) -> str:
@@ -503,12 +505,13 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         photos_received=sum(v.photos_received for v in vehicles))
     from .plan_files import write_flown_plan
 
-    summary = dict(status=status, end=end, steps=result.steps, acc=acc, f1=f1, fused=fused,
-                   labels=labels.astype(int), positions=result.positions, sim_time_s=result.sim_time_s,
-                   wall_s=result.wall_s, flight_wall_s=result.flight_wall_s, wall_phases_s=phases,
-                   **method.summary(records), scene_seed=spec.seed, occupied_cells=int(labels.sum()),
-                   speed=mission.flight.speed, photos_asked=result.photos_asked,
-                   photos_received=result.photos_received)
+    common = dict(status=status, end=end, steps=result.steps, acc=acc, f1=f1, fused=fused, labels=labels.astype(int),
+                  positions=result.positions, sim_time_s=result.sim_time_s, wall_s=result.wall_s,
+                  flight_wall_s=result.flight_wall_s, wall_phases_s=phases, scene_seed=spec.seed,
+                  occupied_cells=int(labels.sum()), speed=mission.flight.speed, photos_asked=result.photos_asked,
+                  photos_received=result.photos_received)
+    own = method.summary(records)
+    summary = {k: v for key, value in common.items() for k, v in ((key, value), *own.get(key, {}).items())}
     # the flown search, once the log is closed, as a QGroundControl plan
     return finish_log(log, run_dir, result, summary, after=(lambda: write_flown_plan(run_dir)) if method.flown_plan
                       else None)

@@ -131,9 +131,10 @@ class TeamSearch:
                           f"F1 {rec.f1:.2f}{then}")
 
     def summary(self, records: list) -> dict:
-        return dict(mission_time_s=(records[-1].sim_time_s - records[0].sim_time_s) if records else None,
-                    vehicles=self.n, views_per_vehicle={str(i + 1): sum(r.vehicle == i + 1 for r in records)
-                                                        for i in range(self.n)})
+        """The summary's own fields, each after the common field that names it."""
+        return {"wall_phases_s": dict(
+            mission_time_s=(records[-1].sim_time_s - records[0].sim_time_s) if records else None, vehicles=self.n,
+            views_per_vehicle={str(i + 1): sum(r.vehicle == i + 1 for r in records) for i in range(self.n)})}
 
 
 __all__ = ["LiveTeamViews", "TeamSearch"]
