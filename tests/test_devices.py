@@ -231,6 +231,51 @@ def test_vector_envs_and_team_search_keep_every_tensor_on_the_runs_device():
             team_scores(to_device(wide, "cpu"), planner, "bayes", 2, 120.0)
 
 
+def test_the_paper_policy_and_reactive_trainers_keep_every_tensor_on_the_runs_device(tmp_path):
+    from uavsearch.search.agents import new_agent
+    from uavsearch.search.policy import save_search_model
+    from uavsearch.search.train import policy as paper, reactive
+
+    config = setting_config(2)
+    caches = (synthetic_cache(4, seed=0), synthetic_cache(2, seed=1))
+    mark_host(*caches)
+    _host_lattices(config)
+    torch.manual_seed(0)
+    conf = new_agent("learned", config, 16, 6)
+    save_search_model(tmp_path / "conf.pt", conf.fusion, conf.policy)
+    with HostVsDevice():
+        paper.train(paper.Args(fusion="learned", iterations=2, scenes_per_batch=2, episodes_per_scene=2, eval_every=2,
+                               eval_episodes=1, runs_dir=str(tmp_path / "paper"), progress=False, plot=False,
+                               device="cpu"), caches=caches)
+        reactive.train(reactive.Args(confidence=str(tmp_path / "conf.pt"), dagger_iterations=1, dagger_episodes=4,
+                                     dagger_epochs=1, batch_size=8, pg_iterations=1, scenes_per_batch=2,
+                                     episodes_per_scene=2, eval_every=1, channels=4, hidden=8,
+                                     runs_dir=str(tmp_path / "reactive"), progress=False, plot=False, device="cpu"),
+                       caches=caches)
+
+
+def test_the_envs_take_a_device_and_refuse_cuda_without_one():
+    import gymnasium as gym
+
+    import uavsearch.envs  # noqa: F401 - registers the ids
+
+    cache = synthetic_wide_cache(2)
+    mark_host(cache)
+    _host_lattices(WIDE)
+    with HostVsDevice():
+        env = gym.make("uavsearch/WideSearch-v0", cache=cache, device="cpu", progress=False)
+        _, info = env.reset(seed=0)
+        for _ in range(3):
+            env.step(int(np.flatnonzero(info["action_mask"])[0]))
+    assert env.unwrapped.device == torch.device("cpu")
+    vec = gym.make_vec("uavsearch/WideSearch-v0", num_envs=2, vectorization_mode="vector_entry_point", cache=cache,
+                       device="cpu", progress=False)
+    assert vec.unwrapped.device == torch.device("cpu")
+    if NO_CUDA:
+        with pytest.raises(UavsearchError, match="sees no CUDA GPU"):
+            gym.make("uavsearch/WideSearch-v0", cache=cache, device="cuda", progress=False)
+
+
 @pytest.mark.slow  # renders two scenes' lattice views and trains (about 40 s)
 def test_perception_training_keeps_every_tensor_on_the_runs_device(tmp_path):
     from uavsearch.search.train.perception import Args, prepare_data, train

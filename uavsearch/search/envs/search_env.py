@@ -443,7 +443,7 @@ class ActiveSearchEnv(gym.Env):
             src.rows[0] = self._row
             self._batch.source = src
             labels = self.scenes.tables.labels[self._row]
-        self._batch.start([0], torch.as_tensor(np.asarray(labels)).bool()[None])
+        self._batch.start([0], torch.as_tensor(labels).bool()[None])  # a table's labels live on the env's device
         self._visited = [int(self._batch.idx[0])]
         return self._obs(), self._info()
 
