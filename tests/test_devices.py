@@ -276,6 +276,32 @@ def test_the_envs_take_a_device_and_refuse_cuda_without_one():
             gym.make("uavsearch/WideSearch-v0", cache=cache, device="cuda", progress=False)
 
 
+def test_table2_and_table3_keep_every_tensor_on_the_runs_device(tmp_path):
+    from types import SimpleNamespace
+
+    from test_eval_search import _models
+    from uavsearch.search.config import config_to_dict
+    from uavsearch.search.evaluate.search import EvalArgs, eval_search
+    from uavsearch.search.evaluate.wide import eval_wide
+    from uavsearch.search.fusion import FUSIONS
+    from uavsearch.search.map_policy import MapPolicyConfig, MapPolicyNet, wide_checkpoint
+    from uavsearch.search.policy import save_search_model
+
+    paper = synthetic_cache(3)
+    wide = {"test": synthetic_wide_cache(2, 1), "val": synthetic_wide_cache(2, 2), "train": synthetic_wide_cache(2, 3)}
+    mark_host(paper, *wide.values())
+    _host_lattices(setting_config(2), WIDE, *wide_budgets(WIDE).values())
+    models = _models(tmp_path / "models")
+    save_search_model(wide_checkpoint("240", models), FUSIONS["average"](),
+                      MapPolicyNet(MapPolicyConfig(config_to_dict(TIMED))), {"args": {"family": "wide"}})
+    with HostVsDevice():
+        eval_search(EvalArgs(setting="2", out=str(tmp_path / "t2"), models_dir=str(models), episodes=1, seeds=1,
+                             bootstrap=50, progress=False, device="cpu"), caches={2: paper})
+        eval_wide(SimpleNamespace(out=str(tmp_path / "t3"), wide_fusion="average", episodes=1, seeds=1, bootstrap=50,
+                                  bootstrap_seed=0, perception="models/perception.pt", progress=False,
+                                  wide_policy_dir=str(models), device="cpu"), ["wide"], {"wide": wide})
+
+
 @pytest.mark.slow  # renders two scenes' lattice views and trains (about 40 s)
 def test_perception_training_keeps_every_tensor_on_the_runs_device(tmp_path):
     from uavsearch.search.train.perception import Args, prepare_data, train

@@ -86,10 +86,11 @@ class ExternalPolicyNet(nn.Module):
         visits = torch.nn.functional.one_hot(inp.view_positions, P).sum(1)
         return cells_observation(config, inp.view_probs[:, -1], inp.view_valid[:, -1], inp.fused,
                                  inp.view_valid.sum(1), visits, inp.lattice_idx,
-                                 torch.full((B,), int(inp.step), dtype=torch.long), inp.time_left_s, inp.allowed)
+                                 torch.full((B,), int(inp.step), dtype=torch.long, device=inp.lattice_idx.device),
+                                 inp.time_left_s, inp.allowed)
 
     def logits(self, inp: PolicyInput) -> torch.Tensor:
-        return self(torch.as_tensor(flatten_cells(self.observation(inp))))
+        return self(torch.as_tensor(flatten_cells(self.observation(inp)), device=inp.fused.device))
 
     def act(self, inp: PolicyInput, generator: torch.Generator | None = None, greedy: bool = False):
         return sample_actions(self.logits(inp), generator, greedy)
