@@ -373,6 +373,8 @@ def train(args: Args, views: tuple[ViewSet, ViewSet, int] | None = None) -> dict
         net.load_state_dict(st["net"]), opt.load_state_dict(st["opt"]), sched.load_state_dict(st["sched"])
         rng.bit_generator.state = st["rng"]
         torch.set_rng_state(st["torch_rng"].cpu())
+        if device.type == "cuda" and st.get("cuda_rng") is not None:  # dropout's masks on the GPU
+            torch.cuda.set_rng_state(st["cuda_rng"].cpu(), device)
         hard.false_alarms, hard.seen = st["hard"]
         rows, best, first, t_before = st["rows"], st["best"], st["step"] + 1, st["time_s"]
         print(f"resuming {run_dir} at step {first}")
@@ -429,6 +431,7 @@ def train(args: Args, views: tuple[ViewSet, ViewSet, int] | None = None) -> dict
             log(row)
             torch.save({"net": cpu_state(net), "opt": opt.state_dict(), "sched": sched.state_dict(),
                         "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
+                        "cuda_rng": torch.cuda.get_rng_state(device) if device.type == "cuda" else None,
                         "hard": (hard.false_alarms, hard.seen), "rows": rows, "best": best, "step": step,
                         "time_s": time.perf_counter() - t_train}, last)
         else:
