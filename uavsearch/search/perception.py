@@ -62,6 +62,7 @@ from torch import nn
 
 from uavsearch.errors import UavsearchError
 
+from .checkpoints import shipped_perception  # noqa: F401  (where its callers have always found it)
 from .perception_nets import ResidualTrunk
 
 NUM_CELLS = 100
@@ -782,17 +783,6 @@ def load_perception(path, map_location: str = "cpu") -> tuple[Perception, dict]:
         raise UavsearchError(f"{path} is not a uavsearch perception checkpoint ({type(e).__name__}: {e})") from None
     net.eval().to(map_location)
     return net, ckpt.get("extra", {})
-
-
-def shipped_perception(setting=None) -> Path:
-    """The shipped net for a setting: the one its family declares (scenes/settings.yaml: the wide families'
-    perception_wide.pt, trained on their altitudes) where it exists, else the paper's models/perception.pt."""
-    from uavsearch.paths import MODELS_DIR
-    from uavsearch.world.settings import setting_params
-
-    if setting is not None and (MODELS_DIR / setting_params(setting).task.perception).is_file():
-        return MODELS_DIR / setting_params(setting).task.perception
-    return MODELS_DIR / "perception.pt"
 
 
 def perception_tag(net: torch.nn.Module) -> str:

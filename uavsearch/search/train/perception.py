@@ -69,6 +69,7 @@ from ..perception import (
     save_perception,
 )
 from ..scoring import predict_views
+from ..symmetry import square_symmetry
 from .runs import copy_checkpoint, seed_everything
 
 
@@ -113,14 +114,13 @@ class Args(ScaleOutArgs):
 
 
 def augment_batch(rng: np.random.Generator, *arrays: np.ndarray) -> list[np.ndarray]:
-    """Apply one of the 8 dihedral transforms per view to every (V, H, W, ...) array alike (image, cell label
-    image, person map)."""
+    """Apply one of the square's 8 symmetries (symmetry.square_symmetry) per view to every (V, H, W, ...) array
+    alike (image, cell label image, person map)."""
     outs = [x.copy() for x in arrays]
     for b in range(len(arrays[0])):
         k, flip = int(rng.integers(4)), bool(rng.integers(2))
         for x, o in zip(arrays, outs):
-            v = np.rot90(x[b], k, axes=(0, 1))
-            o[b] = v[:, ::-1] if flip else v
+            o[b] = square_symmetry(x[b], k + 4 * flip, axes=(0, 1))
     return outs
 
 
