@@ -107,3 +107,36 @@ def test_the_envs_state_follows_run_search():
         assert env.done.all()
         if ep.flight_s is not None:
             assert torch.equal(env.state.clock_s[:, 0].float(), ep.flight_s)
+
+
+class _FeatureReader(GreedyUncertainty):
+    """A policy that says it reads per-view features: it records what each decision saw."""
+
+    reads_view_features = True
+
+    def __init__(self, config):
+        super().__init__(config)
+        self.seen = []
+
+    def act(self, state, generator=None):
+        self.seen.append((state.view_positions.clone(), state.view_features))
+        return super().act(state, generator)
+
+
+def test_a_policy_that_reads_view_features_gets_every_view_s_features():
+    """The engine stacks each view's cell features into the policy's input for a policy that asks (and only then)."""
+    reader = _FeatureReader(PAPER_CFG)
+    rows = [0, 1, 2]
+    source = CachedViews(PAPER, rows, PAPER_CFG, features=True)
+    run_search(source, Agent(FUSIONS["average"](), reader), generator=torch.Generator().manual_seed(0))
+    assert len(reader.seen) == PAPER_CFG.budget_T - 1
+    for t, (positions, feats) in enumerate(reader.seen):
+        assert feats.shape == (len(rows), t + 1, PAPER_CFG.grid.num_cells, PAPER.cell_features.shape[-1])
+        for b, row in enumerate(rows):
+            expect = PAPER.cell_features[row, positions[b]]
+            assert torch.equal(feats[b], expect.to(feats.dtype))
+    plain = GreedyUncertainty(PAPER_CFG)
+    seen = []
+    plain.act = lambda state, generator=None, _act=plain.act: (seen.append(state.view_features), _act(state, generator))[1]
+    run_search(source, Agent(FUSIONS["average"](), plain), generator=torch.Generator().manual_seed(0))
+    assert seen and all(f is None for f in seen)

@@ -89,6 +89,9 @@ class PolicyInput(NamedTuple):
     # with a time budget (else None)
     time_left_s: torch.Tensor | None = None  # (B,) simulated seconds of flight left
     allowed: torch.Tensor | None = None  # (B, P) bool: unvisited viewpoints affordable in the time left
+    # per-view cell features (B, t+1, N, D), only for a policy that says it reads them (`reads_view_features`)
+    # and a source that serves them (CachedViews(features=True), live views); else None
+    view_features: torch.Tensor | None = None
 
 
 def fusion_view(o: Observation, lattice_idx: torch.Tensor, labels: torch.Tensor | None) -> FusionViews:
@@ -113,7 +116,8 @@ class SearchState:
 
     def __init__(self, config: SearchConfig, fusion: Fusion, batch_size: int, vehicles: int = 1, *,
                  max_views: int | None = None, budget_s: float | None = ..., labels: torch.Tensor | None = None,
-                 start_idx: int | None = None, team: bool = False, buffered: bool = False, device=None):
+                 start_idx: int | None = None, team: bool = False, buffered: bool = False, device=None,
+                 view_features: bool = False):
         lat = config.lattice
         self.config, self.fusion, self.team, self.buffered = config, fusion, bool(team), bool(buffered)
         self.B, self.V, self.P, self.N = int(batch_size), int(vehicles), lat.num_positions, config.grid.num_cells
@@ -147,6 +151,8 @@ class SearchState:
             self.positions: list[torch.Tensor] = []  # per lockstep view: (B,) viewpoint, (B, N) p, (B, N) valid
             self.probs: list[torch.Tensor] = []
             self.valids: list[torch.Tensor] = []
+            # kept only when asked: stacking every view's (B, N, D) features costs time nobody else needs
+            self.features: list[torch.Tensor] | None = [] if view_features else None
 
     # -- the clocks --------------------------------------------------------------------------------
 
@@ -186,6 +192,8 @@ class SearchState:
             self.positions.append(idx)
             self.probs.append(o.prob())
             self.valids.append(o.valid)
+            if self.features is not None and o.cell_features is not None and o.cell_features.shape[-1] > 0:
+                self.features.append(o.cell_features)
         self.visits[self._ar[m], idx[m]] += 1
         self.views += m.long()
         self.last = o
@@ -250,6 +258,7 @@ class SearchState:
             view_scores=view_scores,
             time_left_s=self.time_left_s(now).float() if self.timed else None,
             allowed=allowed,
+            view_features=torch.stack(self.features, 1) if getattr(self, "features", None) else None,
         )
 
     def fly(self, vehicle: torch.Tensor, nxt: torch.Tensor, go: torch.Tensor, now: torch.Tensor) -> None:

@@ -261,7 +261,8 @@ def run_search(source: ViewSource, agent: Agent, budget_T: int | None = None,
     T = int(budget_T or config.budget_T)
     B = source.batch_size
     st = SearchState(config, agent.fusion, B, max_views=T, labels=source.labels, start_idx=start_idx,
-                     device=getattr(source, "device", None))
+                     device=getattr(source, "device", None),
+                     view_features=bool(getattr(agent.policy, "reads_view_features", False)))
     timed = st.timed
     lead = torch.zeros(B, dtype=torch.long, device=st.device)  # the one vehicle
     actions, logps, ents, revisits, maps, takens = [], [], [], [], [], []

@@ -90,7 +90,8 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
         raise UavsearchError(f"a team needs at least one vehicle, got {vehicles}")
     B = source.batch_size
     st = SearchState(config, fusion, B, int(vehicles), max_views=max_views, budget_s=budget_s, labels=source.labels,
-                     team=True, device=getattr(source, "device", None))
+                     team=True, device=getattr(source, "device", None),
+                     view_features=bool(getattr(planner, "reads_view_features", False)))
     st.fused = torch.zeros_like(st.fused)  # the map before any view (every event 0 takes one)
     ar = st._ar
     planner.reset(B, st.V)
