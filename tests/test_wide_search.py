@@ -298,3 +298,21 @@ def test_f1_by_seconds_reads_the_map_after_the_views_taken_by_then():
     f1 = np.array([[0.1, 0.2, 0.3, 0.3]])
     seconds = np.array([0.0, t[s, a] - 1.0, t[s, a], t[s, a] + t[a, b], 240.0])
     assert f1_by_seconds(cfg, idx, f1, seconds).tolist() == [[0.1, 0.1, 0.2, 0.3, 0.3]]
+
+
+def test_rows_of_seeds_whose_episodes_take_different_numbers_of_views():
+    """Under a time budget a stochastic row's seeds may end after different numbers of views: the F1-by-view
+    curve holds each seed's final F1 instead of failing on ragged curves."""
+    from uavsearch.search.evaluate.wide import run_rows
+    from uavsearch.search.wide_policies import MaskedRandom
+
+    cfg = dataclasses.replace(WIDE, budget_T=73, budget_s=60.0)
+    cache = wide_cache(2, config=cfg)
+    agent = Agent(FUSIONS["average"](), MaskedRandom(cfg))
+    lengths = []
+    for s in range(6):
+        ep = run_search(CachedViews(cache, [0, 1]), agent, generator=torch.Generator().manual_seed(s))
+        lengths.append(ep.maps.shape[1])
+    assert len(set(lengths)) > 1  # the seeds really differ in length
+    res = run_rows(cache, cfg, {"random": (agent, 2)}, seeds=6)["random"]
+    assert res["f1_by_view"].shape == (max(lengths),) and np.isfinite(res["f1_by_view"]).all()

@@ -40,10 +40,9 @@ from uavsearch.paths import display_path
 from uavsearch.viz import pyplot, save_figure
 from uavsearch.world.settings import setting_params
 
-from ..agents import build_agent, load_wide_agent
+from ..agents import build_agent, load_wide_agent, make_fusion
 from ..config import SearchConfig, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
-from ..agents import make_fusion
 from ..fusion import Fusion, OracleFusion, calibrated_candidates, calibrated_gamma, fusion_name
 from ..map_policy import BUDGETS, wide_checkpoint
 from ..perception import load_perception, shipped_perception
@@ -104,8 +103,15 @@ def run_rows(cache: ViewCache, config: SearchConfig, agents: dict[str, tuple[Age
             by_s.append(f1_by_seconds(config, ep.lattice_idx, sc.f1, curve_seconds(config)).mean(0))
         out[key] = {"acc": np.stack(acc), "f1": np.stack(f1), "views": np.concatenate(views),
                     "flight_s": np.concatenate(flight), "scenes": cache.num_scenes,
-                    "f1_by_view": np.mean(by_view, 0), "f1_by_s": np.mean(by_s, 0)}
+                    "f1_by_view": np.mean(_pad_last(by_view), 0), "f1_by_s": np.mean(by_s, 0)}
     return out
+
+
+def _pad_last(curves: list[np.ndarray]) -> list[np.ndarray]:
+    """Seeds whose longest episode took fewer views hold their final F1 to the longest seed's length (under a
+    time budget each seed's episodes may end after a different number of views)."""
+    n = max(len(c) for c in curves)
+    return [np.concatenate([c, np.repeat(c[-1:], n - len(c))]) for c in curves]
 
 
 CURVE_STEP_S = 5.0  # Fig. 6's time axis: the map's F1 every 5 s of flight
