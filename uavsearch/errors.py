@@ -23,8 +23,10 @@ class LogError(UavsearchError):
 def format_validation_error(e, source: str, kind: str = "mission") -> str:
     """pydantic's first error as one line: '<kind> <source>: <field>: <problem> (got <value>)'."""
     err = e.errors()[0]
-    loc = ".".join(str(x) for x in err.get("loc", ()) if not str(x).startswith("function-after"))
-    msg = err.get("msg", "invalid")
+    # a key of the user's file may hold a line break: shown as repr, the error stays one line
+    loc = ".".join(str(x) if str(x).isprintable() else repr(x) for x in err.get("loc", ())
+                   if not str(x).startswith("function-after"))
+    msg = " ".join(err.get("msg", "invalid").splitlines())
     if msg.startswith("Value error, "):
         msg = msg[len("Value error, "):]
     got = err.get("input")

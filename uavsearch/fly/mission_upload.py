@@ -78,7 +78,10 @@ def upload_plan(path, connect: str = "udpin:127.0.0.1:14550", start: bool = Fals
         report.notes = _fence_notes(vehicle, plan, apply=True)
         for n in report.notes:
             progress(n)
-        mission.upload(items)
+        try:
+            mission.upload(items)
+        except MissionError as e:  # MAV_MISSION_NO_SPACE: more items than the vehicle holds
+            raise MissionError(f"mission {source}: {e}; {len(items)} item(s) sent") from None
         progress(f"uploaded {len(items)} mission item(s) from {source}")
         if start:
             report.flown = _fly(vehicle, items, timeout_s, progress)

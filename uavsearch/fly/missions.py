@@ -12,18 +12,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, NamedTuple
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
-from ..errors import MissionError, UavsearchError, format_validation_error, read_user_file
+from ..errors import MissionError, UavsearchError, format_validation_error
 from ..geometry import CameraIntrinsics, GeodeticOrigin
 from ..paths import MISSIONS_DIR, REPO_ROOT, display_path
 from ..search.config import ACTIONS, SearchConfig
 from ..world.scene import generate_scene, load_scene
 from ..world.settings import SETTINGS, setting_key, setting_params
+from .bounded_read import check_shape, parse_yaml, read_bounded_text
 from .vehicle import FlightSettings
 
 if TYPE_CHECKING:
@@ -82,7 +83,9 @@ def untrained_settings(search, trained: dict | None = None) -> list[str]:
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # NaN and infinities are refused in every float field: a NaN home altitude or speed passes every bound
+    # check (each comparison is false) and only fails inside the vehicle.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class SceneRef(_Strict):
@@ -218,6 +221,11 @@ class TeamMethod(NamedTuple):
     description: str
 
 
+# A mission's name names its run folder (runs/fly__<name>__<time>): a name, never a path out of the runs root,
+# and short enough that the folder's name fits a file system's 255 bytes in any script.
+NAME_PATTERN = r"[^/\\\x00-\x1f\x7f\ud800-\udfff]{1,50}"
+
+
 class Mission(_Strict):
     name: str = "mission"
     description: str = ""
@@ -235,6 +243,14 @@ class Mission(_Strict):
     plan: str | None = None  # a QGroundControl .plan (relative to this file): `uavsearch mission upload` flies it
     team: TeamSection | None = None  # the vehicles (1 without it); a team's family: also its mission time
     source: str | None = Field(None, exclude=True)  # the file it came from (set by load_mission)
+
+    @field_validator("name")
+    @classmethod
+    def _a_name(cls, v):
+        if not re.fullmatch(NAME_PATTERN, v) or ".." in v or v.strip() in ("", "."):
+            raise ValueError(f"a name, not a path: 1-50 characters without '/', '\\', '..' or control characters "
+                             f"(got {v!r})")
+        return v
 
     @field_validator("fusion", "policy")
     @classmethod
@@ -480,6 +496,7 @@ def mission_from_dict(data, source: str | None = None, check_registry: bool = Tr
         data = {}
     if not isinstance(data, dict):
         raise MissionError(f"mission {src}: the file must be a YAML mapping of fields, got {type(data).__name__}")
+    check_shape(data, src)
     try:
         m = Mission.model_validate(data, context={REGISTRY: bool(check_registry)})
     except ValidationError as e:
@@ -490,14 +507,7 @@ def mission_from_dict(data, source: str | None = None, check_registry: bool = Tr
 def load_mission(path=None, check_registry: bool = True) -> Mission:
     """Read and validate a mission file (default: missions/default.yaml; `check_registry`: see REGISTRY)."""
     path = Path(path) if path else DEFAULT_MISSION
-    text = read_user_file(path)
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise MissionError(f"mission {path}: not valid YAML{where}: {problem}") from None
+    data = parse_yaml(read_bounded_text(path), str(path))
     return mission_from_dict(data, str(path), check_registry)
 
 

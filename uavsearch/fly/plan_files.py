@@ -21,7 +21,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from ..errors import MissionError, format_validation_error, read_user_file
+from ..errors import MissionError, format_validation_error
 from ..flight.mavlink.wire_units import deg_to_e7
 from ..flight.mission import (
     FRAME_GLOBAL_RELATIVE_ALT,
@@ -34,6 +34,17 @@ from ..flight.mission import (
     SUPPORTED_COMMANDS,
     MissionItem,
 )
+from .bounded_read import PLAN_MAX_BYTES, parse_json, read_bounded_text
+
+# MISSION_COUNT's count is a uint16: no plan of more items can be sent. A vehicle holds its own number at most
+# (the simulated one: flight.mission.MAX_ITEMS) and answers a larger count with MAV_MISSION_NO_SPACE.
+PROTOCOL_MAX_ITEMS = 65535
+
+
+def check_item_count(n: int, source: str) -> None:
+    if n > PROTOCOL_MAX_ITEMS:
+        raise MissionError(f"plan {source}: {n} mission items; the MAVLink mission protocol carries at most "
+                           f"{PROTOCOL_MAX_ITEMS}")
 
 # QGC's numbers for what it writes: MAV_AUTOPILOT_PX4, MAV_TYPE_QUADROTOR, altitude relative to home.
 FIRMWARE_PX4 = 12
@@ -45,9 +56,10 @@ _LOCAL_FRAMES = {1, 4, 7, 8, 9}  # x/y in metres (1e4 on the wire)
 
 
 class _Open(BaseModel):
-    """QGC adds fields over its versions (AltitudeMode, AMSLAltAboveTerrain, ...): keep, don't reject."""
+    """QGC adds fields over its versions (AltitudeMode, AMSLAltAboveTerrain, ...): keep, don't reject. QGC writes
+    an unset parameter as null, never NaN or an infinity (1e999 in JSON): refused."""
 
-    model_config = ConfigDict(extra="allow")
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
 
 
 class SimpleItem(_Open):
@@ -167,6 +179,7 @@ def mission_items(plan: Plan, source: str = "<plan>") -> list[MissionItem]:
         simple = plan.simple_items()
     except (ValueError, ValidationError) as e:
         raise MissionError(f"plan {source}: {str(e).splitlines()[0]}") from None
+    check_item_count(len(simple), source)
     bad = sorted({s.command for s in simple if s.command not in SUPPORTED_COMMANDS})
     if bad:
         raise MissionError(f"plan {source}: the vehicle cannot fly MAV_CMD {bad} "
@@ -177,6 +190,9 @@ def mission_items(plan: Plan, source: str = "<plan>") -> list[MissionItem]:
 def plan_from_dict(data: Any, source: str = "<dict>") -> Plan:
     if not isinstance(data, dict):
         raise MissionError(f"plan {source}: not a QGroundControl plan (a JSON object), got {type(data).__name__}")
+    items = data.get("mission", {}).get("items") if isinstance(data.get("mission"), dict) else None
+    if isinstance(items, list):
+        check_item_count(len(items), source)  # before validating 65,536 or more of them
     try:
         return Plan.model_validate(data)
     except ValidationError as e:
@@ -191,6 +207,7 @@ def plan_from_wpl(text: str, source: str = "<wpl>") -> Plan:
     position, not something to fly (the vehicle would descend to it before the take-off item): it becomes
     the plan's home and the items after it are renumbered from 0."""
     rows = [ln.split() for ln in text.splitlines()[1:] if ln.strip()]
+    check_item_count(len(rows) - 1, source)  # row 0 is home
     items = []
     for n, r in enumerate(rows, start=2):
         if len(r) != 12:
@@ -215,14 +232,10 @@ def plan_from_wpl(text: str, source: str = "<wpl>") -> Plan:
 def load_plan(path) -> Plan:
     """Read and validate a `.plan` file (or a `QGC WPL 110` waypoint file, whose item 0 is home)."""
     path = Path(path)
-    text = read_user_file(path, "plan")
+    text = read_bounded_text(path, "plan", PLAN_MAX_BYTES)
     if text.lstrip().startswith(WPL_HEADER):
         return plan_from_wpl(text.lstrip(), str(path))
-    try:
-        data = json.loads(text)
-    except ValueError as e:
-        raise MissionError(f"plan {path}: not JSON ({e})") from None
-    return plan_from_dict(data, str(path))
+    return plan_from_dict(parse_json(text, str(path)), str(path))
 
 
 # --------------------------------------------------------------------------------------------------
