@@ -121,3 +121,99 @@ def test_mp4_video_through_opencv(run_dir, tmp_path):
         n += 1
     assert n == 2 * T  # 10 fps x 0.2 s per view
 
+
+
+# --------------------------------------------------------------------------------------------------
+# A team flight replays from what it recorded: no flags, the flight's own score; a contradicting flag is one line
+
+
+@pytest.fixture(scope="module")
+def team_run(tmp_path_factory):
+    """One short flight of the wide team mission (three vehicles, 30 s of simulated flight)."""
+    import subprocess
+    import sys
+
+    from uavsearch.paths import MISSIONS_DIR
+    from uavsearch.testing.clean_env import clean_env
+
+    run = tmp_path_factory.mktemp("team") / "run"
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(MISSIONS_DIR / "wide_team.yaml"),
+                        "--mission-time", "30", "--out", str(run), "--gcs-port", "0"],
+                       capture_output=True, text=True, timeout=300, env=clean_env())
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    return run, json.loads((run / "summary.json").read_text())
+
+
+def test_a_team_flight_replays_with_no_flags(team_run, tmp_path, capsys):
+    """The run folder and its own tlog (re-rendered in the flown scene with the flown mission's bayes:0.5
+    fusion) both score what the flight scored."""
+    from uavsearch.cli import main
+
+    run, summary = team_run
+    assert summary["vehicles"] == 3 and summary["steps"] >= 3
+    assert replay_run_dir(run).f1[-1] == pytest.approx(summary["f1"], abs=1e-6)
+    assert main(["replay", str(run / "telemetry.tlog"), "--out", str(tmp_path / "o")]) == 0
+    res = json.loads((tmp_path / "o" / "replay.json").read_text())
+    assert res["fusion"] == "bayes:0.5" and res["views"] == summary["steps"]
+    assert res["f1"][-1] == pytest.approx(summary["f1"], abs=1e-4)
+    assert res["acc"][-1] == pytest.approx(summary["acc"], abs=1e-4)
+
+
+def test_a_tlog_flown_elsewhere_replays_with_its_team_mission(team_run, tmp_path):
+    """A bare .tlog with the wide team mission: its bayes:0.5 spec through the fusion registry, its family's
+    scene (was: KeyError 'bayes:0.5')."""
+    import shutil
+
+    from uavsearch.replay.replay import replay_tlog
+
+    run, summary = team_run
+    shutil.copy(run / "telemetry.tlog", tmp_path / "t.tlog")
+    from uavsearch.paths import MISSIONS_DIR
+
+    mission = load_mission(MISSIONS_DIR / "wide_team.yaml")
+    d = replay_tlog(tmp_path / "t.tlog", mission.scene_spec(), mission, progress=False)
+    assert d.fusion == "bayes:0.5" and d.f1[-1] == pytest.approx(summary["f1"], abs=1e-4)
+
+
+@pytest.mark.parametrize("flags, said", [
+    (["--scene", "5"], "--scene 5"),
+    (["--setting", "2"], "--setting 2"),
+    (["--occupied-cells", "3"], "--occupied-cells 3"),
+    (["--mission", "missions/default.yaml"], "fusion learned"),
+])
+def test_a_flag_that_contradicts_the_record_is_one_line(team_run, tmp_path, capsys, flags, said):
+    from uavsearch.cli import main
+
+    run, _ = team_run
+    for src in (run, run / "telemetry.tlog"):
+        assert main(["replay", str(src), *flags, "--out", str(tmp_path / "o")]) == 2
+        lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+        assert len(lines) == 1 and lines[0].startswith("uavsearch: error: replay: "), lines
+        assert said in lines[0] and "scene 132000 of the wide family" in lines[0] and "3 vehicle(s)" in lines[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_flags_that_agree_with_the_record_are_fine(team_run):
+    from uavsearch.paths import MISSIONS_DIR
+    from uavsearch.replay.replay import check_flags, flight_record
+
+    run, summary = team_run
+    rec = flight_record(run)
+    assert (rec.seed, rec.setting, rec.fusion, rec.vehicles) == (summary["scene_seed"], "wide", "bayes:0.5", 3)
+    check_flags(rec, scene=rec.seed, setting="wide", occupied_cells=rec.occupied_cells,
+                mission=str(MISSIONS_DIR / "wide_team.yaml"))
+    check_flags(rec, fusion="average", mission=str(MISSIONS_DIR / "wide_team.yaml"))  # --fusion re-fuses on purpose
+
+
+def test_a_run_folder_mixing_two_flights_is_one_line(team_run, tmp_path):
+    import shutil
+
+    from uavsearch.replay.replay import flight_record
+
+    run, _ = team_run
+    d = tmp_path / "mixed"
+    shutil.copytree(run, d)
+    s = json.loads((d / "summary.json").read_text())
+    (d / "summary.json").write_text(json.dumps({**s, "scene_seed": 7}))
+    with pytest.raises(LogError, match="mixes flights: scene 132000 in search.jsonl's header, .*7 in summary.json"):
+        flight_record(d)

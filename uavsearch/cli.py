@@ -211,7 +211,7 @@ def _add_replay_parser(sub) -> None:
                         "or FILE.tlog's name with .html)")
     p.add_argument("--fusion", default=None, help="re-fuse the logged per-view outputs with another method")
     p.add_argument("--scene", type=int, default=None, metavar="SEED", help="(.tlog) scene to re-render the camera in")
-    p.add_argument("--setting", type=int, default=2, help="(.tlog) paper setting of the scene (default 2)")
+    p.add_argument("--setting", default=None, help="(.tlog) paper setting or scene family of the scene (default 2)")
     p.add_argument("--occupied-cells", type=int, default=None, metavar="K", help="(.tlog) K instead of --setting")
     p.add_argument("--mission", default=None, metavar="FILE",
                    help="(.tlog) mission whose perception / fusion / home to use (default missions/default.yaml)")

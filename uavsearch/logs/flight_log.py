@@ -99,6 +99,26 @@ class FlightLog:
         return np.asarray([getattr(s, key) for s in self.steps], dtype=float)
 
 
+def read_header(run_dir) -> dict:
+    """search.jsonl's header line alone (what the flight recorded before its first view), or a one-line
+    LogError."""
+    path = Path(run_dir) / "search.jsonl"
+    if not path.is_file():
+        raise LogError(f"{run_dir} is not a flight log: no search.jsonl")
+    try:
+        with open(path, "rb") as f:
+            rec = json.loads(f.readline().decode("utf-8"))
+    except OSError as e:
+        raise LogError(f"{run_dir} is not a flight log: {e.strerror or e}") from None
+    except (ValueError, UnicodeDecodeError):
+        rec = None
+    if not isinstance(rec, dict) or rec.get("type") != "header":
+        raise LogError(f"{path}: no header line (not a uavsearch flight log, or damaged at the start)")
+    if rec.get("format") != FORMAT:
+        raise LogError(f"{path}: unknown format {rec.get('format')!r} (expected {FORMAT})")
+    return rec
+
+
 def read_flight_log(run_dir) -> FlightLog:
     """Read search.jsonl (and summary.json); a torn or corrupt line ends the read with a warning, a whole
     JSON line that is no valid step record raises a one-line LogError."""
@@ -143,4 +163,4 @@ def read_flight_log(run_dir) -> FlightLog:
     return FlightLog(run_dir, header, steps, failure, summary, warning)
 
 
-__all__ = ["FORMAT", "FlightLog", "FlightLogWriter", "StepRecord", "read_flight_log"]
+__all__ = ["FORMAT", "FlightLog", "FlightLogWriter", "StepRecord", "read_flight_log", "read_header"]

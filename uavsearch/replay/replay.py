@@ -36,9 +36,10 @@ from ..errors import LogError, UavsearchError
 from ..flight.mavlink import wire_units as wire
 from ..fly.missions import WIDE_POLICY, load_mission, mission_from_dict
 from ..geometry import CameraIntrinsics, GeodeticOrigin, Grid, camera_pose_from_vehicle
-from ..logs.flight_log import read_flight_log
-from ..search.agents import FUSIONS, check_names
-from ..search.fusion import Fusion, FusionViews, fusion_from_spec, fusion_name
+from ..flight.camera import SCENE_FILE
+from ..logs.flight_log import read_flight_log, read_header
+from ..search.agents import FUSIONS, check_names, make_fusion
+from ..search.fusion import Fusion, FusionViews, fusion_name
 from ..search.metrics import map_accuracy, map_f1
 from ..search.perception import perceive
 from ..search.policy import load_search_model
@@ -190,7 +191,7 @@ def _fuse_all(method, p, valid, area=None, scores=None, labels=None) -> np.ndarr
     if isinstance(method, Fusion):
         fusion, method = method, fusion_name(method)
     elif ":" in method:  # a spec with its prior (a wide-area mission's fusion, e.g. bayes:0.5)
-        fusion = fusion_from_spec(method)
+        fusion = make_fusion(method)
     else:
         check_names(fusion=method)
         fusion = FUSIONS[method]()
@@ -332,7 +333,9 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
                      "its true pose is not on this machine): maps can differ from the flight's")
     if not shots:
         raise LogError(f"{path}: no CAMERA_IMAGE_CAPTURED in the log (and no --every S to sample the track)")
-    loaded_mission = mission.model_copy(update={"fusion": method, "policy": "random"})
+    # the agent gives perception (and the confidence net): its fusion is a name, whatever spec fuses below
+    plain = method if isinstance(method, str) and method in FUSIONS else "bayes"
+    loaded_mission = mission.model_copy(update={"fusion": plain, "policy": "random"})
     loaded = loaded_mission.agent(config)
     renderer = SceneRenderer(spec, config.intrinsics, config.render)
     p_list, valid_list, area_list, score_list, images, poses, positions = [], [], [], [], [], [], []
@@ -562,20 +565,140 @@ def write_replay(d: ReplayData, out, video: str = "gif") -> dict:
 
 
 # --------------------------------------------------------------------------------------------------
+# What a run folder recorded: replay takes it from there, and a flag may only agree with it
+
+
+@dataclass
+class FlightRecord:
+    """What a flight recorded about itself: the mission as flown, its scene, fusion and vehicles."""
+
+    run_dir: Path
+    header: dict
+    mission: object  # Mission, as flown (mission.json; the header's copy when that is missing)
+    seed: int
+    setting: int | str | None  # the scene family or paper setting (None: a K given as a number)
+    occupied_cells: int
+    fusion: str
+    vehicles: int
+
+    def scene_text(self) -> str:
+        fam = f" of the {self.setting} family" if isinstance(self.setting, str) else \
+            f" of setting {self.setting}" if self.setting is not None else ""
+        return f"scene {self.seed}{fam} ({self.occupied_cells} occupied cells)"
+
+    def scene_spec(self):
+        """The scene the vehicles flew over: the vehicle's own scene.json, else the flown mission's."""
+        path = self.run_dir / SCENE_FILE
+        if path.is_file():
+            from ..world.scene import load_scene
+
+            return load_scene(path)
+        return self.mission.scene_spec()
+
+
+def run_dir_of(src: Path) -> Path | None:
+    """The run folder a replay source belongs to: the folder itself, or the one a .tlog lies in (its search.jsonl
+    beside it); None for a telemetry log flown elsewhere."""
+    if src.is_dir():
+        return src
+    return src.parent if src.is_file() and (src.parent / "search.jsonl").is_file() else None
+
+
+def flight_record(run_dir) -> FlightRecord:
+    """Read what the run folder recorded (search.jsonl's header, mission.json, scene.json, summary.json); files
+    that disagree on the scene are one line (a folder mixing two flights), never a silently wrong score."""
+    run_dir = Path(run_dir)
+    h = read_header(run_dir)
+    data = h.get("mission")
+    mfile = run_dir / "mission.json"
+    try:
+        if mfile.is_file():
+            data = json.loads(mfile.read_text())
+        mission = mission_from_dict(data, h.get("mission_file"), check_registry=False)
+    except (ValueError, OSError, UavsearchError) as e:
+        raise LogError(f"{run_dir}: the flown mission cannot be read back: {str(e).splitlines()[0]}") from None
+    scene = h.get("scene") or {}
+    seed = scene.get("seed", mission.scene.seed)
+    seen = {"search.jsonl's header": seed}
+    for name, key in ((SCENE_FILE, "seed"), ("summary.json", "scene_seed")):
+        try:
+            value = json.loads((run_dir / name).read_text()).get(key) if (run_dir / name).is_file() else None
+        except (ValueError, OSError, AttributeError):
+            value = None  # damaged: the header speaks (read_flight_log warns about a damaged summary)
+        if value is not None:
+            seen[name] = value
+    if len(set(seen.values())) > 1:
+        raise LogError(f"{run_dir}: the run folder mixes flights: scene "
+                       + ", ".join(f"{v} in {k}" for k, v in seen.items()))
+    setting = scene.get("setting", mission.scene.setting if mission.scene.occupied_cells is None else None)
+    team = h.get("team") or {}
+    return FlightRecord(run_dir, h, mission, int(seed), setting,
+                        int(scene.get("occupied_cells", sum(h.get("labels") or []))),
+                        str(h.get("fusion", mission.fusion)), int(team.get("vehicles", mission.vehicles)))
+
+
+def _as_setting(v):
+    return int(v) if isinstance(v, str) and v.isdigit() else v
+
+
+def check_flags(rec: FlightRecord, scene=None, setting=None, occupied_cells=None, mission=None,
+                fusion=None) -> None:
+    """A flag that contradicts what the flight recorded is a one-line error (--fusion re-fuses on purpose)."""
+    said = []
+    if scene is not None and int(scene) != rec.seed:
+        said.append(f"--scene {scene}")
+    if setting is not None:
+        s = _as_setting(setting)
+        if (rec.setting is not None and _as_setting(rec.setting) != s) or \
+                (rec.setting is None and resolve_k(s) != rec.occupied_cells):
+            said.append(f"--setting {setting}")
+    if occupied_cells is not None and int(occupied_cells) != rec.occupied_cells:
+        said.append(f"--occupied-cells {occupied_cells}")
+    if mission is not None:
+        m = load_mission(mission)
+        theirs = []
+        if scene is None and int(m.scene.seed) != rec.seed:
+            theirs.append(f"scene {m.scene.seed}")
+        if (m.scene.setting, m.scene.occupied_cells) != (rec.mission.scene.setting, rec.mission.scene.occupied_cells):
+            theirs.append(f"scene setting {m.scene.setting}" if m.scene.occupied_cells is None
+                          else f"{m.scene.occupied_cells} occupied cells")
+        if fusion is None and m.fusion != rec.fusion:
+            theirs.append(f"fusion {m.fusion}")
+        if m.vehicles != rec.vehicles:
+            theirs.append(f"{m.vehicles} vehicle(s)")
+        if theirs:
+            said.append(f"--mission {mission} ({', '.join(theirs)})")
+    if said:
+        raise UavsearchError(f"replay: {' and '.join(said)} contradicts the flight log {rec.run_dir}: it was flown "
+                             f"in {rec.scene_text()} with {rec.fusion} fusion and {rec.vehicles} vehicle(s); "
+                             "drop the flag to replay what was flown")
+
+
+# --------------------------------------------------------------------------------------------------
 # CLI
 
 
 def replay_command(args) -> int:
     src = Path(args.log)
+    run = run_dir_of(src)
+    if run is not None:  # what the flight recorded decides the scene, the mission and the fusion
+        rec = flight_record(run)
+        check_flags(rec, args.scene, args.setting, args.occupied_cells, args.mission, args.fusion)
     if src.is_dir():
         d = replay_run_dir(src, args.fusion)
+    elif run is not None:  # the run's own tlog: re-rendered in the flown scene with the flown mission
+        d = replay_tlog(src, rec.scene_spec(), rec.mission, args.fusion, args.every)
     elif src.is_file():
         if args.scene is None:
             raise UavsearchError("replaying a .tlog needs --scene SEED (the scene to re-render the camera in)")
-        k = resolve_k(args.occupied_cells, is_setting=False) if args.occupied_cells is not None \
-            else resolve_k(args.setting)
         mission = load_mission(args.mission)
-        d = replay_tlog(src, generate_scene(args.scene, k), mission, args.fusion, args.every)
+        if args.occupied_cells is None and args.setting is None and mission.family is not None:
+            spec = mission.with_overrides(**{"scene.seed": int(args.scene)}).scene_spec()  # the family's scene
+        else:
+            k = resolve_k(args.occupied_cells, is_setting=False) if args.occupied_cells is not None \
+                else resolve_k(_as_setting(args.setting) if args.setting is not None else 2)
+            spec = generate_scene(args.scene, k)
+        d = replay_tlog(src, spec, mission, args.fusion, args.every)
     else:
         raise LogError(f"{src}: no such run directory or telemetry log")
     for w in d.warnings:
@@ -590,4 +713,4 @@ def replay_command(args) -> int:
     return 0
 
 
-__all__ = ["ReplayData", "TlogTrack", "read_tlog", "replay_command", "replay_run_dir", "replay_tlog", "write_replay"]
+__all__ = ["FlightRecord", "ReplayData", "TlogTrack", "check_flags", "flight_record", "read_tlog", "run_dir_of", "replay_command", "replay_run_dir", "replay_tlog", "write_replay"]
