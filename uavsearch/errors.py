@@ -1,7 +1,6 @@
 """User-facing errors: the CLI prints these as one line, never a traceback."""
 
 import sys
-from pathlib import Path
 
 
 class UavsearchError(Exception):
@@ -37,14 +36,6 @@ def format_validation_error(e, source: str, kind: str = "mission") -> str:
         msg = "unknown field"
     more = f" [+{len(e.errors()) - 1} more]" if len(e.errors()) > 1 else ""
     return f"{kind} {source}: {where}{msg}{tail}{more}"
-
-
-def read_user_file(path: Path, kind: str = "mission") -> str:
-    """A file the user named, or the one-line error saying why it cannot be read."""
-    try:
-        return path.read_text()
-    except OSError as e:
-        raise MissionError(f"{kind} {path}: cannot read ({e.strerror or e})") from None
 
 
 def run_command(func, args, prog: str = "uavsearch") -> int:

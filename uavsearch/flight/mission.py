@@ -100,7 +100,7 @@ MISSION_INVALID = 5
 MISSION_INVALID_SEQUENCE = 13
 MISSION_DENIED = 14
 
-MAX_ITEMS = 500
+MAX_ITEMS = 500  # the vehicle's mission capacity: a larger count is answered MAV_MISSION_NO_SPACE
 
 
 def check_item(item: MissionItem) -> None:

@@ -16,12 +16,11 @@ from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import common as M
 
-from ..mission import POSITIONED_COMMANDS, MissionItem
+from ..mission import MAX_ITEMS, POSITIONED_COMMANDS, MissionItem
 from .links import AUTOPILOT_COMPID, Peer
 
 MISSION_RETRY_WALL_S = 0.25
 MISSION_MAX_RETRIES = 8
-MISSION_MAX_ITEMS = 500
 
 
 @dataclass
@@ -116,7 +115,7 @@ class MissionProtocol:
         mt = getattr(m, "mission_type", 0)
         if mt != M.MAV_MISSION_TYPE_MISSION:
             return self._ack(peer, partner, M.MAV_MISSION_UNSUPPORTED, mt)
-        if m.count > MISSION_MAX_ITEMS:
+        if m.count > MAX_ITEMS:
             return self._ack(peer, partner, M.MAV_MISSION_NO_SPACE)
         if self._busy_with_another(peer, partner):
             return
