@@ -156,3 +156,43 @@ def test_a_malformed_step_line_is_a_one_line_log_error(tmp_path, bad, why):
         f.write(json.dumps(rec) + "\n")
     with pytest.raises(LogError, match=f"search.jsonl: line 2: .*{why}"):
         read_flight_log(tmp_path)
+
+
+def test_the_summary_is_provisional_from_the_header_and_survives_a_full_disk(tmp_path):
+    """summary.json says "running" and what is kept from the header on; a rewrite that hits a full disk (its
+    temporary file is /dev/full, whose every write fails with ENOSPC) keeps the last good one; the final one
+    gets the reserve's room and says what a flight that did not complete kept."""
+    import os
+
+    from uavsearch.logs.flight_log import RESERVE
+
+    w = FlightLogWriter(tmp_path, tlog=False)
+    (tmp_path / "images" / "img_0000.png").write_bytes(b"\x89PNG")
+    w.header(labels=np.zeros(100, dtype=int), fusion="bayes", grid={"n": 10, "cell_m": 5.0},
+             mission={"name": "m"}, scene={"seed": 3})
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s == {"status": "running", "mission": "m", "scene_seed": 3, "kept": {"views": 0, "photos": 1, "tlog_bytes": 0}}
+    assert (tmp_path / RESERVE).stat().st_size >= 100 * 40
+    w.step(_step(0))
+    assert json.loads((tmp_path / "summary.json").read_text())["kept"]["views"] == 1
+    tmp = tmp_path / ".summary.json.tmp"
+    os.symlink("/dev/full", tmp)  # the disk is full from here on
+    w.step(_step(1))  # the flight goes on; its provisional summary cannot be rewritten
+    assert json.loads((tmp_path / "summary.json").read_text())["kept"]["views"] == 1  # the last good one
+    os.symlink("/dev/full", tmp)
+    w.summary({"status": "failed: no space left on device", "steps": 2})  # the reserve makes room for it
+    w.close()
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["status"].startswith("failed") and s["kept"] == {"views": 2, "photos": 1, "tlog_bytes": 0}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["images", "search.jsonl", "summary.json"]
+    assert read_flight_log(tmp_path).summary == s
+
+
+def test_a_completed_flight_s_summary_is_as_given(tmp_path):
+    w = FlightLogWriter(tmp_path, tlog=False)
+    w.header(labels=np.zeros(100, dtype=int), fusion="bayes", grid={"n": 10, "cell_m": 5.0}, mission={})
+    w.step(_step(0))
+    w.summary({"status": "completed", "steps": 1})
+    w.step(_step(1))  # nothing replaces the final summary
+    w.close()
+    assert json.loads((tmp_path / "summary.json").read_text()) == {"status": "completed", "steps": 1}

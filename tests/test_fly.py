@@ -226,7 +226,9 @@ def test_killed_mid_air_leaves_a_readable_log(tmp_path):
     finally:
         proc.wait(timeout=30)
     log = read_flight_log(run)
-    assert len(log.steps) >= 1 and log.summary is None and log.steps[0].waypoint_enu == [0.0, 0.0, 70.0]
+    assert len(log.steps) >= 1 and log.steps[0].waypoint_enu == [0.0, 0.0, 70.0]
+    assert log.summary["status"] == "running"  # provisional: never rewritten, so the flight was killed
+    assert log.summary["kept"]["views"] in (len(log.steps) - 1, len(log.steps))  # (killed between the two writes)
     tr = read_tlog(run / "telemetry.tlog")
     assert len(tr.captures) >= 1 and tr.lla[:, 2].max() > 488.0 + 69.0
     time.sleep(2)
@@ -406,7 +408,14 @@ def test_a_full_disk_is_one_line_and_keeps_what_was_recorded(tmp_path, tiny_disk
     assert "\nlanded\n" in r.stdout
     from uavsearch.logs.flight_log import read_flight_log
 
-    assert read_flight_log(run).header["mission"]["name"] == mission["name"]  # what it recorded is kept
+    log = read_flight_log(run)
+    assert log.header["mission"]["name"] == mission["name"]  # what it recorded is kept
+    # the summary is kept (the reserve made room for it) and says what was kept
+    assert log.summary["status"].startswith("failed: no space left on device"), log.summary["status"]
+    kept = log.summary["kept"]
+    assert kept["views"] == len(log.steps) and kept["tlog_bytes"] == (run / "telemetry.tlog").stat().st_size > 0
+    assert kept["photos"] == sum(1 for p in run.glob("**/images/*.png") if p.stat().st_size > 0)
+    assert not list(run.glob(".summary*")), list(run.glob(".summary*"))  # no reserve, no temporary file left
 
 
 def test_a_torn_log_s_review_page_warns_in_one_line(flown, tmp_path):

@@ -529,9 +529,13 @@ def finish_log(log: FlightLogWriter, run_dir: Path, result: MissionResult, summa
         full = disk_full(run_dir, e)
         if full is None:
             raise
-        log.close()
         if not result.status.startswith("failed: no space"):
             result.status = f"failed: {full}"
+            try:  # the summary says so, and what was kept
+                log.summary({**summary, "status": result.status})
+            except OSError:
+                pass
+        log.close()
     return result
 
 

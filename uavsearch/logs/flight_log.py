@@ -9,9 +9,12 @@
                      areas, fused map, action, reward, metrics); a {"type": "failure"} line if a step failed
     images/          the PNGs the camera wrote (img_NNNN.png)
     captures.jsonl   the simulated camera's own record (true and estimated pose per image)
-    summary.json     the result, written at the end (replay rebuilds it from search.jsonl if absent)
+    summary.json     the result: a provisional one (status "running", what is kept so far) from the header on,
+                     rewritten after each view and at the end; a fault's summary says what was kept
 
-Every line is flushed and fsync'ed when written; a reader skips a torn last line with a warning.
+Every line is flushed and fsync'ed when written; a reader skips a torn last line with a warning. summary.json is
+replaced atomically (a temporary file in the folder, fsync, rename), so the last good one survives a full disk,
+and a reserve file holds the room for the final one until it is written.
 """
 
 from __future__ import annotations
@@ -29,6 +32,34 @@ from .step_record import StepRecord, dumps_line, jsonable
 from .tlog import TlogWriter
 
 FORMAT = "uavsearch-flight-log/1"
+RESERVE = ".summary.reserve"  # room kept for the final summary.json while the flight fills the disk
+
+
+def _reserve_bytes(cells: int) -> int:
+    """Room for a summary: its fused map and labels take about 40 bytes a cell (indented JSON)."""
+    return 16384 + 48 * int(cells)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Replace `path` with `text` so a reader sees the old file or the new one, never half of one."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        tmp.unlink(missing_ok=True)  # a full disk: leave no half-written file beside the log
+        raise
+    try:
+        fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)  # the rename itself
+        finally:
+            os.close(fd)
+    except OSError:
+        pass
 
 
 class FlightLogWriter:
@@ -40,6 +71,9 @@ class FlightLogWriter:
         (self.run_dir / "images").mkdir(exist_ok=True)
         self.tlog = TlogWriter(self.run_dir / "telemetry.tlog", clock="sim") if tlog else None
         self._f = open(self.run_dir / "search.jsonl", "a")
+        self.views = 0  # step records written
+        self._known: dict = {}  # the provisional summary's fields from the header
+        self._final = False  # the final summary is written: no provisional one replaces it
 
     def _write(self, record: dict | str) -> None:
         self._f.write((record if isinstance(record, str) else dumps_line(record)) + "\n")
@@ -50,22 +84,62 @@ class FlightLogWriter:
 
     def header(self, **fields) -> None:
         self._write({"type": "header", "format": FORMAT, **fields})
+        scene = fields.get("scene") or {}
+        self._known = {k: v for k, v in (("mission", (fields.get("mission") or {}).get("name")),
+                                         ("scene_seed", scene.get("seed")),
+                                         ("started_utc", fields.get("started_utc"))) if v is not None}
+        try:
+            with open(self.run_dir / RESERVE, "wb") as f:
+                f.write(bytes(_reserve_bytes(np.size(fields.get("labels", ())))))
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError:
+            (self.run_dir / RESERVE).unlink(missing_ok=True)
+        self._provisional()
 
     def step(self, record: StepRecord) -> None:
         self._write(record.to_json())
+        self.views += 1
+        self._provisional()
 
     def failure(self, **fields) -> None:
         self._write({"type": "failure", **fields})
 
-    def summary(self, summary: dict) -> Path:
-        path = self.run_dir / "summary.json"
-        tmp = path.with_suffix(".json.tmp")
+    def kept(self) -> dict:
+        """What the run folder holds now: views recorded, photos on disk, telemetry bytes."""
+        if self.tlog is not None:
+            self.tlog.flush()
+        tlog = self.run_dir / "telemetry.tlog"
+        photos = sum(1 for p in self.run_dir.glob("**/images/*.png") if p.stat().st_size > 0)
+        return {"views": self.views, "photos": photos, "tlog_bytes": tlog.stat().st_size if tlog.is_file() else 0}
+
+    def _provisional(self) -> None:
+        """summary.json while flying: replaced at the end; one still "running" is a flight that was killed. A
+        disk too full for it keeps the last good one (the flight goes on)."""
+        if self._final:
+            return
         try:
-            tmp.write_text(json.dumps(jsonable(summary), indent=2) + "\n")
-            os.replace(tmp, path)
+            write_atomic(self.run_dir / "summary.json", json.dumps(
+                {"status": "running", **self._known, "kept": self.kept()}, indent=2) + "\n")
         except OSError:
-            tmp.unlink(missing_ok=True)  # a full disk: leave no half-written file beside the log
-            raise
+            pass
+
+    def summary(self, summary: dict) -> Path:
+        """The final summary; one of a flight that did not complete says what was kept. On a full disk the
+        reserve makes room for it."""
+        if summary.get("status") != "completed":
+            summary = {**summary, "kept": self.kept()}
+        path = self.run_dir / "summary.json"
+        text = json.dumps(jsonable(summary), indent=2) + "\n"
+        try:
+            write_atomic(path, text)
+        except OSError:
+            if not (self.run_dir / RESERVE).is_file():
+                raise
+            (self.run_dir / RESERVE).unlink()
+            write_atomic(path, text)
+        self._final = True
+        (self.run_dir / RESERVE).unlink(missing_ok=True)
         return path
 
     def close(self) -> None:
@@ -77,6 +151,7 @@ class FlightLogWriter:
             self._f = None
         if self.tlog is not None:
             self.tlog.close()
+        (self.run_dir / RESERVE).unlink(missing_ok=True)
 
 
 @dataclass
