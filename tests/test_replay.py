@@ -186,11 +186,12 @@ def test_a_flag_that_contradicts_the_record_is_one_line(team_run, tmp_path, caps
 
     run, _ = team_run
     for src in (run, run / "telemetry.tlog"):
-        assert main(["replay", str(src), *flags, "--out", str(tmp_path / "o")]) == 2
-        lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
-        assert len(lines) == 1 and lines[0].startswith("uavsearch: error: replay: "), lines
-        assert said in lines[0] and "scene 132000 of the wide family" in lines[0] and "3 vehicle(s)" in lines[0]
-    assert not (tmp_path / "o").exists()
+        for out in (["--out", str(tmp_path / "o")], ["--html", str(tmp_path / "p.html")]):
+            assert main(["replay", str(src), *flags, *out]) == 2
+            lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+            assert len(lines) == 1 and lines[0].startswith("uavsearch: error: replay: "), lines
+            assert said in lines[0] and "scene 132000 of the wide family" in lines[0] and "3 vehicle(s)" in lines[0]
+    assert not (tmp_path / "o").exists() and not (tmp_path / "p.html").exists()
 
 
 def test_flags_that_agree_with_the_record_are_fine(team_run):

@@ -189,8 +189,9 @@ def _add_vehicle_option(p) -> None:
 
 
 def _cmd_replay(args) -> int:
-    from .replay.replay import replay_command  # lazy: torch (2-5 s)
+    from .replay.replay import recorded_flight, replay_command  # lazy: torch (2-5 s)
 
+    recorded_flight(args)  # a flag that contradicts the run folder's record: one line, before any output
     if args.html is not None:
         from .replay.flight_review import write_flight_review
 

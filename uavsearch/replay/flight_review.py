@@ -392,6 +392,10 @@ def write_flight_review(log, out=None, mission_file=None) -> Path:
     first = ((run.header.get("team") or {}).get("system_ids") or [None])[0] if run else None
     tel = read_telemetry(tlog, first)
     home = run.header.get("home") if run else None
+    if run is None and (log.parent / "search.jsonl").is_file():  # a run folder's own tlog: the flight's home
+        from ..logs.flight_log import read_header
+
+        home = read_header(log.parent).get("home")
     if home is None and mission_file:
         from ..fly.missions import load_mission
 

@@ -678,12 +678,21 @@ def check_flags(rec: FlightRecord, scene=None, setting=None, occupied_cells=None
 # CLI
 
 
+def recorded_flight(args) -> FlightRecord | None:
+    """What the replayed run folder recorded, after checking the command's flags against it; None for a telemetry
+    log flown elsewhere."""
+    run = run_dir_of(Path(args.log))
+    if run is None:
+        return None
+    rec = flight_record(run)
+    check_flags(rec, args.scene, args.setting, args.occupied_cells, args.mission, args.fusion)
+    return rec
+
+
 def replay_command(args) -> int:
     src = Path(args.log)
-    run = run_dir_of(src)
-    if run is not None:  # what the flight recorded decides the scene, the mission and the fusion
-        rec = flight_record(run)
-        check_flags(rec, args.scene, args.setting, args.occupied_cells, args.mission, args.fusion)
+    rec = recorded_flight(args)  # what the flight recorded decides the scene, the mission and the fusion
+    run = None if rec is None else rec.run_dir
     if src.is_dir():
         d = replay_run_dir(src, args.fusion)
     elif run is not None:  # the run's own tlog: re-rendered in the flown scene with the flown mission
@@ -713,4 +722,4 @@ def replay_command(args) -> int:
     return 0
 
 
-__all__ = ["FlightRecord", "ReplayData", "TlogTrack", "check_flags", "flight_record", "read_tlog", "run_dir_of", "replay_command", "replay_run_dir", "replay_tlog", "write_replay"]
+__all__ = ["FlightRecord", "ReplayData", "TlogTrack", "check_flags", "flight_record", "read_tlog", "recorded_flight", "run_dir_of", "replay_command", "replay_run_dir", "replay_tlog", "write_replay"]
