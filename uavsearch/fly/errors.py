@@ -22,5 +22,10 @@ class CommandError(FlightError):
         self.command, self.result = command, result
 
 
+class VehicleDown(StepFailed):
+    """The vehicle cannot go on with the search (disarmed, a failsafe mode it was not asked for, battery critical,
+    no progress to its goal, its link gone): the reason names what it did; its process still runs."""
+
+
 class VehicleLost(FlightError):
     """The vehicle process this client started has exited (its exit status says how)."""

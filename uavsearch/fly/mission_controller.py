@@ -299,9 +299,12 @@ def _land(vehicles: list[MavlinkVehicle]) -> list[str]:
             ends.append(f"end action failed: {e or type(e).__name__}")
     waiting = [v for v, end in zip(vehicles, ends) if end is None]
     if waiting:
-        _all(waiting, lambda: not any(v.armed for v in waiting), "landing of the team", 300.0,
+        _all(waiting, lambda: all(v.done_flying() for v in waiting), "landing of the team", 300.0,
              tick_s=waiting[0].settings.land_tick_s)
-    return [v.end_text() if end is None else end for v, end in zip(vehicles, ends)]
+    ends = [v.end_text() if end is None else end for v, end in zip(vehicles, ends)]
+    for v, end in zip(vehicles, ends):
+        v.end_state = end
+    return ends
 
 
 VEHICLE_LOST = "vehicle lost"

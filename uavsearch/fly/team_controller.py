@@ -11,7 +11,11 @@ taken in the order of their predicted arrivals:
   for one vehicle the others fly on and their telemetry is read on the same connection; the separation rule
   holds because the planner never gives two vehicles one viewpoint and the simulated vehicles refuse a goto
   within SIM_SEP_DIST of another vehicle;
-- recording: one StepRecord per view with the system id that took it (`vehicle`), so replay draws every track.
+- recording: one StepRecord per view with the system id that took it (`vehicle`), so replay draws every track;
+- a team degrades, it does not stop: a vehicle that cannot go on (MavlinkVehicle.trouble: disarmed, a failsafe
+  mode, battery critical; no progress to its goal; its link gone) is named with its reason in one line and leaves
+  the search (run_team's VehicleOut): its viewpoint is free again, its views stay in the map, the others fly the
+  rest of the mission. Its end state is what it did (end_text); a team of one ends as a one-vehicle flight does.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import time
 
 import numpy as np
 
+from .errors import FlightError, StepFailed, VehicleDown, VehicleLost
 from .vehicle import MavlinkVehicle
 
 
@@ -28,8 +33,9 @@ class LiveTeamViews:
 
     per_vehicle = True
 
-    def __init__(self, vehicles: list[MavlinkVehicle], perception, labels, config):
+    def __init__(self, vehicles: list[MavlinkVehicle], perception, labels, config, say=None):
         self.vehicles, self.perception, self.config = vehicles, perception.eval(), config
+        self.say = say  # callable(str): the line that names a vehicle leaving the search
         self.batch_size = 1
         import torch
 
@@ -44,13 +50,39 @@ class LiveTeamViews:
         v, idx = int(vehicle.reshape(-1)[0]), int(lattice_idx.reshape(-1)[0])
         veh, target = self.vehicles[v], self._lattice[idx]
         wall0 = time.monotonic()
-        if veh.goal_enu is None or not np.allclose(veh.goal_enu, target):  # not sent there yet: the start view
-            veh.begin_goto(target)
-        flight = veh.wait_arrived()
+        try:
+            if veh.down is not None:  # it left when it was to be sent on (dispatch)
+                raise VehicleDown(veh.down)
+            if veh.goal_enu is None or not np.allclose(veh.goal_enu, target):  # not sent there yet: the start view
+                veh.begin_goto(target)
+            flight = veh.wait_arrived()
+        except VehicleLost:  # the vehicle process is gone: every vehicle with it
+            raise
+        except FlightError as e:
+            if len(self.vehicles) == 1:
+                raise
+            self._leave(veh, e)
         view = veh.capture_here(target, flight, wall0)
         o = observe_view(self.perception, view)
         self.last = (v, o)
         return o
+
+    def _leave(self, veh: MavlinkVehicle, e: FlightError):
+        """Vehicle `veh` leaves the search for `e`: one line naming it and why; run_team's VehicleOut."""
+        from ..search.team import VehicleOut
+
+        if veh.down is None:
+            if isinstance(e, StepFailed):
+                veh.down = f"no progress to its goal: {e}"
+            else:  # no answer within the wall-clock backstop
+                veh.down, veh.link_lost = f"lost link: {e}", True
+        left = sum(v.down is None for v in self.vehicles)
+        t = veh.sim_time_s
+        when = "" if t is None or self._t0 is None else f" at mission time {t - self._t0:.1f} s"
+        if self.say is not None:
+            self.say(f"vehicle {veh.target_system} leaves the search{when}: {veh.down}; "
+                     f"{left} vehicle{'s' if left != 1 else ''} fly on")
+        raise VehicleOut(f"vehicle {veh.target_system}: {veh.down}")
 
     def mission_time_s(self, vehicle):
         """(1,) seconds since the start view on the vehicles' shared simulated clock, at the capture just taken
@@ -64,8 +96,19 @@ class LiveTeamViews:
 
     def dispatch(self, vehicle, next_idx) -> None:
         v, n = int(vehicle.reshape(-1)[0]), int(next_idx.reshape(-1)[0])
-        if n >= 0:
-            self.vehicles[v].begin_goto(self._lattice[n])
+        veh = self.vehicles[v]
+        if n < 0 or len(self.vehicles) == 1:
+            if n >= 0:
+                veh.begin_goto(self._lattice[n])
+            return
+        why = veh.trouble()  # a goto would take it out of its failsafe: it is not sent (observe says why)
+        if why is not None:
+            veh.leave(why)
+            return
+        try:
+            veh.begin_goto(self._lattice[n])
+        except StepFailed as e:  # refused: observe says so when its view comes
+            veh.down = f"no progress to its goal: {e}"
 
 
 class TeamSearch:
@@ -109,9 +152,12 @@ class TeamSearch:
     def fly(self, vehicles: list[MavlinkVehicle], recorder) -> None:
         from ..search.team import run_team
 
-        self.views = LiveTeamViews(vehicles, self.perception, recorder.labels, self.config)
+        self.views = LiveTeamViews(vehicles, self.perception, recorder.labels, self.config, say=recorder.progress)
         run_team(self.views, self.method.fusion, self.method.planner, self.n, float(self.config.budget_s),
                  max_views=self.max_views, on_event=lambda *event: self._event(recorder, *event))
+        if all(v.down is not None for v in vehicles):
+            raise FlightError("every vehicle left the search: " + "; ".join(
+                f"vehicle {v.target_system}: {v.down}" for v in vehicles))
 
     def _event(self, recorder, vehicle, idx, time_s, taken, fused, next_idx) -> None:
         """run_team's on_event: the view just taken, recorded before the vehicles fly on."""
@@ -131,10 +177,16 @@ class TeamSearch:
                           f"F1 {rec.f1:.2f}{then}")
 
     def summary(self, records: list) -> dict:
-        """The summary's own fields, each after the common field that names it."""
-        return {"wall_phases_s": dict(
+        """The summary's own fields, each after the common field that names it; a team that lost a vehicle adds,
+        after `end`, how many finished and each vehicle's end state (what it did)."""
+        own = {"wall_phases_s": dict(
             mission_time_s=(records[-1].sim_time_s - records[0].sim_time_s) if records else None, vehicles=self.n,
             views_per_vehicle={str(i + 1): sum(r.vehicle == i + 1 for r in records) for i in range(self.n)})}
+        vehicles = self.views.vehicles if self.views is not None else []
+        if any(v.down is not None for v in vehicles):
+            own["end"] = dict(vehicles_finished=sum(v.down is None for v in vehicles),
+                              vehicle_ends={str(i + 1): v.end_state or v.down for i, v in enumerate(vehicles)})
+        return own
 
 
 __all__ = ["LiveTeamViews", "TeamSearch"]

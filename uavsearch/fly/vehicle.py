@@ -38,7 +38,7 @@ from ..search.views import View, make_view
 from .camera import image_path
 from .connection import MavlinkConnection
 from .dialect import AUTOPILOT_COMPID, CAMERA_COMPID, M
-from .errors import CommandError, FlightError, StepFailed, VehicleLost
+from .errors import CommandError, FlightError, StepFailed, VehicleDown, VehicleLost
 from .system import PROGRESS_EVERY_S, PROGRESS_FIRST_S
 from .telemetry import HEALTH_BITS, MODE_HOLD, MODE_LAND, MODE_RTL, MODE_TAKEOFF, STREAM_RATES_HZ
 
@@ -47,6 +47,8 @@ from .telemetry import HEALTH_BITS, MODE_HOLD, MODE_LAND, MODE_RTL, MODE_TAKEOFF
 # horizontally and 8 m/s up (MPC_XY_VEL_MAX, MPC_Z_VEL_MAX_UP), and the estimate follows the vehicle.
 APPROACH_SPEED_BOUND_M_S = 30.0
 TAKEOFF_ALT_TOL_M = 1.0  # a take-off has arrived within this of its altitude (and in HOLD)
+BATTERY_CRITICAL_PCT = 7  # SYS_STATUS battery_remaining at or below this: the autopilot's BAT_CRIT_THR (7 %)
+IN_AIR_M = 2.0  # above home by more than this when it disarmed: it fell
 
 
 def ticks_until(system, tick_s: float, earliest_s: float | None) -> float:
@@ -159,6 +161,9 @@ class MavlinkVehicle:
         self.connected_sim_s: float | None = None  # vehicle clock when the link came up healthy
         self._settle: _Settle | None = None
         self._goto_t0 = 0.0
+        self.down: str | None = None  # why it left the search (trouble()), once it has
+        self.link_lost = False  # it stopped answering: no end action can reach it
+        self.end_state: str | None = None  # what its end action did (the mission controller's landing)
 
     @property
     def conn(self) -> MavlinkConnection:
@@ -219,6 +224,28 @@ class MavlinkVehicle:
         p = self.position_enu()
         at = "no position yet" if p is None else f"at E {p[0]:6.1f} N {p[1]:6.1f} U {p[2]:5.1f} m"
         return f"{at}  flew {elapsed_s:5.1f} s"
+
+    def trouble(self) -> str | None:
+        """Why this flying vehicle cannot go on with the search, from what it reports (None: it can): disarmed
+        (in the air: it fell), a LAND / RTL mode the mission did not ask for (a failsafe: GPS lost, battery, an
+        operator's command), or a critical battery."""
+        if self.system is None or not self.in_air or self.system.telemetry.heartbeat is None:
+            return None
+        t = self.system.telemetry
+        if not t.armed:
+            p = self.position_enu()
+            if p is not None and p[2] > IN_AIR_M:
+                return f"crashed: disarmed in the air at U {p[2]:.1f} m"
+            return "disarmed on the ground"
+        mode = t.mode()
+        if mode in (MODE_LAND, MODE_RTL):
+            said = self.system.last_texts(1)
+            return f"failsafe: {'LAND' if mode == MODE_LAND else 'RTL'} mode it was not asked for" + \
+                (f" (the vehicle said: {said})" if said else "")
+        battery = getattr(t.sys_status, "battery_remaining", -1)
+        if 0 <= battery <= BATTERY_CRITICAL_PCT:
+            return f"failsafe: battery critical ({battery} %)"
+        return None
 
     def _at_alt(self, alt_amsl: float, tol_m: float = TAKEOFF_ALT_TOL_M) -> bool:
         return abs(self.system.telemetry.altitude_amsl_m() - alt_amsl) < tol_m
@@ -409,10 +436,13 @@ class MavlinkVehicle:
     def wait_arrived(self) -> float:
         """Until the goto of begin_goto has arrived and settled; the simulation seconds it took."""
         st, target = self.settings, self._settle.target
-        self._wait(self.arrived, st.wall_timeout_s, f"goto {np.round(target, 1).tolist()}",
+        self._wait(lambda: self.arrived() or self.trouble(), st.wall_timeout_s, f"goto {np.round(target, 1).tolist()}",
                    sim_timeout_s=st.step_timeout_s, tick_s=self._approach_tick,
                    status=lambda el: f"flying    {self._where(el)}  (to E {target[0]:.1f} N {target[1]:.1f}, "
                                      f"{self._distance_to(target):.1f} m to go)")
+        if not self.arrived():
+            self._settle = None
+            raise self.leave(self.trouble())
         took = self._settle.done_at - self._goto_t0
         self._settle = None
         return took
@@ -486,6 +516,11 @@ class MavlinkVehicle:
     def begin_finish(self) -> str | None:
         """Command the end action without waiting for it; what happened when there is nothing to wait for."""
         st = self.settings
+        if self.down is not None and (self.link_lost or not self.armed):  # nothing to command: what it did
+            self.in_air = False
+            return self.down
+        if self.down is not None and self.mode() in (MODE_LAND, MODE_RTL):  # its failsafe lands it
+            return None
         if not self.in_air or st.end_action == "none":
             return "left in the air" if self.in_air else "not flown"
         cmd = M.MAV_CMD_NAV_LAND if st.end_action == "land" else M.MAV_CMD_NAV_RETURN_TO_LAUNCH
@@ -496,9 +531,25 @@ class MavlinkVehicle:
         return None
 
     def end_text(self) -> str:
-        """Once disarmed after begin_finish: what the end action did."""
+        """Once disarmed after begin_finish: what the end action did (a vehicle that left the search: what it did)."""
         self.in_air = False
+        if self.down is not None and self.down.startswith("failsafe"):
+            return f"{self.down}; {'on the ground, still armed' if self.armed else 'landed'}"
         return "landed" if self.settings.end_action == "land" else "returned and landed"
+
+    def done_flying(self) -> bool:
+        """After the end action: disarmed, or (a vehicle that left the search, which its failsafe lands) on the
+        ground, not climbing nor sinking (an autopilot without a position may never detect its landing)."""
+        if not self.armed:
+            return True
+        p, v = self.position_enu(), self.velocity_enu()
+        return self.down is not None and p is not None and v is not None and p[2] < IN_AIR_M \
+            and abs(float(v[2])) < self.settings.settle_speed_m_s  # vertical: a drifting estimate moves sideways
+
+    def leave(self, reason: str) -> VehicleDown:
+        """It leaves the search for `reason` (kept for its end state); the error that says so."""
+        self.down = reason
+        return VehicleDown(reason)
 
     def close(self) -> None:
         if self.closed:

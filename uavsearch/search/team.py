@@ -11,7 +11,10 @@ time, because vehicles fly at once and arrive when their flights end, not in tur
   map, the viewpoints any vehicle has taken or is flying to (never two vehicles on one viewpoint: the
   separation rule), and the seconds of mission time left;
 - a vehicle whose planner has nothing it can reach before `budget_s` (or says -1) stops; the episode ends
-  when every vehicle has. `max_views` caps the team's views in all.
+  when every vehicle has. `max_views` caps the team's views in all;
+- a vehicle that cannot go on (a flying source's `observe` raises `VehicleOut`: it fell, a failsafe took it, its
+  link is gone) stops there without a view: its viewpoint is no longer claimed, so the others may take it, and
+  its views so far stay in the map.
 
 A flying team's source (fly/team_controller.py) has `per_vehicle = True`: `observe(idx, vehicle)` waits for
 that vehicle to arrive and captures, and `dispatch(vehicle, next_idx)` sends it on as soon as it is chosen,
@@ -46,6 +49,10 @@ from .config import SearchConfig
 from .fusion import Fusion
 from .episode import PolicyInput, SearchState, ViewSource
 from .wide_policies import SURVEY_OUTER_M, DescendRule, argmax_allowed, viewpoints_at
+
+
+class VehicleOut(UavsearchError):
+    """A flying source's vehicle cannot take the view it flew to, nor any later one (the message says why)."""
 
 
 class TeamPlanner(Protocol):
@@ -105,7 +112,17 @@ def run_team(source: ViewSource, fusion: Fusion, planner: TeamPlanner, vehicles:
             if max_views is not None:
                 cap &= st.views < max_views
             if bool(cap.any()):
-                st.take(source, v, cap)
+                try:
+                    st.take(source, v, cap)
+                except VehicleOut:  # it leaves the team here: no view, its viewpoint free again
+                    st.capture[ar, v] = False
+                    st.stop(v, cap)
+                    ev_v.append(v)
+                    ev_idx.append(idx)
+                    ev_t.append(now)
+                    ev_taken.append(torch.zeros_like(cap))
+                    ev_maps.append(st.fused.clone())
+                    continue
                 if clock is not None:
                     now = torch.where(cap, clock(v).to(now.dtype), now)
             st.capture[ar, v] = False
@@ -241,4 +258,5 @@ class EachVehicle:
         return torch.where(inp.allowed.any(1), a, -1)
 
 
-__all__ = ["EachVehicle", "Partition", "TeamEntropy", "TeamEpisode", "TeamPlanner", "TeamRule", "run_team"]
+__all__ = ["EachVehicle", "Partition", "TeamEntropy", "TeamEpisode", "TeamPlanner", "TeamRule", "VehicleOut",
+           "run_team"]
