@@ -72,6 +72,34 @@ def test_contacts_are_stable_at_the_physics_rate(hz):
     assert np.linalg.norm(fdm.velocity_ned_m_s()) < 1e-3
 
 
+def test_a_fall_is_a_crash_and_the_wreck_stays_at_rest():
+    """Dropped unpowered from 30 m (about 24 m/s at impact): a crash, held as a wreck on the ground where it hit,
+    every reading finite and at rest from then on (JSBSim's contacts alone diverge at such an impact)."""
+    hz = 100
+    fdm = QuadFdm(GeodeticOrigin(), hz, start_enu=(3.0, -2.0, 30.0))
+    hit = None
+    for k in range(12 * hz):
+        fdm.step()
+        if fdm.crashed and hit is None:
+            hit = k
+    assert hit is not None and 2 * hz < hit < 3 * hz  # sqrt(2 * 30 / g) = 2.5 s
+    e, n, u = fdm.position_enu_m()
+    assert u == 0.0 and abs(e - 3.0) < 0.5 and abs(n + 2.0) < 0.5
+    assert fdm.velocity_ned_m_s() == (0.0, 0.0, 0.0) and fdm.body_rates_rad_s() == (0.0, 0.0, 0.0)
+    assert fdm.specific_force_frd_m_s2()[2] == pytest.approx(-fdm.gravity_m_s2)
+    assert fdm.rotor_thrusts_n() == [0.0] * 4 and fdm.ground_force_n() > 0.0
+
+
+def test_imu_readings_saturate_at_the_parts_full_scale():
+    from uavsearch.flight.sensors import ACCEL_RANGE_M_S2, GYRO_RANGE_RAD_S, SensorSuite
+
+    params = ParamStore(MC_PARAMS)
+    sens = SensorSuite(params, GeodeticOrigin(), np.random.default_rng(0))
+    imu = sens.imu((1e6, -1e6, 0.1), (-1e9, 0.0, 1e9), 0.004)
+    assert imu.gyro_frd_rad_s[:2] == (GYRO_RANGE_RAD_S, -GYRO_RANGE_RAD_S) and abs(imu.gyro_frd_rad_s[2]) < 1.0
+    assert imu.accel_frd_m_s2[0] == -ACCEL_RANGE_M_S2 and imu.accel_frd_m_s2[2] == ACCEL_RANGE_M_S2
+
+
 @pytest.fixture(scope="module")
 def profile():
     res, flight = mission_profile(seed=0, alt_m=15.0, hover_s=10.0, move_window_s=12.0)

@@ -50,7 +50,7 @@ def _inject(run_dir, fault: str) -> None:
 
 
 @pytest.mark.parametrize("fault, words", [("land", "failsafe: LAND mode"), ("gps", "failsafe: LAND mode"),
-                                          ("battery", "failsafe: ")])
+                                          ("battery", "failsafe: "), ("disarm", "crashed: disarmed in the air")])
 def test_team_flies_on_without_vehicle_2(tmp_path, fault, words):
     mission = load_mission(MISSIONS_DIR / "wide_team.yaml", check_registry=False)
     mission = mission.with_overrides(check_registry=False, **{"flight.speed": "max"}).with_team(

@@ -22,6 +22,11 @@ FT = 0.3048
 LBF = 4.4482216152605
 LBFFT = 1.3558179483314  # N*m per lbf*ft
 N_ROTORS = 4
+# Touching the ground faster than this (m/s, down) is a crash, not a landing: PX4's landings descend at
+# 0.7 m/s and never exceed 3 m/s; a vehicle disarmed in the air hits at tens of m/s. JSBSim's contact model is
+# not made for such impacts (the body rates diverge to overflow within seconds), so a crashed vehicle is held
+# as a wreck at rest where it hit instead of being integrated further.
+CRASH_SPEED_M_S = 6.0
 
 
 def _quiet_jsbsim() -> None:
@@ -103,6 +108,8 @@ class QuadFdm:
         self._m_per_deg_lat = math.radians(1.0) * 6378137.0 * (1.0 - 6.69437999014e-3) / d**1.5
         self._m_per_deg_lon = math.radians(1.0) * 6378137.0 / math.sqrt(d) * math.cos(math.radians(home.lat_deg))
         self.steps = 0
+        self.crashed = False  # hit the ground at CRASH_SPEED_M_S or faster: a wreck at rest from then on
+        self._crash_vd_fps = CRASH_SPEED_M_S / FT
 
     # ---------------------------------------------------------------- inputs
     def set_motor_commands(self, cmds) -> None:
@@ -111,8 +118,20 @@ class QuadFdm:
             node.set_double_value(0.0 if c < 0.0 else (1.0 if c > 1.0 else float(c)))
 
     def step(self) -> None:
-        self._fdm.run()
         self.steps += 1
+        if self.crashed:
+            return
+        self._fdm.run()
+        if self._vd.get_double_value() > self._crash_vd_fps and self._fz_gear.get_double_value() < 0.0:
+            self._wreck()
+
+    def _wreck(self) -> None:
+        """Hold the vehicle at rest on the ground where it hit, level, its rotors stopped."""
+        e, n, _ = self.position_enu_m()
+        g = self.gravity_m_s2
+        self._held = {"position": (e, n, 0.0), "euler": (0.0, 0.0, self.euler_rad()[2]),
+                      "specific_force": (0.0, 0.0, -g), "ground_force": self.mass_kg * g}
+        self.crashed = True
 
     def set_wind_ned(self, north_m_s: float, east_m_s: float, down_m_s: float = 0.0) -> None:
         """Steady wind (the air's velocity over ground); the body drag acts on the airspeed."""
@@ -130,6 +149,8 @@ class QuadFdm:
         return self._g_node.get_double_value() * FT
 
     def position_enu_m(self) -> tuple[float, float, float]:
+        if self.crashed:
+            return self._held["position"]
         return (
             (self._lon.get_double_value() - self.home.lon_deg) * self._m_per_deg_lon,
             (self._lat.get_double_value() - self.home.lat_deg) * self._m_per_deg_lat,
@@ -137,28 +158,40 @@ class QuadFdm:
         )
 
     def velocity_ned_m_s(self) -> tuple[float, float, float]:
+        if self.crashed:
+            return (0.0, 0.0, 0.0)
         return (self._vn.get_double_value() * FT, self._ve.get_double_value() * FT, self._vd.get_double_value() * FT)
 
     def euler_rad(self) -> tuple[float, float, float]:
         """(roll, pitch, yaw) of body FRD in NED; yaw wrapped to [-pi, pi)."""
+        if self.crashed:
+            return self._held["euler"]
         psi = self._psi.get_double_value()
         if psi >= math.pi:
             psi -= 2.0 * math.pi
         return self._phi.get_double_value(), self._theta.get_double_value(), psi
 
     def body_rates_rad_s(self) -> tuple[float, float, float]:
+        if self.crashed:
+            return (0.0, 0.0, 0.0)
         return self._p.get_double_value(), self._q.get_double_value(), self._r.get_double_value()
 
     def specific_force_frd_m_s2(self) -> tuple[float, float, float]:
         """What an ideal accelerometer at the CG reads: non-gravitational force / mass."""
+        if self.crashed:
+            return self._held["specific_force"]
         k = LBF / (self._mass_node.get_double_value() * 14.59390294)
         return self._fx.get_double_value() * k, self._fy.get_double_value() * k, self._fz.get_double_value() * k
 
     def ground_force_n(self) -> float:
         """Upward force of the ground on the feet (0 in the air)."""
+        if self.crashed:
+            return self._held["ground_force"]
         return -self._fz_gear.get_double_value() * LBF
 
     def rotor_thrusts_n(self) -> list[float]:
+        if self.crashed:
+            return [0.0] * N_ROTORS
         tmax = self.airframe.rotor_thrust_max_n
         return [n.get_double_value() * tmax for n in self._rotor]
 

@@ -35,6 +35,15 @@ BARO_DRIFT_SIGMA_M = 0.1
 BARO_DRIFT_TAU_S = 120.0
 GYRO_BIAS_RW = 2e-5  # rad/s per sqrt(s)
 ACC_BIAS_RW = 5e-4  # m/s^2 per sqrt(s)
+# Full-scale ranges of a flight controller's IMU (PX4's ICM-42688P / BMI088 settings: 2000 deg/s, 16 g): a
+# reading past them saturates, as the real part's does. Only a tumbling crash reaches them; they keep a
+# vehicle that hit the ground spinning from driving its estimator to overflow.
+GYRO_RANGE_RAD_S = math.radians(2000.0)
+ACCEL_RANGE_M_S2 = 16.0 * 9.80665
+
+
+def _saturate(x: float, limit: float) -> float:
+    return limit if x > limit else -limit if x < -limit else x
 # Earth field about home (gauss, NED): horizontal 0.21, inclination 63 deg, declination taken as 0.
 MAG_FIELD_NED_GAUSS = (0.21, 0.0, 0.42)
 
@@ -117,12 +126,14 @@ class SensorSuite:
         ba[0] += ka * n9
         ba[1] += ka * n10
         ba[2] += ka * n11
+        g, a = GYRO_RANGE_RAD_S, ACCEL_RANGE_M_S2
         s = ImuSample(
-            (rates_frd[0] + bg[0] + sg * n0, rates_frd[1] + bg[1] + sg * n1, rates_frd[2] + bg[2] + sg * n2),
+            (_saturate(rates_frd[0] + bg[0] + sg * n0, g), _saturate(rates_frd[1] + bg[1] + sg * n1, g),
+             _saturate(rates_frd[2] + bg[2] + sg * n2, g)),
             (
-                specific_force_frd[0] + ba[0] + sa * n3,
-                specific_force_frd[1] + ba[1] + sa * n4,
-                specific_force_frd[2] + ba[2] + sa * n5,
+                _saturate(specific_force_frd[0] + ba[0] + sa * n3, a),
+                _saturate(specific_force_frd[1] + ba[1] + sa * n4, a),
+                _saturate(specific_force_frd[2] + ba[2] + sa * n5, a),
             ),
         )
         self.last_imu = s
