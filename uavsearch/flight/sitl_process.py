@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from ..errors import UavsearchError
+from ..world import settings
 
 
 class SitlStartError(UavsearchError):
@@ -110,7 +111,7 @@ class SitlProcess:
             cmd.append("--no-camera-scene")
         self._out = open(self.log_path, "w")
         self.proc = subprocess.Popen(cmd, stdout=self._out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                     env={**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"},
+                                     env={**(os.environ if env is None else env), **settings.child_env(), "PYTHONUNBUFFERED": "1"},
                                      preexec_fn=_die_with_parent,
                                      start_new_session=True)  # Ctrl-C reaches the client only: it lands first
         self.banner: list[str] = []  # the lines up to "ready" (ports, signing, run directory)

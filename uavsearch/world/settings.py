@@ -208,19 +208,22 @@ def _load(path: Path) -> None:
 
 @contextlib.contextmanager
 def settings_file(path):
-    """Use the scene settings in `path` (e.g. a test's extra family) in this process and, through
-    UAVSEARCH_SCENE_SETTINGS, in the processes it starts (the vehicle); the previous file comes back on exit."""
-    old_file, old_env = SETTINGS_FILE, os.environ.get(SETTINGS_ENV)
-    os.environ[SETTINGS_ENV] = str(path)
+    """Use the scene settings in `path` (e.g. a test's extra family) in this process; the vehicle processes it
+    starts are told through `child_env()`. The previous file comes back on exit; the environment is never touched."""
+    old_file = SETTINGS_FILE
     try:
         _load(Path(path))
         yield
     finally:
-        if old_env is None:
-            os.environ.pop(SETTINGS_ENV, None)
-        else:
-            os.environ[SETTINGS_ENV] = old_env
         _load(old_file)
+
+
+def child_env() -> dict[str, str]:
+    """What a process this one starts needs in its environment to read the same scene settings: the file, where it
+    is not the repository's own."""
+    if SETTINGS_FILE == SCENES_DIR / "settings.yaml":
+        return {}
+    return {SETTINGS_ENV: str(SETTINGS_FILE)}
 
 
 def _valid() -> str:
@@ -329,6 +332,6 @@ def scene_layout() -> bytes:
     return json.dumps({"families": fams, **layout}, sort_keys=True).encode()
 
 
-__all__ = ["SETTINGS", "SCENE_FAMILIES", "SETTINGS_ENV", "SceneFamily", "SearchTask", "TaskBudget", "TaskLattice", "PARTS",
+__all__ = ["SETTINGS", "SCENE_FAMILIES", "SETTINGS_ENV", "child_env", "SceneFamily", "SearchTask", "TaskBudget", "TaskLattice", "PARTS",
            "scene_seeds", "density_scenes", "parse_settings", "resolve_k", "splits", "all_seed_sets", "setting_key",
            "setting_params", "generate_setting_scene", "scene_layout", "settings_file"]
