@@ -122,7 +122,7 @@ class QuadFdm:
         if self.crashed:
             return
         self._fdm.run()
-        if self._vd.get_double_value() > self._crash_vd_fps and self._fz_gear.get_double_value() < 0.0:
+        if self._fz_gear.get_double_value() < 0.0 and self._vd.get_double_value() > self._crash_vd_fps:  # in the air: one read
             self._wreck()
 
     def _wreck(self) -> None:
