@@ -433,3 +433,32 @@ def test_a_torn_log_s_review_page_warns_in_one_line(flown, tmp_path):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("uavsearch: warning: ") and "damaged at line" in lines[0], r.stderr
     assert "UserWarning" not in r.stderr and (tmp_path / "p.html").is_file()
+
+
+def test_compare_flights_ignores_the_folder_a_run_lay_in(flown, tmp_path):
+    """tools/compare_flights.py: the same flight in another folder (captures.jsonl records image paths and
+    file:// URLs into its run folder) is the same; --compare-paths and a changed image are differences."""
+    import shutil
+
+    _, run, _ = flown
+    copy = tmp_path / "elsewhere" / "run"
+    shutil.copytree(run, copy)
+    # as a flight into that folder records it: its own paths, as given and as file:// URLs
+    caps = (copy / "captures.jsonl").read_text()
+    assert str(run) in caps
+    (copy / "captures.jsonl").write_text(caps.replace(str(run), str(copy)))
+
+    def compare(*args):
+        return subprocess.run([sys.executable, "tools/compare_flights.py", str(run), str(copy), *args],
+                              capture_output=True, text=True, timeout=60, env=clean_env(),
+                              cwd=Path(__file__).resolve().parents[1])
+
+    r = compare()
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "run-folder paths ignored" in r.stdout
+    r = compare("--compare-paths")
+    assert r.returncode == 1 and "captures.jsonl       differs" in r.stdout, r.stdout + r.stderr
+    img = sorted((copy / "images").glob("*.png"))[0]
+    img.write_bytes(img.read_bytes()[:-1] + b"\0")
+    r = compare()
+    assert r.returncode == 1 and f"images/{img.name}  differs  image bytes" in r.stdout, r.stdout + r.stderr
