@@ -2,6 +2,7 @@
 message intervals, the mission protocol, and robustness to malformed bytes."""
 
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from uavsearch.flight.sitl_process import SitlProcess
 from uavsearch.testing.clean_env import clean_env
 
 M = mavutil.mavlink
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +67,9 @@ def test_params_list_read_set_with_bytewise_ints(gcs):
             break
     count = next(iter(seen.values())).param_count
     assert len(seen) == count > 50 and sorted(seen) == list(range(count))
+    quoted = f"all {count} of the vehicle's parameters"
+    doc = " ".join((ROOT / "docs" / "mavlink.md").read_text().split())
+    assert quoted in doc, f"docs/mavlink.md should say '{quoted}' (the count this vehicle reports)"
     by_name = {m.param_id: m for m in seen.values()}
     assert by_name["MAV_SYS_ID"].param_type == M.MAV_PARAM_TYPE_INT32 and _as_int(by_name["MAV_SYS_ID"].param_value) == 1
     assert by_name["MIS_TAKEOFF_ALT"].param_type == M.MAV_PARAM_TYPE_REAL32
