@@ -262,6 +262,16 @@ def _add_eval_parser(sub) -> None:
     _add_vehicle_option(esub.choices["search"])
 
 
+DATASET_HELP = "labelled datasets out: views with person boxes and instance masks (COCO, YOLO)"
+
+
+def _add_dataset_parser(sub) -> None:
+    # lazy: the scene and render modules (see _scene_from_args); built only when `dataset` is the command
+    from .search.data.dataset_export import add_dataset_parser
+
+    add_dataset_parser(sub, DATASET_HELP)
+
+
 # --------------------------------------------------------------------------------------------------
 
 
@@ -276,7 +286,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     _add_scene_parser(sub)
     add_sitl_parser(sub)
-    for name, add, text in (("train", _add_train_parser, TRAIN_HELP), ("eval", _add_eval_parser, EVAL_HELP)):
+    for name, add, text in (("train", _add_train_parser, TRAIN_HELP), ("eval", _add_eval_parser, EVAL_HELP),
+                            ("dataset", _add_dataset_parser, DATASET_HELP)):
         if command is None or command == name:
             add(sub)
         else:

@@ -29,6 +29,7 @@ class View:
     cells_in_view: np.ndarray  # (num_cells,) bool: c^t
     person_mask: np.ndarray | None = None  # (H, W) bool ground truth, when the vehicle knows it
     person_fraction: np.ndarray | None = None  # (H, W) float32 share of each pixel showing a person, likewise
+    person_index: np.ndarray | None = None  # (H, W) int16 the person (spec.people index) each pixel shows, -1 none
 
 
 def make_view(
@@ -39,6 +40,7 @@ def make_view(
     person_mask: np.ndarray | None = None,
     min_cell_area_px: float = 1.0,
     person_fraction: np.ndarray | None = None,
+    person_index: np.ndarray | None = None,
 ) -> View:
     """Project the grid into an image taken at `pose` (Eq. 1) and package it."""
     areas = cell_pixel_areas(grid, intrinsics, pose).astype(np.float32)
@@ -51,6 +53,7 @@ def make_view(
         cells_in_view=areas >= min_cell_area_px,
         person_mask=person_mask,
         person_fraction=person_fraction,
+        person_index=person_index,
     )
 
 
@@ -92,7 +95,7 @@ class TeleportVehicle:
         r = self._renderer.render(pose, self._rng_for(key[:2]))
         self.renders += 1
         view = make_view(r.rgb, pose, self.config.grid, self.config.intrinsics, r.person_mask,
-                         self.config.min_cell_area_px, r.person_fraction)
+                         self.config.min_cell_area_px, r.person_fraction, r.person_index)
         if self._cache is not None:
             self._cache[key] = view
         return view
