@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from uavsearch.geometry import CameraIntrinsics, Grid, camera_pose_from_vehicle
-from uavsearch.replay.replay import ReplayData, frame_figure, maps_figure, metrics_figure, trajectory_figure
+from uavsearch.replay.replay import (MAPS_PANELS, ReplayData, frame_figure, maps_figure, metrics_figure,
+                                     trajectory_figure)
 from uavsearch.search.evaluate.search import ROWS, fig6_figure
 from uavsearch.search.evaluate.single_view import fig4_figure
 from uavsearch.search.train.perception import curves_figure
@@ -49,13 +50,65 @@ def _replay(spec, T: int) -> ReplayData:
         logged_maps=rng.random((T, 100)))
 
 
-@pytest.mark.parametrize("T", [1, 2, 5, 10])
+@pytest.mark.parametrize("T", [1, 2, 5, 10, 40])
 def test_replay_figures_and_frames_fit_at_every_number_of_views(spec, T):
     d = _replay(spec, T)
     for build in (trajectory_figure, maps_figure, metrics_figure):
         assert _fits(build(d)) <= TOLERANCE_IN, build.__name__
     for t in sorted({0, T - 1}):
         assert _fits(frame_figure(d, t)) <= TOLERANCE_IN, f"frame {t}"
+
+
+@pytest.mark.parametrize("T", [1, 7, 40, 300])
+def test_maps_is_a_grid_of_bounded_size_that_says_what_it_left_out(spec, T):
+    """maps.png: rows of at most MAPS_COLUMNS panels, at most MAPS_PANELS of them (views spread evenly, the
+    first and the last kept, the title saying how many are shown), so it reads at any number of views."""
+    d = _replay(spec, T)
+    fig = maps_figure(d)
+    try:
+        panels = [ax for ax in fig.axes if ax.get_title()]
+        w, h = fig.get_size_inches()
+        assert len(panels) == min(T, MAPS_PANELS - 1) + 1 and w <= 17 and h <= 13
+        titles = [ax.get_title() for ax in panels]
+        assert titles[0].startswith("fused after view 1\n") and titles[-2].startswith(f"fused after view {T}\n")
+        assert (f"{MAPS_PANELS - 1} of {T} views shown" in fig._suptitle.get_text()) == (T >= MAPS_PANELS)
+        assert any(ax.get_label() == "<colorbar>" for ax in fig.axes)
+    finally:
+        pyplot().close(fig)
+
+
+def test_maps_and_metrics_say_what_unseen_cells_count_as(spec):
+    """A cell no view has measured holds the prior (0.5: undecided, wrong in acc and F1): the maps draw it grey
+    with a key saying so, the metrics plot adds the share of cells seen, and its title the final scores."""
+    d = _replay(spec, 3)
+    d.valid = np.zeros_like(d.valid)
+    d.valid[0, :40], d.valid[1, 30:70], d.valid[2, :] = True, True, True
+    d.maps = np.where(d.seen, d.maps, 0.5)
+    fig = maps_figure(d)
+    keys = [t.get_text() for t in fig.legends[0].get_texts()]
+    pyplot().close(fig)
+    assert keys == ["occupied (ground truth)", "unseen (prior 0.5: counts as wrong)"]
+    fig = metrics_figure(d)
+    lines = {ln.get_label(): ln.get_ydata() for ln in fig.axes[0].get_lines()}
+    title = fig.axes[0].get_title()
+    pyplot().close(fig)
+    assert list(lines["share of cells seen"]) == [0.4, 0.7, 1.0]
+    assert f"final Aacc {d.acc[-1]:.3f}, F1 {d.f1[-1]:.3f}" in title and "count as wrong" in title
+    assert d.acc[0] <= 0.4  # the unseen 60 cells are wrong: acc cannot exceed the share seen
+
+
+def test_replay_frame_keys_every_mark(spec):
+    """The video frame's view names its red and yellow outlines, its map has a colour bar and a key."""
+    d = _replay(spec, 2)
+    fig = frame_figure(d, 1)
+    try:
+        view, fused = fig.axes[0], fig.axes[1]
+        assert [t.get_text() for t in view.get_legend().get_texts()] == ["grid cell", "occupied (ground truth)"]
+        assert "occupied (ground truth)" in [t.get_text() for t in fused.get_legend().get_texts()]
+        assert any(ax.get_label() == "<colorbar>" for ax in fig.axes)
+        assert "person" in [t.get_text() for t in fig.legends[0].get_texts()]
+    finally:
+        pyplot().close(fig)
 
 
 def test_scene_show_fits(spec):

@@ -3,6 +3,7 @@ process, real UDP on 127.0.0.1, lockstep) search one map with the team planner, 
 flight log holds every vehicle and replay draws every track."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -49,6 +50,29 @@ def test_three_vehicles_search_one_map_and_all_land(flown):
         assert np.linalg.norm(np.subtract(s.reported_position_enu, s.waypoint_enu)) < 1.5
 
 
+def test_each_views_line_counts_what_its_scores_count(flown):
+    """A view's line says how many cells are found and unseen, and what the unseen count as (at the prior 0.5:
+    wrong), agreeing with the map its acc and F1 score (the log's, which the summary scores)."""
+    r, run = flown
+    assert r.returncode == 0
+    log = read_flight_log(run)
+    lines = [ln for ln in r.stdout.splitlines() if ln.startswith("view ") and " F1 " in ln]
+    assert len(lines) == len(log.steps)
+    seen = np.zeros(len(log.labels), dtype=bool)
+    for line, s in zip(lines, log.steps):
+        seen |= np.asarray(s.valid, dtype=bool)
+        fused = np.asarray(s.fused)
+        found = re.search(r"cells found (\d+) \((\d+) of (\d+) true\)(?:, (\d+) unseen \(prior ([\d.]+): count as "
+                          r"(\w+)\))?  acc ([\d.]+) F1 ([\d.]+)", line)
+        assert found, line
+        n_found, n_true, k, unseen, prior, counted, acc, f1 = found.groups()
+        assert int(n_found) == (fused > 0.5).sum() and int(n_true) == ((fused > 0.5) & log.labels).sum()
+        assert int(unseen or 0) == (~seen).sum() and f"{s.acc:.2f}" == acc and f"{s.f1:.2f}" == f1
+        if unseen:
+            assert (prior, counted) == ("0.5", "wrong") and np.all(fused[~seen] == 0.5)
+            assert s.acc <= seen.mean() + 1e-9  # the unseen are all wrong
+
+
 def test_replay_draws_every_vehicle(flown, tmp_path):
     r, run = flown
     assert r.returncode == 0
@@ -56,7 +80,7 @@ def test_replay_draws_every_vehicle(flown, tmp_path):
     assert set(d.view_sys.tolist()) == {1, 2, 3} and {1, 2, 3} <= set(d.track_sys.tolist())
     assert np.allclose(d.maps[-1], d.logged_maps[-1], atol=1e-5)  # re-fused from the log: the same map
     fig = trajectory_figure(d)
-    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
     assert [f"vehicle {i}: track and views" for i in (1, 2, 3)] == labels[:3]
     page = write_flight_review(run, tmp_path / "review.html").read_text()  # every track on the review page
     assert '"name":"vehicle 2"' in page and '"name":"vehicle 3"' in page and "a team of 3" in page

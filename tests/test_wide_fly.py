@@ -99,7 +99,7 @@ def test_replay_refuses_with_the_checkpoints_fusion_and_draws_both_altitudes(flo
     d = replay_run_dir(run)
     assert d.fusion.startswith("calibrated:")
     assert np.allclose(d.maps[-1], d.logged_maps[-1], atol=1e-5)  # re-fused from the log: the same map
-    labels = [t.get_text() for t in trajectory_figure(d).axes[0].get_legend().get_texts()]
+    labels = [t.get_text() for t in trajectory_figure(d).legends[0].get_texts()]
     layers = {round(float(z)) for z in d.positions_enu[:, 2]}
     if len({round(z / 10) for z in layers}) > 1:
         assert any("at 40 m" in t for t in labels) and any("at 70 m" in t for t in labels)

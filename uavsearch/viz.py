@@ -23,6 +23,10 @@ def pyplot():
     return plt
 
 
+OVERLAY_GRID_RGB = (255, 255, 0)  # draw_grid_overlay's cell outlines
+OVERLAY_OCCUPIED_RGB = (255, 40, 40)  # and its ground-truth occupied cells (figures' keys name both)
+
+
 def draw_grid_overlay(
     image: np.ndarray,
     pose,
@@ -40,7 +44,7 @@ def draw_grid_overlay(
             continue
         pts = np.round(poly * scale * (1 << shift)).astype(np.int32).reshape(-1, 1, 2)
         occupied = occupancy is not None and occupancy[i]
-        color, thickness = ((255, 40, 40), 2) if occupied else ((255, 255, 0), 1)
+        color, thickness = (OVERLAY_OCCUPIED_RGB, 2) if occupied else (OVERLAY_GRID_RGB, 1)
         cv2.polylines(big, [pts], True, color, thickness, cv2.LINE_AA, shift)
     return big
 

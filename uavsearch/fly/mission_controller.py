@@ -44,7 +44,7 @@ from ..geometry import import_rotation_in_background
 from ..logs.flight_log import FlightLogWriter
 from ..logs.step_record import StepRecord, TruePose
 from ..paths import RUNS_DIR
-from ..search.metrics import map_accuracy, map_f1
+from ..search.metrics import map_accuracy, map_f1, unseen_cells
 from ..world.scene import load_scene
 from .connection import MavlinkConnection
 from .team_controller import TeamSearch
@@ -109,6 +109,7 @@ class FlightRecorder:
         self.log, self.run_dir, self.progress = log, run_dir, progress
         self.labels = np.asarray(labels, dtype=bool)
         self.records: list[StepRecord] = []
+        self.seen = np.zeros(self.labels.shape, dtype=bool)  # cells some view measured; the others hold the prior
 
     def record(self, cap, fused, **fields) -> StepRecord:
         """Write the view of capture `cap` (a CaptureInfo) with `fused`, the (N,) map after it."""
@@ -117,11 +118,16 @@ class FlightRecorder:
                          f1=float(map_f1(fused, self.labels)), **fields)
         self.log.step(rec)
         self.records.append(rec)
+        if rec.valid is not None:
+            self.seen |= np.asarray(rec.valid, dtype=bool)
         return rec
 
     def found(self, rec: StepRecord) -> str:
+        """The cells the map calls occupied, and the unseen ones with what acc and F1 count them as."""
         f = np.asarray(rec.fused) > 0.5
-        return f"cells found {int(f.sum())} ({int((f & self.labels).sum())} of {int(self.labels.sum())} true)"
+        unseen = unseen_cells(rec.fused, self.seen)
+        return (f"cells found {int(f.sum())} ({int((f & self.labels).sum())} of {int(self.labels.sum())} true)"
+                + (f", {unseen}" if unseen else ""))
 
 
 # The vehicle this controller starts for an agent descends at this speed above MPC_LAND_ALT1 (PX4's

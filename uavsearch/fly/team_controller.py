@@ -174,7 +174,7 @@ class TeamSearch:
         then = f" -> viewpoint {nxt}" if nxt >= 0 else " -> done"
         recorder.progress(f"view {len(recorder.records):2d}  vehicle {veh.target_system} at E {e:6.1f} N {n:6.1f} "
                           f"U {u:5.1f} m  mission time {float(time_s[0]):5.1f} s  {recorder.found(rec)}  "
-                          f"F1 {rec.f1:.2f}{then}")
+                          f"acc {rec.acc:.2f} F1 {rec.f1:.2f}{then}")
 
     def summary(self, records: list) -> dict:
         """The summary's own fields, each after the common field that names it; a team that lost a vehicle adds,

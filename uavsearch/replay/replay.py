@@ -40,15 +40,15 @@ from ..flight.camera import SCENE_FILE
 from ..logs.flight_log import read_flight_log, read_header
 from ..search.agents import FUSIONS, check_names, make_fusion
 from ..search.fusion import Fusion, FusionViews, fusion_name
-from ..search.metrics import map_accuracy, map_f1
+from ..search.metrics import map_accuracy, map_f1, unseen_counts
 from ..search.perception import perceive
 from ..search.policy import load_search_model
 from ..search.views import make_view
-from ..viz import draw_grid_overlay, pyplot, save_figure, settle_tight_layout
+from ..viz import OVERLAY_GRID_RGB, OVERLAY_OCCUPIED_RGB, draw_grid_overlay, pyplot, save_figure
 from ..world.render import SceneRenderer
 from ..world.scene import generate_scene
 from ..world.settings import resolve_k
-from ..world.topdown import draw_topdown
+from ..world.topdown import draw_topdown, topdown_keys
 
 # --------------------------------------------------------------------------------------------------
 # tlog reading (robust: stops at the first damaged record)
@@ -183,6 +183,11 @@ class ReplayData:
     @property
     def f1(self) -> np.ndarray:
         return map_f1(self.maps, np.broadcast_to(self.labels, self.maps.shape))
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(T, N) cells some view had measured by view t (the others hold the fusion's prior)."""
+        return np.logical_or.accumulate(np.asarray(self.valid, dtype=bool), axis=0)
 
 
 def _fuse_all(method, p, valid, area=None, scores=None, labels=None) -> np.ndarray:
@@ -393,7 +398,8 @@ def _altitude_layers(alts) -> list[float]:
     return layers
 
 
-def _draw_track(ax, d: ReplayData, upto: int | None = None) -> None:
+def _draw_track(ax, d: ReplayData, upto: int | None = None) -> list:
+    """The track and views over the scene's top view (up to view `upto`); returns the legend handles (its keys)."""
     if d.spec is not None:
         draw_topdown(d.spec, ax=ax)
     else:
@@ -433,49 +439,100 @@ def _draw_track(ax, d: ReplayData, upto: int | None = None) -> None:
     if d.true_positions_enu is not None:
         tp = d.true_positions_enu[:n]
         ax.plot(tp[:, 0], tp[:, 1], "x", color="black", ms=7, label="views (true pose)", zorder=6)
-    ax.legend(loc="lower left", fontsize=7)
+    handles, _ = ax.get_legend_handles_labels()
+    return handles + (topdown_keys(d.spec) if d.spec is not None else [])
 
 
-def _draw_map(ax, d: ReplayData, t: int, title: str | None = None) -> None:
+UNSEEN_COLOR = "#b0b0b0"  # cells no view has measured yet: grey, off the magma scale of p(occupied)
+TRUTH_COLOR = "cyan"  # outline of the ground truth's occupied cells on a fused map
+
+
+def _draw_map(ax, d: ReplayData, t: int, title: str | None = None):
+    """The fused map after view t (unseen cells grey, occupied cells outlined); returns the image for a colour bar."""
+    import matplotlib
+
     n = d.grid.n
     h = d.grid.half_m
-    ax.imshow(d.maps[t].reshape(n, n), cmap="magma", vmin=0, vmax=1, extent=[-h, h, -h, h])
+    cmap = matplotlib.colormaps["magma"].with_extremes(bad=UNSEEN_COLOR)
+    shown = np.ma.masked_where(~d.seen[t].reshape(n, n), d.maps[t].reshape(n, n))
+    im = ax.imshow(shown, cmap=cmap, vmin=0, vmax=1, extent=[-h, h, -h, h])
     y = d.labels.reshape(n, n)
     for r, c in zip(*np.nonzero(y)):
         x0, y0 = -h + c * d.grid.cell_m, h - (r + 1) * d.grid.cell_m
-        ax.add_patch(pyplot().Rectangle((x0, y0), d.grid.cell_m, d.grid.cell_m, fill=False, ec="cyan", lw=1.5))
-    ax.set_title(title or f"fused after view {t + 1}\nacc {d.acc[t]:.2f}  F1 {d.f1[t]:.2f}", fontsize=9)
+        ax.add_patch(pyplot().Rectangle((x0, y0), d.grid.cell_m, d.grid.cell_m, fill=False, ec=TRUTH_COLOR, lw=1.5))
+    by = f" (vehicle {d.view_sys[t]})" if d.view_sys is not None else ""
+    ax.set_title(title or f"fused after view {t + 1}{by}\nacc {d.acc[t]:.2f}  F1 {d.f1[t]:.2f}", fontsize=9)
     ax.set_xticks([])
     ax.set_yticks([])
+    return im
+
+
+def _map_keys(d: ReplayData, upto: int | None = None) -> list:
+    """Legend handles of what a fused map draws besides p(occupied): the truth's outlines, unseen cells (if any
+    map up to view `upto` has some), with what acc and F1 count them as."""
+    from matplotlib.patches import Patch
+
+    keys = [Patch(facecolor="none", edgecolor=TRUTH_COLOR, lw=1.5, label="occupied (ground truth)")]
+    last = len(d.maps) - 1 if upto is None else upto
+    first = next((t for t in range(last + 1) if not d.seen[t].all()), None)
+    if first is not None:
+        _, prior, counted = unseen_counts(d.maps[first], d.seen[first])
+        keys.append(Patch(facecolor=UNSEEN_COLOR, label=f"unseen (prior {prior:.2g}: counts as {counted})"))
+    return keys
 
 
 def trajectory_figure(d: ReplayData):
     fig, ax = pyplot().subplots(figsize=(7, 7), layout="constrained")
-    _draw_track(ax, d)
+    fig.legend(handles=_draw_track(ax, d), loc="outside lower center", ncol=2, fontsize=7, frameon=False)
     ax.set_title(d.title, fontsize=9, wrap=True)
     return fig
 
 
+MAPS_COLUMNS = 6  # maps.png: panels per row
+MAPS_PANELS = 24  # at most this many (views sampled evenly beyond), so the image stays a readable size
+
+
+def shown_views(T: int, most: int = MAPS_PANELS - 1) -> list[int]:
+    """The views maps.png draws: every one up to `most`, else `most` spread evenly, the first and last kept."""
+    if T <= most:
+        return list(range(T))
+    return sorted({int(round(x)) for x in np.linspace(0, T - 1, most)})
+
+
 def maps_figure(d: ReplayData):
-    """The fused map after each view beside the ground truth; one shared colour bar."""
+    """The fused map after each view (sampled evenly past MAPS_PANELS) and the ground truth, in rows of at most
+    MAPS_COLUMNS; one colour bar and one key for every panel."""
     T = len(d.maps)
-    fig, axes = pyplot().subplots(1, T + 1, figsize=(max(2.6 * (T + 1), 6.0), 3.1), layout="constrained")
-    axes = np.atleast_1d(axes)
-    for t in range(T):
-        _draw_map(axes[t], d, t)
+    views = shown_views(T)
+    cols = min(MAPS_COLUMNS, len(views) + 1)
+    rows = math.ceil((len(views) + 1) / cols)
+    fig, axes = pyplot().subplots(rows, cols, figsize=(2.5 * cols + 1.2, 2.75 * rows + 0.9), layout="constrained",
+                                  squeeze=False)
+    axes = axes.ravel()
+    for ax, t in zip(axes, views):
+        im = _draw_map(ax, d, t)
     n = d.grid.n
-    im = axes[T].imshow(d.labels.reshape(n, n), cmap="magma", vmin=0, vmax=1)
-    axes[T].set_title("ground truth\n", fontsize=9)
-    axes[T].set_xticks([])
-    axes[T].set_yticks([])
-    fig.colorbar(im, ax=list(axes), fraction=0.012, pad=0.01, label="p(occupied)")  # all panels share 0..1
-    fig.suptitle(f"{d.fusion} fusion: p(occupied) per cell (cyan: occupied cells)", fontsize=10)
+    truth = axes[len(views)]
+    truth.imshow(d.labels.reshape(n, n), cmap="magma", vmin=0, vmax=1)
+    truth.set_title("ground truth\n(1 = occupied)", fontsize=9)
+    truth.set_xticks([])
+    truth.set_yticks([])
+    for ax in axes[len(views) + 1:]:
+        ax.axis("off")
+    fig.colorbar(im, ax=list(axes), fraction=0.03 if rows > 1 else 0.015, pad=0.01, label="p(occupied)")
+    fig.legend(handles=_map_keys(d), loc="outside lower center", ncol=2, fontsize=8, frameon=False)
+    which = f" ({len(views)} of {T} views shown, evenly spread)" if len(views) < T else ""
+    fig.suptitle(f"{d.fusion} fusion: p(occupied) per cell after each view{which}", fontsize=10)
     return fig
 
 
 def metrics_figure(d: ReplayData):
+    """Aacc and F1 after each view, as the flight's summary scores the map (unseen cells at the prior included),
+    with the share of cells seen so far when some were not: that share is what lifts both early on."""
+    from matplotlib.ticker import MaxNLocator
+
     T = len(d.maps)
-    fig, ax = pyplot().subplots(figsize=(5, 3.4), layout="constrained")
+    fig, ax = pyplot().subplots(figsize=(5.6, 3.8), layout="constrained")
     steps = np.arange(1, T + 1)
     ax.plot(steps, d.acc, "o-", label="accuracy (Eq. 16)")
     ax.plot(steps, d.f1, "s-", label="F1 (Eq. 17)")
@@ -483,12 +540,19 @@ def metrics_figure(d: ReplayData):
         y = np.broadcast_to(d.labels, d.logged_maps.shape)
         ax.plot(steps, map_f1(d.logged_maps, y), "s--", color="grey", alpha=0.6, label="F1 as flown")
         ax.plot(steps, map_accuracy(d.logged_maps, y), "o--", color="silver", alpha=0.6, label="accuracy as flown")
+    note = ""
+    first = next((t for t in range(T) if not d.seen[t].all()), None)
+    if first is not None:
+        _, prior, counted = unseen_counts(d.maps[first], d.seen[first])
+        ax.plot(steps, d.seen.mean(axis=1), ":", color="black", label="share of cells seen")
+        note = f"\nunseen cells hold the prior {prior:.2g} and count as {counted}"
     ax.set_xlabel("view t")
     ax.set_ylim(0, 1.02)
-    ax.set_xticks(steps)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True, nbins=min(T, 12)))
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    ax.set_title(f"metrics vs. step ({d.fusion} fusion)", fontsize=9)
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(f"metrics after each view ({d.fusion} fusion): final Aacc {d.acc[-1]:.3f}, F1 {d.f1[-1]:.3f}{note}",
+                 fontsize=9)
     return fig
 
 
@@ -501,19 +565,31 @@ def write_figures(d: ReplayData, out: Path) -> list[Path]:
 def frame_figure(d: ReplayData, t: int):
     """One video frame: the view with the grid, the fused map so far, the track so far (a fixed canvas, so
     every frame has the same size; the layout keeps every title and label on it)."""
-    fig, axes = pyplot().subplots(1, 3, figsize=(12, 4.4))
+    fig, axes = pyplot().subplots(1, 3, figsize=(13.5, 4.6), layout="constrained")
     img = d.images[t] if t < len(d.images) else None
     if img is not None:
         intr = d.intrinsics if d.intrinsics is not None else _intrinsics_of(img)
         axes[0].imshow(draw_grid_overlay(img, d.poses[t], d.grid, intr, d.labels, scale=2))
     axes[0].set_title(f"view {t + 1} (grid at the reported pose)", fontsize=9)
     axes[0].axis("off")
-    _draw_map(axes[1], d, t)
-    _draw_track(axes[2], d, upto=t)
+    axes[0].legend(handles=_overlay_keys(), loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2, fontsize=7,
+                   frameon=False)
+    im = _draw_map(axes[1], d, t)
+    fig.colorbar(im, ax=axes[1], fraction=0.046, pad=0.03).set_label("p(occupied)", fontsize=8)
+    axes[1].legend(handles=_map_keys(d, upto=t), loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=1,
+                   fontsize=7, frameon=False)
+    fig.legend(handles=_draw_track(axes[2], d, upto=t), loc="outside right center", fontsize=7, frameon=False)
     axes[2].set_title("track so far", fontsize=9)
     fig.suptitle(d.title, fontsize=9)
-    settle_tight_layout(fig)
     return fig
+
+
+def _overlay_keys() -> list:
+    """Legend handles of draw_grid_overlay's outlines."""
+    from matplotlib.lines import Line2D
+
+    return [Line2D([], [], color=np.divide(OVERLAY_GRID_RGB, 255), lw=1, label="grid cell"),
+            Line2D([], [], color=np.divide(OVERLAY_OCCUPIED_RGB, 255), lw=2, label="occupied (ground truth)")]
 
 
 def _frame(d: ReplayData, t: int) -> np.ndarray:

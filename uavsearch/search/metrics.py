@@ -69,6 +69,24 @@ def average_metrics(p_occ, labels) -> tuple[float, float]:
     return float(map_accuracy(p, y).mean()), float(map_f1(p, y).mean())
 
 
+def unseen_counts(fused, seen) -> tuple[int, float, str] | None:
+    """(cells no view has measured, the prior they hold, what the rule above counts them as), None when every cell
+    was seen. Such a cell holds the fusion's prior: at 0.5 it is undecided, so wrong whatever its label (a false
+    positive or a false negative in F1); below 0.5 it counts as empty, above as occupied."""
+    p, unseen = np.asarray(fused, dtype=np.float64), ~np.asarray(seen, dtype=bool)
+    n = int(unseen.sum())
+    if n == 0:
+        return None
+    prior = float(np.median(p[unseen]))
+    return n, prior, "wrong" if prior == 0.5 else "empty" if prior < 0.5 else "occupied"
+
+
+def unseen_cells(fused, seen) -> str:
+    """'599 unseen (prior 0.5: count as wrong)' for lines beside acc and F1; '' when every cell was seen."""
+    c = unseen_counts(fused, seen)
+    return "" if c is None else f"{c[0]} unseen (prior {c[1]:.2g}: count as {c[2]})"
+
+
 def cell_correct(p_occ, labels) -> np.ndarray:
     """Per-cell correctness p-bar(y = y_gt) > 0.5, same shape as the inputs."""
     p = np.asarray(p_occ, dtype=np.float64)

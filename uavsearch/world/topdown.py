@@ -99,6 +99,30 @@ def _stains(img: np.ndarray, spec: SceneSpec, raster: Raster, rng: np.random.Gen
             raster.disk(img, (x, y), r, tuple(int(min(255, c * f)) for c in base))
 
 
+OCCUPIED_FILL_RGB, OCCUPIED_RGB = (255, 220, 0), (255, 200, 0)  # an occupied cell's fill and outline
+PERSON_RGB, PERSON_OUTSIDE_RGB = (230, 0, 160), (255, 120, 0)  # a person in the grid's cells, and outside them
+GROUP_RGB = (0, 220, 255)  # a clustered scene's group centre and its 1 and 2 sigma circles
+
+
+def topdown_keys(spec: SceneSpec) -> list:
+    """Legend handles of what draw_topdown draws, for a figure whose title does not say it."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    def rgb(c):
+        return tuple(v / 255 for v in c)
+
+    keys = [Patch(facecolor=rgb(OCCUPIED_FILL_RGB), edgecolor=rgb(OCCUPIED_RGB), alpha=0.8, label="occupied cell"),
+            Line2D([], [], ls="", marker="o", ms=5, mfc=rgb(PERSON_RGB), mec="white", label="person")]
+    if any(o.cell < 0 for o in spec.people):
+        keys.append(Line2D([], [], ls="", marker="o", ms=5, mfc=rgb(PERSON_OUTSIDE_RGB), mec="white",
+                           label="person outside the grid"))
+    if spec.group_centres_m:
+        keys.append(Line2D([], [], ls="", marker="o", ms=9, mfc="none", mec=rgb(GROUP_RGB), mew=2,
+                           label=f"group: 1 and 2 sigma ({spec.placement.sigma_m:g} m)"))
+    return keys
+
+
 def draw_topdown(spec: SceneSpec, ax=None, half_m: float | None = None, m_per_px: float = 0.2):
     """A north-up map of the scene around the search area; draws into a matplotlib Axes (ENU metres)
     when `ax` is given, else returns the (n, n, 3) uint8 image."""
@@ -126,7 +150,7 @@ def draw_topdown(spec: SceneSpec, ax=None, half_m: float | None = None, m_per_px
     grid = spec.grid
     overlay = img.copy()
     for i in np.flatnonzero(occ):
-        raster.fill(overlay, grid.cell_corners_enu(int(i))[:, :2], (255, 220, 0))
+        raster.fill(overlay, grid.cell_corners_enu(int(i))[:, :2], OCCUPIED_FILL_RGB)
     img = cv2.addWeighted(overlay, 0.45, img, 0.55, 0)
     for k in range(grid.n + 1):
         a = -grid.half_m + k * grid.cell_m
@@ -136,10 +160,10 @@ def draw_topdown(spec: SceneSpec, ax=None, half_m: float | None = None, m_per_px
     grow = max(1.0, half / 45.0)  # a wider map is shown smaller: thicker outlines and dots keep it legible
     for i in np.flatnonzero(occ):
         pts = np.round(raster.to_px(grid.cell_corners_enu(int(i))[:, :2]) * 16 - 8).astype(np.int32)
-        cv2.polylines(img, [pts], True, (255, 200, 0), int(round(2 * grow)), cv2.LINE_AA, 4)
+        cv2.polylines(img, [pts], True, OCCUPIED_RGB, int(round(2 * grow)), cv2.LINE_AA, 4)
     for o in spec.people:
         raster.disk(img, (o.x_m, o.y_m), 0.55 * grow, (255, 255, 255))
-        raster.disk(img, (o.x_m, o.y_m), 0.38 * grow, (230, 0, 160) if o.cell >= 0 else (255, 120, 0))
+        raster.disk(img, (o.x_m, o.y_m), 0.38 * grow, PERSON_RGB if o.cell >= 0 else PERSON_OUTSIDE_RGB)
     _draw_groups(img, spec, raster)
     if ax is None:
         return img
@@ -165,11 +189,11 @@ def _draw_groups(img: np.ndarray, spec: SceneSpec, raster: Raster) -> None:
         c = np.round(raster.to_px(np.array([x, y])) * 16 - 8).astype(int)
         centre = (int(c[0]), int(c[1]))
         for k, thick in ((1, 3), (2, 2)):
-            cv2.circle(img, centre, int(round(k * sigma / raster.m_per_px * 16)), (0, 220, 255), thick, cv2.LINE_AA, 4)
+            cv2.circle(img, centre, int(round(k * sigma / raster.m_per_px * 16)), GROUP_RGB, thick, cv2.LINE_AA, 4)
         arm = int(round(1.5 / raster.m_per_px * 16))
         for d in ((arm, 0), (0, arm)):
-            cv2.line(img, (centre[0] - d[0], centre[1] - d[1]), (centre[0] + d[0], centre[1] + d[1]), (0, 220, 255), 3,
+            cv2.line(img, (centre[0] - d[0], centre[1] - d[1]), (centre[0] + d[0], centre[1] + d[1]), GROUP_RGB, 3,
                      cv2.LINE_AA, 4)  # fmt: skip
 
 
-__all__ = ["paint_ground", "ground_raster", "draw_topdown", "GROUND_TEXTURE_PX"]
+__all__ = ["paint_ground", "ground_raster", "draw_topdown", "topdown_keys", "GROUND_TEXTURE_PX"]
