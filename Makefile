@@ -7,10 +7,11 @@ PY := $(VENV)/bin/python
 
 setup: $(VENV)/.installed
 
-# pip prints one line per package it collects and installs (a fresh setup takes about 90 s: torch's CPU wheel
-# alone is ~200 MB), so the first `make run` is never a silent wait.
+# pip prints one line per package it collects and installs (a fresh setup takes about 1.5 minutes,
+# results/setup_time.md, measured by tools/bench_setup.py; torch's CPU wheel is the largest part), so the first
+# `make run` is never a silent wait.
 $(VENV)/.installed: pyproject.toml
-	@echo "setup: creating $(VENV) and installing uavsearch with its dependencies (about 90 s the first time)"
+	@echo "setup: creating $(VENV) and installing uavsearch with its dependencies (about 1.5 minutes the first time)"
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --progress-bar off --disable-pip-version-check -e '.[test]'
 	# MAVProxy for the ground-station test, without its declared dependencies (opencv-python and vtk

@@ -2,6 +2,7 @@
 beside the time `import torch` takes in the same run (the floor of any command that runs perception).
 
     python tools/bench_fly.py [--mission missions/default.yaml] [--scenes 3 4 5] [--speed max] [--T 5]
+                              [--out results/flight/fly_timing.md]
 
 Each flight is `python -m uavsearch fly` in a fresh process. Stages (wall seconds, each from the end of
 the one before): imports = process start until the mission controller runs (Python, torch, the
@@ -9,8 +10,10 @@ controller's modules, reading the mission); agent = loading the checkpoints (the
 meanwhile); scene = waiting for the vehicle's scene.json (the labels); vehicle = waiting for the vehicle
 to be ready; take-off = link up, arm, climb to the search altitude; search = the T views (goto, settle,
 photo, perception, fusion, policy); landing = down and disarmed; exit = printing and leaving. `sim` is
-the vehicle's clock over the flight. CPU = the controller's own CPU seconds (the vehicle's are in its
-sitl.log). The load average beside them says how shared the machine was.
+the vehicle's clock over the flight; `move sim` the vehicle's clock per move after the first view (goto,
+settle, photo). CPU = the controller's own CPU seconds (the vehicle's are in its sitl.log). The load
+average beside them says how shared the machine was. `--out` writes the same table as markdown (the file
+docs/flying-measurements.md quotes).
 """
 
 import argparse
@@ -30,6 +33,7 @@ from tqdm import tqdm
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from uavsearch.fly.missions import load_mission  # noqa: E402
+from uavsearch.logs.flight_log import read_flight_log  # noqa: E402
 
 STAGES = ("imports", "agent", "scene", "vehicle", "take-off", "search", "landing", "exit")
 _MARKS = ("agent_s", "scene_s", "vehicle_ready_s", "took_off_s", "searched_s", "landed_s")
@@ -64,7 +68,9 @@ def fly_once(mission_file: Path, out: Path) -> dict:
     fly_start = ph["start_unix"] - start_unix
     marks = [fly_start] + [fly_start + ph[k] for k in _MARKS] + [total]
     stages = dict(zip(STAGES, [marks[0]] + [b - a for a, b in zip(marks, marks[1:])]))
-    return dict(stages=stages, total=total, cpu=cpu, sim=s["sim_time_s"], status=s["status"], views=s["steps"])
+    moves = [st.flight_time_s for st in read_flight_log(out).steps[1:]]
+    return dict(stages=stages, total=total, cpu=cpu, sim=s["sim_time_s"], status=s["status"], views=s["steps"],
+                moves=moves)
 
 
 def main() -> int:
@@ -77,7 +83,10 @@ def main() -> int:
     ap.add_argument("--policy", default=None, help="override the mission's policy")
     ap.add_argument("--free-running", action="store_true",
                     help="vehicle without lockstep (not reproducible; shows what lockstep costs)")
+    ap.add_argument("--out", type=Path, default=None, help="also write the table as markdown to this file")
     args = ap.parse_args()
+    if args.out is not None and not args.out.parent.is_dir():
+        ap.error(f"no folder {args.out.parent} for --out")
     base = load_mission(args.mission).with_overrides(**{
         "flight.speed": args.speed if args.speed == "max" else float(args.speed), "search.budget_T": args.T,
         "fusion": args.fusion, "policy": args.policy, "flight.lockstep": False if args.free_running else None})
@@ -97,23 +106,39 @@ def main() -> int:
         torch_wall2, _ = import_torch_s()
     torch_wall = (torch_wall + torch_wall2) / 2
     budget = f"T = {base.search.budget_T}" if base.family is None else f"{base.search_config().budget_s:g} s"
-    print(f"\nflown missions: {base.name}, {budget}, speed {base.flight.speed}, "
-          f"{base.fusion} fusion + {base.policy} policy; load average {load0:.2f} at start, "
-          f"{os.getloadavg()[0]:.2f} at end ({os.cpu_count()} CPUs)")
-    print(f"limit: `import torch` in a fresh process {torch_wall:.2f} s wall (mean of one before and one after the "
-          f"flights), {torch_cpu:.2f} s CPU")
+    out = [f"flown missions: {base.name}, {budget}, speed {base.flight.speed}, "
+           f"{base.fusion} fusion + {base.policy} policy; load average {load0:.2f} at start, "
+           f"{os.getloadavg()[0]:.2f} at end ({os.cpu_count()} CPUs)",
+           f"limit: `import torch` in a fresh process {torch_wall:.2f} s wall (mean of one before and one after the "
+           f"flights), {torch_cpu:.2f} s CPU"]
     hdr = f"{'scene':>5} " + " ".join(f"{s:>8}" for s in STAGES) + f" {'total s':>8} {'CPU s':>6} {'sim s':>6} " \
-          f"{'x torch':>7}"
-    print(hdr)
-    print("-" * len(hdr))
+          f"{'move sim':>9} {'x torch':>7}"
+    out += [hdr, "-" * len(hdr)]
+
+    def moves(ms: list) -> str:
+        return f"{min(ms):.1f}-{max(ms):.1f}" if ms else "-"
+
     for r in rows:
-        print(f"{r['scene']:>5} " + " ".join(f"{r['stages'][s]:8.2f}" for s in STAGES) +
-              f" {r['total']:8.2f} {r['cpu']:6.2f} {r['sim']:6.1f} {r['total'] / torch_wall:7.2f}")
+        out.append(f"{r['scene']:>5} " + " ".join(f"{r['stages'][s]:8.2f}" for s in STAGES) +
+                   f" {r['total']:8.2f} {r['cpu']:6.2f} {r['sim']:6.1f} {moves(r['moves']):>9} "
+                   f"{r['total'] / torch_wall:7.2f}")
     mean = {s: statistics.mean(r["stages"][s] for r in rows) for s in STAGES}
     tot = statistics.mean(r["total"] for r in rows)
-    print(f"{'mean':>5} " + " ".join(f"{mean[s]:8.2f}" for s in STAGES) +
-          f" {tot:8.2f} {statistics.mean(r['cpu'] for r in rows):6.2f} "
-          f"{statistics.mean(r['sim'] for r in rows):6.1f} {tot / torch_wall:7.2f}")
+    out.append(f"{'mean':>5} " + " ".join(f"{mean[s]:8.2f}" for s in STAGES) +
+               f" {tot:8.2f} {statistics.mean(r['cpu'] for r in rows):6.2f} "
+               f"{statistics.mean(r['sim'] for r in rows):6.1f} {moves([m for r in rows for m in r['moves']]):>9} "
+               f"{tot / torch_wall:7.2f}")
+    sims = [r["sim"] for r in rows]
+    all_moves = [m for r in rows for m in r["moves"]]
+    out += ["", f"whole mission {min(r['total'] for r in rows):.2f}-{max(r['total'] for r in rows):.2f} s wall, "
+            f"mean {tot:.2f} s; stages (mean): " + ", ".join(f"{s} {mean[s]:.2f} s" for s in STAGES) +
+            f"; simulated flight mean {statistics.mean(sims):.1f} s ({min(sims):.1f}-{max(sims):.1f})"
+            + (f"; each move after the first view {moves(all_moves)} s of simulated time" if all_moves else "")]
+    print("\n" + "\n".join(out))
+    if args.out is not None:
+        cmd = " ".join(["python tools/bench_fly.py", *sys.argv[1:]])
+        args.out.write_text(f"# Flown missions, wall time by stage\n\nRegenerate: `{cmd}` "
+                            f"({time.strftime('%Y-%m-%d', time.gmtime())}).\n\n```\n" + "\n".join(out) + "\n```\n")
     return 0
 
 

@@ -27,9 +27,9 @@ DEFAULT_OUT = ROOT / "results" / "setup_time.md"
 
 
 def minutes_seconds(seconds: float) -> str:
-    """114.2 -> '1 min 54 s' (the form the README quotes)."""
+    """114.2 -> '1 min 54 s', 45 -> '0 min 45 s' (one form, the one the README quotes)."""
     m, s = divmod(round(seconds), 60)
-    return f"{m} min {s} s" if m else f"{s} s"
+    return f"{m} min {s} s"
 
 
 def about(seconds: float) -> str:
@@ -92,7 +92,9 @@ def report(r: dict) -> str:
         f"| {r['when']} | {r['commit']} | {r['python']} | {r['cpus']} | {r['load_before']:.1f} / {r['load_after']:.1f} "
         f"| {minutes_seconds(r['wall_s'])} ({r['wall_s']:.0f} s) |",
         "",
-        f"Rounded, as the README and the Makefile quote it: **{about(r['wall_s'])}**.",
+        f"make setup took {minutes_seconds(r['wall_s'])} on {r['cpus']} CPUs (load average {r['load_before']:.1f} "
+        f"before, {r['load_after']:.1f} after). Rounded, as the README and the Makefile quote it: "
+        f"**{about(r['wall_s'])}**.",
         "",
     ])
 
