@@ -64,7 +64,14 @@ QUOTES = [
     # the gymnasium env's speed: tools/bench_env.py, as docs/learning.md records it
     Quote("README.md", "at {} envs its native vector env steps {} episode steps a second", "docs/learning.md",
           "{_} / {_} / {} envs | {_} / {_} / {} |"),
-    # docs/flying-measurements.md: tools/bench_fly.py
+    # docs/flying-measurements.md: the flight-vs-teleport table (uavsearch eval search --vehicle mavlink) ...
+    *[Quote("docs/flying-measurements.md", f"| {k} ({cells} cells) | {{_}}-{{_}} | {{}} / {{}} | {{}} / {{}} | {{}} | "
+            "{}/10 | {} |", f"results/flight/flight_vs_teleport_s{k}.md",
+            (f"setting {k} (paper split, {{_}}/{{_}} test scenes", "| teleport | {} | {} |",
+             "| flight (MAVLink) | {} | {} |", "| difference | {_} | {} |", "Same route in both modes: {}/10",
+             "Wall time per flown mission: {} s"))
+      for k, cells in ((1, 2), (2, 5), (3, 10))],
+    # ... and tools/bench_fly.py
     Quote("docs/flying-measurements.md", "took {}-{} s wall, mean {} s (imports {} s, agent {} s, take-off {} s, "
           "search {} s, landing {} s)", "results/flight/fly_timing.md",
           ("whole mission {}-{} s wall, mean {} s", "imports {} s, agent {} s", "take-off {} s, search {} s, "
@@ -127,7 +134,8 @@ def test_quoted_figure_agrees_with_its_file(q):
         pytest.fail(f"{q.source} no longer holds '{' ... '.join(q.source_templates)}' (quoted by {q.page})",
                     pytrace=False)
     (quoted, said), (held, held_said) = found, source
-    assert len(quoted) == len(held), f"{q}: {len(quoted)} number(s) quoted, {len(held)} in the source's words"
+    if len(quoted) != len(held):
+        pytest.fail(f"{q}: {len(quoted)} number(s) quoted, {len(held)} in the source's words", pytrace=False)
     wrong = [f"{q.page} quotes {a} (number {i + 1} in '{said[0]}') but {q.source} says {b} ('{' ... '.join(held_said)}')"
              for i, (a, b) in enumerate(zip(quoted, held)) if not _agree(a, b)]
     if wrong:
