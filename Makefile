@@ -20,7 +20,9 @@ $(VENV)/.installed: pyproject.toml
 	@touch $@
 	@echo "setup: done; the command is $(VENV)/bin/uavsearch (or: . $(VENV)/bin/activate)"
 
-# The main job: fly the default search mission (paper setting 2) with the shipped model.
+# The main job: fly the default search mission (missions/wide.yaml: the learned wide-area policy, 240 s of flight)
+# with the shipped models, then the same scene searched by the first view, the best fixed route and the rule.
+# `uavsearch fly --mission default` flies the paper's setting 2.
 run: setup
 	$(VENV)/bin/uavsearch fly
 

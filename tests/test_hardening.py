@@ -268,7 +268,8 @@ def test_mission_outside_what_the_models_were_trained_for_is_refused(tmp_path):
 def test_fly_connect_refuses_a_vehicle_simulating_another_scene(tmp_path):
     sitl = SitlProcess(tmp_path / "vehicle", "--scene", "5", "--cells", "5", lockstep=True, env=clean_env())
     try:
-        r = _uavsearch("fly", "--connect", f"udpin:127.0.0.1:{sitl.api_port}", "--out", tmp_path / "run")
+        r = _uavsearch("fly", "--mission", "default", "--connect", f"udpin:127.0.0.1:{sitl.api_port}", "--out",
+                        tmp_path / "run")
         _one_line_error(r, "simulates scene 5", "scene 3")
     finally:
         sitl.stop()
@@ -290,7 +291,8 @@ def test_fly_connect_refuses_a_vehicle_simulating_another_scene(tmp_path):
 
 @pytest.mark.slow  # 28 s of a real-time landing: `make test-all` runs it
 def test_second_ctrl_c_says_what_became_of_the_end_action(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-m", "uavsearch", "fly", "--speed", "1", "--out", str(tmp_path / "run"),
+    proc = subprocess.Popen([sys.executable, "-m", "uavsearch", "fly", "--mission", "default", "--speed", "1", "--out",
+                             str(tmp_path / "run"),
                              "--gcs-port", "0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=clean_env())
     out = []
@@ -325,7 +327,7 @@ def test_second_ctrl_c_says_what_became_of_the_end_action(tmp_path):
 @pytest.fixture(scope="module")
 def flown(tmp_path_factory):
     out = tmp_path_factory.mktemp("fly") / "run"
-    r = _uavsearch("fly", "--out", out, "--gcs-port", "0", "--speed", "max", timeout=400)
+    r = _uavsearch("fly", "--mission", "default", "--out", out, "--gcs-port", "0", "--speed", "max", timeout=400)
     assert r.returncode == 0, r.stdout + r.stderr
     return out
 

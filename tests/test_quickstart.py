@@ -76,7 +76,7 @@ def test_promised_outputs_are_read_from_the_commands_and_their_comments():
     block = "uavsearch replay runs/a --out runs/b   # trajectory.png, maps.png (and more)\nuavsearch x --out c.pt\n"
     assert promised_outputs(block) == [("runs/b", ["trajectory.png", "maps.png"]), ("c.pt", [])]
     fly = next(b for t, _, b, _ in BLOCKS if t.endswith("fly a search"))
-    assert [p for p, _ in promised_outputs(fly)] == ["runs/scene7", "runs/scene7_replay", "runs/scene7.png"]
+    assert [p for p, _ in promised_outputs(fly)] == ["runs/wide", "runs/wide_replay", "runs/scene7", "runs/scene7.png"]
     assert set(PRINTS) <= {p.id for p in _params()}
 
 

@@ -87,7 +87,7 @@ def test_replay_draws_every_vehicle(flown, tmp_path):
 
 
 def test_team_flags_and_mission_errors_are_one_line(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--vehicles", "3"],
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", "default", "--vehicles", "3"],
                        capture_output=True, text=True, timeout=120, env=clean_env())
     assert r.returncode != 0 and "Traceback" not in r.stderr
     assert "a team flies a scene family's mission" in r.stderr

@@ -124,3 +124,33 @@ def test_wide_policy_mission_errors_are_one_line(tmp_path):
     missing = mission_from_dict({**base, "checkpoint": str(tmp_path / "none.pt")}, "x.yaml")
     with pytest.raises(UavsearchError, match="no file"):
         missing.team_method()
+
+
+def test_the_flight_ends_beside_the_first_view_the_best_fixed_route_and_the_rule(flown):
+    """The comparison printed and written at the end: its rows, and the rule's teleport F1 on the scene equals what
+    Table III's code (evaluate/wide.run_rows over the view cache) gives for it."""
+    from uavsearch.fly.scene_baselines import COMPARISON_FILE, table3_choice
+    from uavsearch.search.config import wide_budgets
+    from uavsearch.search.data.view_cache import get_view_cache
+    from uavsearch.search.evaluate.wide import rule_agent, run_rows
+    from uavsearch.search.perception import load_perception
+
+    r, run = flown
+    assert r.returncode == 0
+    c = json.loads((run / COMPARISON_FILE).read_text())
+    assert [row["key"] for row in c["rows"]] == ["first_view", "survey_outer", "descend_rule", "teleport_own", "flown"]
+    assert [row["mode"] for row in c["rows"]] == ["teleport"] * 4 + ["flown"]
+    assert "best fixed route" in r.stdout and "the rule" in r.stdout and "this flight" in r.stdout
+    summary = json.loads((run / "summary.json").read_text())
+    assert c["rows"][-1]["f1"] == pytest.approx(summary["f1"], abs=1e-6) and c["rows"][0]["views"] == 1
+    mission = load_mission(WIDE)
+    assert c["scene"] == mission.scene.seed == 131000  # the first validation scene: its cache row is row 0
+    net, _ = load_perception(mission.perception_path)
+    cache = get_view_cache(net, "wide", "large", "val", features=False, limit=1, progress=False)
+    cfg = wide_budgets(cache.config)["240 s"]
+    variant = table3_choice("wide", "240 s")["rule_variant"]
+    assert variant is not None
+    fusion = mission.team_method(mission.search_config()).fusion
+    res = run_rows(cache, cfg, {"rule": (rule_agent(fusion, cfg, variant), 1)})["rule"]
+    assert c["rows"][2]["f1"] == pytest.approx(float(res["f1"][0, 0, -1]), abs=1e-9)
+    assert c["rows"][2]["views"] == int(res["views"][0])

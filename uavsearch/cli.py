@@ -97,10 +97,10 @@ def _add_scene_parser(sub) -> None:
 def _cmd_fly(args) -> int:
     # lazy: pydantic, pymavlink, OpenCV; torch (2-5 s) is imported by fly() once the vehicle is starting, so
     # the mission is read without the agent registry (fly checks it then)
-    from .fly.missions import load_mission
+    from .fly.missions import FLY_MISSION, load_mission
     from .fly.mission_controller import VEHICLE_LOST, disk_full, fly, format_maps
 
-    mission = load_mission(args.mission, check_registry=False)
+    mission = load_mission(args.mission or FLY_MISSION, check_registry=False)
     mission = mission.with_overrides(check_registry=False, **{"scene.seed": args.scene, "flight.speed": args.speed})
     team = {k: v for k, v in (("vehicles", args.vehicles), ("mission_time_s", args.mission_time)) if v is not None}
     if team:  # the mission's validation says what its method can fly
@@ -125,6 +125,13 @@ def _cmd_fly(args) -> int:
     f1 = f"{r.f1:.3f}" if r.f1 is not None else "n/a"
     print(f"{r.status}: {r.steps} view(s); Aacc {acc}  F1 {f1}  sim time {sim}  wall time {r.wall_s:.1f} s "
           f"(flight {r.flight_wall_s:.1f} s); photos {r.photos_received} of {r.photos_asked} received; {r.end}")
+    if r.status == "completed" and not args.no_compare:  # what the flight bought: other searches of its scene
+        from .fly.scene_baselines import compare_flight
+
+        try:
+            print(compare_flight(mission, r, progress=lambda line: print(line, flush=True)))
+        except (UavsearchError, KeyboardInterrupt) as e:
+            print(f"uavsearch fly: no comparison ({e or 'Ctrl-C'})", file=sys.stderr)
     print(f"flight log: {r.run_dir}  (uavsearch replay {r.run_dir} --out REPLAY_DIR)")
     return 0 if r.status == "completed" else 1
 
@@ -145,8 +152,12 @@ def _add_fly_parser(sub) -> None:
     p = sub.add_parser("fly", help="fly a search mission over MAVLink (starts the simulated vehicle unless --connect)",
                        description="Take off, search with the mission's model (perception, fusion, policy choosing "
                                    "each next view), land; print the found map beside the ground truth.")
-    p.add_argument("--mission", default=None, metavar="FILE", help="mission YAML (default missions/default.yaml)")
+    p.add_argument("--mission", default=None, metavar="FILE",
+                   help="mission YAML or a name in missions/ (default: wide, the learned wide-area search; "
+                        "`--mission default`: the paper's setting 2)")
     p.add_argument("--scene", type=int, default=None, metavar="SEED", help="override the mission's scene seed")
+    p.add_argument("--no-compare", action="store_true",
+                   help="skip the first view, the best fixed route and the rule on the same scene (teleport) at the end")
     p.add_argument("--speed", type=_speed_arg, default=None, help="1 (real time), N (N x real time) or max")
     p.add_argument("--out", type=Path, default=None, metavar="RUN_DIR", help="flight log directory (default runs/fly__...)")
     p.add_argument("--connect", default=None, metavar="URL",

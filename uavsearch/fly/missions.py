@@ -33,6 +33,7 @@ if TYPE_CHECKING:
     from ..search.team import TeamPlanner
 
 DEFAULT_MISSION = MISSIONS_DIR / "default.yaml"
+FLY_MISSION = MISSIONS_DIR / "wide.yaml"  # what `uavsearch fly` flies when no mission is named
 # A scene family's mission flown by the learned wide-area policy (search/map_policy.py) instead of a team planner,
 # with the fusion its checkpoint was trained and saved with.
 WIDE_POLICY = "map"
@@ -504,12 +505,25 @@ def mission_from_dict(data, source: str | None = None, check_registry: bool = Tr
     return m.model_copy(update={"source": source})
 
 
+def mission_path(name) -> Path:
+    """A mission file, or a bare name of one in missions/ (`wide`: missions/wide.yaml)."""
+    path = Path(name)
+    if path.suffix or len(path.parts) > 1 or path.exists():
+        return path
+    if not (MISSIONS_DIR / f"{path}.yaml").is_file():
+        known = ", ".join(sorted(p.stem for p in MISSIONS_DIR.glob("*.yaml")))
+        raise MissionError(f"mission {name}: no such file, nor {display_path(MISSIONS_DIR)}/{name}.yaml (named "
+                           f"missions: {known})")
+    return MISSIONS_DIR / f"{path}.yaml"
+
+
 def load_mission(path=None, check_registry: bool = True) -> Mission:
-    """Read and validate a mission file (default: missions/default.yaml; `check_registry`: see REGISTRY)."""
-    path = Path(path) if path else DEFAULT_MISSION
+    """Read and validate a mission file or named mission (default: missions/default.yaml; `check_registry`: see
+    REGISTRY)."""
+    path = mission_path(path) if path else DEFAULT_MISSION
     data = parse_yaml(read_bounded_text(path), str(path))
     return mission_from_dict(data, str(path), check_registry)
 
 
-__all__ = ["DEFAULT_MISSION", "FROM_CHECKPOINT", "WIDE_POLICY", "Mission", "TeamMethod", "load_mission",
-           "mission_from_dict"]
+__all__ = ["DEFAULT_MISSION", "FLY_MISSION", "FROM_CHECKPOINT", "WIDE_POLICY", "Mission", "TeamMethod", "load_mission",
+           "mission_from_dict", "mission_path"]
