@@ -30,7 +30,7 @@ def _paper(**kw):
 
 
 def _wide(**kw):
-    return dict(obs="cells", fusion="bayes", cache=WIDE, **kw)
+    return dict(obs="cells", fusion="bayes", cache=WIDE, budget=None, **kw)  # both budgets at once
 
 
 @pytest.mark.parametrize("kw", [_paper(), _paper(reward="shaped"), _wide(), _wide(reward="shaped")],

@@ -22,12 +22,16 @@ ACTIVE_SEARCH_ID = "uavsearch/ActiveSearch-v0"
 WIDE_SEARCH_ID = "uavsearch/WideSearch-v0"
 
 
-def wide_vector_env(num_envs: int = 1, **kwargs):
-    """The vector entry point of WideSearch-v0: SearchVectorEnv on the wide family (setting "wide")."""
+def wide_vector_env(num_envs: int = 1, budget="8", **kwargs):
+    """The vector entry point of WideSearch-v0: SearchVectorEnv on the wide family (setting "wide") with
+    WideSearchEnv's task for the budget (search_env.wide_task: Table III's, fusion included)."""
+    from uavsearch.search.envs.search_env import wide_task
     from uavsearch.search.envs.vector_env import SearchVectorEnv
 
     kwargs.setdefault("setting", "wide")
-    return SearchVectorEnv(num_envs=num_envs, **kwargs)
+    config, fusion = wide_task(kwargs["setting"], budget, kwargs.pop("config", None), kwargs.get("cache"))
+    kwargs["fusion"] = kwargs.get("fusion") or fusion
+    return SearchVectorEnv(num_envs=num_envs, config=config, **kwargs)
 
 
 def team_parallel_env(**kwargs):

@@ -13,10 +13,11 @@ caches is rendered live, with a one-line warning.
 from __future__ import annotations
 
 import json
+import sys
 import warnings
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -29,9 +30,9 @@ from ...world import settings
 from ...world.scene import SceneSpec, scene_from_json, scene_to_json
 from ..cells import REWARD_MODES, SearchBatch, TableSource, cell_tables, observation_keys
 from ..config import SearchConfig, setting_config
-from ..episode import Observation
+from ..episode import Observation, PolicyInput
 from ..agents import make_fusion
-from ..fusion import Fusion
+from ..fusion import CalibratedFusion, Fusion, calibrated_gamma
 from ..perception import perceive
 from ..search_loop import R_FP, R_RE, R_TP
 from ..views import TeleportVehicle, View
@@ -52,8 +53,35 @@ def _as_scene(obj):
 
 def default_fusion(setting) -> str:
     """The fusion an env fuses with unless told: the family's declared one (settings 1-3: the paper's learned
-    confidence fusion from the setting's shipped checkpoint; the wide families: Bayes, Table III's)."""
+    confidence fusion from the setting's shipped checkpoint; the wide families' both-budget task: Bayes).
+    WideSearchEnv's one-budget tasks fuse as Table III does (TABLE3)."""
     return settings.setting_params(setting).task.fusion
+
+
+class Table3Task(NamedTuple):
+    """What Table III (results/search_wide/table3.md) chose on the validation scenes for one budget of the wide
+    family; tests/test_env_table3.py checks these against that file."""
+
+    fusion: str  # the fusion every row but ours and the oracles fuses with
+    rule: str  # the rule's variant (wide_policies.RULE_VARIANTS)
+    best_fixed: str  # the best fixed route (evaluate/wide.py FIXED)
+    rule_val_af1: float  # the rule's mean AF1 on the 50 validation scenes it was chosen on
+
+
+TABLE3 = {
+    "8": Table3Task("calibrated:0.25", "4 covering, resurvey below p 0.4", "viewset_per_s", 0.581),
+    "240": Table3Task("calibrated:0.75", "4 covering + 4 inner, resurvey below p 0.6, per second", "survey_outer",
+                      0.631),
+}
+# Table III fits the calibrated fusion on the family's first 20 training scenes (tools/reproduce.sh
+# --wide-train-scenes 20; `uavsearch train map --calibration-scenes 20` fits the shipped policies' alike).
+CALIBRATION_SCENES = 20
+# A wide scene's lattice views and caches, measured on the 2-core development machine: the 50 validation scenes
+# rendered (2 render processes) and run through perception in 1063 s at load 8-14; renders, features and the
+# cache's rows take 3.7 + 14.2 + 1.1 MB a scene under cache/.
+FEW_SCENES = 5  # a first reset renders at most this many scenes without being asked (limit= or render_all=True)
+WIDE_SCENE_S = 21.0
+WIDE_SCENE_MB = 19.0
 
 
 class SceneViews:
@@ -62,13 +90,20 @@ class SceneViews:
 
     `cache` (a view_cache.ViewCache already in memory, e.g. a synthetic one) replaces the lookup. `workers`: render
     processes for a cache being built (1, the default, renders in this process: a script without an
-    ``if __name__ == "__main__":`` guard cannot start spawned workers)."""
+    ``if __name__ == "__main__":`` guard cannot start spawned workers). `fusion` may be None until `use_fusion`
+    builds one from a spec.
 
-    def __init__(self, setting, split, part, config: SearchConfig, fusion: Fusion, perception=None, limit=None,
-                 cache_dir=None, cache=None, progress: bool = True, workers: int = 1, device="cpu"):
+    A scene family's scenes are large (WIDE_SCENE_S, WIDE_SCENE_MB): before a build renders any, a line says how
+    many, how long and how big, and a build of the whole part (no `limit`) that would render more than
+    FEW_SCENES is refused in one line unless `render_all`."""
+
+    def __init__(self, setting, split, part, config: SearchConfig, fusion: Fusion | None, perception=None, limit=None,
+                 cache_dir=None, cache=None, progress: bool = True, workers: int = 1, device="cpu",
+                 render_all: bool = False):
         self.setting, self.split, self.part, self.config, self.fusion = setting, split, part, config, fusion
         self.device = torch.device(device)  # where the tables (and so the episodes) live; the cache stays on the CPU
         self.limit, self.cache_dir, self.progress, self.workers = limit, cache_dir, progress, workers
+        self.render_all = bool(render_all)
         self._perception, self._cache = perception, cache
         self._tables = None
         if cache is not None:
@@ -91,12 +126,90 @@ class SceneViews:
             self._perception, _ = load_perception(self._perception)
         return self._perception.eval().for_grid(self.config.grid.num_cells)
 
+    def use_fusion(self, spec: str, models_dir=None) -> Fusion:
+        """Build the fusion a spec names and fuse with it: agents.make_fusion's, plus "name:prior" and Table III's
+        "calibrated:GAMMA" (fitted on the family's first CALIBRATION_SCENES training scenes, _calibration)."""
+        gamma = calibrated_gamma(spec)
+        if gamma is not None:
+            coef, prior = self._calibration()
+            self.fusion = CalibratedFusion(coef, prior, gamma)
+        elif ":" in str(spec):
+            self.fusion = make_fusion(spec)
+        else:
+            self.fusion = make_fusion(spec, setting=self.setting, models_dir=models_dir, device=self.device)
+        return self.fusion
+
+    def _calibration(self) -> tuple[list[float], float]:
+        """Table III's calibration (Platt coefficients, prior) for this perception. The shipped wide-area
+        policies saved the very fit beside them (same scenes, same net: read, not refitted); another net is
+        fitted on the training scenes' view cache (built first if missing), and a cache in memory on itself."""
+        from ..data.view_cache import get_view_cache
+        from ..map_policy import BUDGETS
+        from ..checkpoints import wide_checkpoint
+        from ..perception import perception_tag
+        from ..policy import load_search_model
+
+        if self._cache is not None:
+            tag, train = self._cache.perception_tag, self._cache
+        else:
+            tag, train = perception_tag(self.perception), None
+        for budget in BUDGETS:
+            path = wide_checkpoint(budget)
+            if not path.is_file():
+                continue
+            fusion, _, extra = load_search_model(path, "cpu")
+            args = extra.get("args", {}) if isinstance(extra, dict) else {}
+            if (isinstance(fusion, CalibratedFusion) and extra.get("perception_tag") == tag
+                    and args.get("family") == self.setting and args.get("calibration_scenes") == CALIBRATION_SCENES):
+                return fusion.coef, fusion.prior
+        if train is None:
+            self._announce(self.pending(CALIBRATION_SCENES, "train"), CALIBRATION_SCENES, "train")
+            train = get_view_cache(self.perception, self.setting, self.split, "train", cache_dir=self.cache_dir,
+                                   progress=self.progress, config=self.config, workers=self.workers, features=False,
+                                   limit=CALIBRATION_SCENES)
+        fitted = make_fusion("calibrated", train)
+        return fitted.coef, fitted.prior
+
+    def pending(self, limit=..., part: str | None = None) -> int:
+        """How many scenes of the part (its first `limit`; default this one's) a cache build would render."""
+        from ...parallel import Store
+        from ..data.dataset import shard_key
+        from ..data.view_cache import CACHE_DIR, CacheKey, world_tag
+        from ..perception import perception_tag
+
+        if self._cache is not None:
+            return 0
+        limit = self.limit if limit is ... else limit
+        key = CacheKey(self.setting, self.split, part or self.part, self.config, limit)
+        store = Store(self.cache_dir if self.cache_dir is not None else CACHE_DIR)
+        world = world_tag(self.config, key.family)
+        if store.exists(f"search_views/{world}-{perception_tag(self.perception)}/{key.name}.npz"):
+            return 0
+        manifest = store.read_json(f"lattice_views/{world}/{key.part_name}/manifest.json") or {}
+        done = manifest.get("shards", {})
+        return sum(shard_key(s, k, key.family) not in done for s, k in key.scenes())
+
+    def _announce(self, todo: int, limit, part: str) -> None:
+        """The line before a build renders scenes of a scene family; a refusal where it would render the
+        whole part's many scenes unasked."""
+        if todo == 0 or settings.setting_params(self.setting).task.mission != "team":
+            return
+        what = (f"{todo} scenes of {self.setting} {self.split}/{part} (about {_duration(todo * WIDE_SCENE_S)} at "
+                f"{WIDE_SCENE_S:g} s a scene, measured on 2 cores; about {todo * WIDE_SCENE_MB / 1000:.1f} GB under "
+                f"cache/)")
+        if limit is None and todo > FEW_SCENES and not self.render_all:
+            raise UavsearchError(f"the first reset would render {what}: pass limit=N to use the first N scenes "
+                                 f"(e.g. limit=20), or render_all=True to render them all")
+        if self.progress:
+            print(f"uavsearch: rendering {what}", file=sys.stderr, flush=True)
+
     @property
     def tables(self):
         if self._tables is None:
             if self._cache is None:
                 from ..data.view_cache import get_view_cache
 
+                self._announce(self.pending(), self.limit, self.part)
                 self._cache = get_view_cache(self.perception, self.setting, self.split, self.part,
                                              cache_dir=self.cache_dir, progress=self.progress, config=self.config,
                                              workers=self.workers,
@@ -127,6 +240,10 @@ class SceneViews:
         return Path(self.cache_dir or CACHE_DIR) / "lattice_views" / world_tag(self.config, key.family) / key.part_name
 
 
+def _duration(seconds: float) -> str:
+    return f"{seconds / 60:.0f} min" if seconds >= 120 else f"{seconds:.0f} s"
+
+
 class LiveSource:
     """One episode on a scene outside the caches (a ViewSource): render at the viewpoint, run perception (B = 1)."""
 
@@ -149,6 +266,28 @@ class LiveSource:
 
     def observe(self, lattice_idx) -> Observation:
         return self.view(int(lattice_idx.reshape(-1)[0]))[1]
+
+
+def cells_frame(fused, labels, seen, n: int, size_px: int = 240) -> np.ndarray:
+    """(H, W, 3) uint8, north up: the fused map (viridis, p 0 to 1; the cells it calls occupied, p >= 0.5,
+    outlined white) beside the ground truth (occupied cells red, cells no view has measured yet grey), titled."""
+    import cv2
+
+    c = max(2, size_px // n)
+    up = lambda a: np.kron(np.asarray(a).reshape(n, n), np.ones((c, c))).astype(np.uint8)  # noqa: E731
+    p = np.clip(np.asarray(fused, dtype=np.float64).reshape(n, n), 0.0, 1.0)
+    left = cv2.cvtColor(cv2.applyColorMap(up(np.round(p * 255)), cv2.COLORMAP_VIRIDIS), cv2.COLOR_BGR2RGB)
+    for r, col in zip(*np.nonzero(p >= 0.5)):
+        cv2.rectangle(left, (int(col) * c, int(r) * c), ((int(col) + 1) * c - 1, (int(r) + 1) * c - 1), (255, 255, 255), 1)
+    right = np.full((n * c, n * c, 3), 30, np.uint8)
+    right[up(~np.asarray(seen, dtype=bool)) > 0] = (110, 110, 110)
+    right[up(np.asarray(labels, dtype=bool)) > 0] = (230, 40, 40)
+    gap = np.full((n * c, 6, 3), 255, np.uint8)
+    body = np.concatenate([left, gap, right], axis=1)
+    head = np.full((18, body.shape[1], 3), 255, np.uint8)
+    for x, text in ((2, "fused p (white: called occupied)"), (n * c + 8, "truth (red; grey: unseen)")):
+        cv2.putText(head, text, (x, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([head, body], axis=0)
 
 
 def cells_space(config: SearchConfig) -> spaces.Dict:
@@ -243,7 +382,8 @@ class ActiveSearchEnv(gym.Env):
     models/perception_wide.pt for the wide families where it exists),
     ``models_dir`` (where a trained fusion's checkpoint lives), ``cache_dir``, ``cache`` (a ViewCache in
     memory instead), ``r_tp`` / ``r_fp`` / ``r_revisit``, ``render_mode`` (``"rgb_array"``: the last view's
-    image; image mode), ``cache_scenes`` (live scenes whose renders are kept), ``progress``, ``workers`` (render
+    image in image mode; in cells mode the fused map beside the ground truth, cells_frame), ``render_all`` (a
+    scene family: render a whole part unasked, SceneViews), ``cache_scenes`` (live scenes whose renders are kept), ``progress``, ``workers`` (render
     processes when a cache is built; 1 renders in this process), ``device`` (where the episode's tensors live:
     ``"cpu"`` (default), ``"cuda"``, ``"cuda:N"`` or ``"auto"``, devices.resolve_device; observations are numpy
     whatever it is, and on the CPU the same numbers as ever).
@@ -279,6 +419,7 @@ class ActiveSearchEnv(gym.Env):
         progress: bool = True,
         workers: int = 1,
         device: str = "cpu",
+        render_all: bool = False,
     ):
         setting = settings.setting_key(setting)  # 2 for "2"; a bad setting is a one-line error now
         if obs not in OBS_MODES:
@@ -297,10 +438,9 @@ class ActiveSearchEnv(gym.Env):
         self.r_revisit = float(r_revisit)
         self.render_mode = render_mode
         self.device = resolve_device(device)
-        self.fusion = make_fusion(fusion or default_fusion(setting), setting=setting, models_dir=models_dir,
-                                  device=self.device)
-        self.scenes = SceneViews(setting, self.split, part, self.config, self.fusion, perception, limit, cache_dir,
-                                 cache, progress, workers, self.device)
+        self.scenes = SceneViews(setting, self.split, part, self.config, None, perception, limit, cache_dir,
+                                 cache, progress, workers, self.device, render_all=render_all)
+        self.fusion = self.scenes.use_fusion(fusion or default_fusion(setting), models_dir)
         self._batch = SearchBatch(self.config, self.fusion, 1, reward, r_tp, r_fp, r_revisit, device=self.device)
         self._vehicles: OrderedDict[str, TeleportVehicle] = OrderedDict()  # live scenes' renderers
         self._cache_scenes = cache_scenes
@@ -463,9 +603,13 @@ class ActiveSearchEnv(gym.Env):
         return self._obs(), float(reward[0]), bool(terminated[0]), False, self._info()
 
     def render(self):
-        if self.render_mode == "rgb_array" and self._scene_seed is not None and self.obs_mode == "image":
+        if self.render_mode != "rgb_array" or self._scene_seed is None:
+            return None
+        if self.obs_mode == "image":
             return self._obs()["image"]
-        return None
+        seen = self._batch.observation()["cell_views"][0] > 0
+        host = lambda x: torch.as_tensor(x).cpu().numpy()  # noqa: E731 - the engine's arrays, tensors or numpy
+        return cells_frame(host(self._batch.fused[0]), host(self._batch.labels[0]), seen, self.config.grid.n)
 
     def close(self):
         for v in self._vehicles.values():
@@ -474,36 +618,107 @@ class ActiveSearchEnv(gym.Env):
         self._images.clear()
 
 
-class WideSearchEnv(ActiveSearchEnv):
-    """The wide-area search without dynamics, registered as ``uavsearch/WideSearch-v0``.
+class LoopPolicyPlayer:
+    """A search-loop policy (wide_policies' rule and fixed routes, a map policy: anything with ``act(PolicyInput)``)
+    playing a single env in cells mode, from nothing but what the env shows: the observations and infos since
+    reset rebuild the policy's PolicyInput. What lets a learner compare itself with the rule on the very env it
+    learns on (tools/env_table3.py, tests/test_env_table3.py)."""
 
-    **Task** (config.wide_config, scene family ``"wide"`` of scenes/settings.yaml): a 150 m x 150 m area of
-    30 x 30 cells of 5 m, 10 occupied cells in groups; 73 viewpoints: 6 x 6 25 m apart at 70 m and at 40 m,
-    plus the start above the centre at 70 m. Any viewpoint may be next. Budgets: T = 8 views (the start view
-    counts) and 240 s of simulated flight (lattice.flight_time_s between viewpoints; the start view is free).
+    def __init__(self, policy, config: SearchConfig):
+        self.policy, self.config = policy, config
+        self._valid: list[np.ndarray] = []
+        self._probs: list[np.ndarray] = []
+
+    def act(self, obs: dict, info: dict) -> int:
+        """The next action; call with every observation from reset on (a step 0 observation starts afresh)."""
+        if int(np.argmax(obs["step"])) == 0 and len(info["visited"]) == 1:
+            self._valid, self._probs = [], []
+        self._valid.append(np.asarray(obs["in_view"]).reshape(-1) > 0)
+        self._probs.append(np.asarray(obs["p_view"], np.float32).reshape(-1))
+        visited = torch.as_tensor(np.asarray(obs["visits"]) > 0)[None]
+        timed = self.config.budget_s is not None
+        valid = torch.as_tensor(np.stack(self._valid))[None]
+        inp = PolicyInput(
+            global_feature=None, cells_in_view=valid[:, -1].float(),
+            fused=torch.as_tensor(np.asarray(obs["fused"], np.float32).reshape(1, -1)),
+            lattice_idx=torch.as_tensor([int(info["lattice_index"])]), visited=visited,
+            step=len(info["visited"]) - 1, budget_T=self.config.budget_T,
+            view_positions=torch.as_tensor([list(info["visited"])]), view_probs=torch.as_tensor(np.stack(self._probs))[None],
+            view_valid=valid,
+            time_left_s=torch.as_tensor(np.asarray(obs["time_left_s"], np.float32).reshape(1)) if timed else None,
+            allowed=torch.as_tensor(np.asarray(info["action_mask"]) > 0)[None] if timed else None)
+        with torch.no_grad():
+            action = self.policy.act(inp)[0]
+        return int(action.reshape(-1)[0])
+
+
+def wide_task(setting="wide", budget: str | int | None = "8", config: SearchConfig | None = None,
+              cache=None) -> tuple[SearchConfig, str]:
+    """(config, default fusion spec) of a scene family's one-budget task, as Table III searches it: budget "8"
+    (T = 8 views, no time limit) or "240" (the family's 240 s of flight, as many views as fit), each with Table
+    III's fusion for it (TABLE3); None: the config's own budgets (the family's declares both at once) and the
+    family's declared fusion. `config` (else the cache's, else the family's) gives the lattice."""
+    from ..config import wide_budgets
+    from ..map_policy import BUDGETS
+
+    base = config or getattr(cache, "config", None) or setting_config(setting)
+    if budget is None:
+        return base, default_fusion(setting)
+    key = str(budget).removesuffix("s")
+    if key not in TABLE3:
+        raise UavsearchError(f"budget must be 8 (views), 240 (seconds of flight) or None (the config's own), "
+                             f"not {budget!r}")
+    return dict(zip(BUDGETS, wide_budgets(base).values()))[key], TABLE3[key].fusion
+
+
+class WideSearchEnv(ActiveSearchEnv):
+    """The wide-area search without dynamics, registered as ``uavsearch/WideSearch-v0``: by default Table III's
+    task for one budget, its fusion and its scene split (results/search_wide/table3.md).
+
+    **Task** (scene family ``"wide"`` of scenes/settings.yaml): a 150 m x 150 m area of 30 x 30 cells of 5 m, 10
+    occupied cells in groups; 73 viewpoints: 6 x 6 25 m apart at 70 m and at 40 m, plus the start above the
+    centre at 70 m. Any viewpoint may be next. ``budget="8"`` (default): T = 8 views (the start view counts), no
+    time limit; ``budget="240"``: 240 s of simulated flight (lattice.flight_time_s between viewpoints; the start
+    view is free) and as many views as fit; ``budget=None``: both at once (the family's declared task).
 
     **Action space.** ``Discrete(73)``: the index of the next viewpoint (lattice.py order: the 70 m layer
-    row-major from the NW corner, then the 40 m layer, then the start). ``action_mask`` (in the observation and
-    in ``info``) marks the unvisited viewpoints affordable in the time left; a visited one may be chosen again
-    (a revisit, R_re), an unaffordable one ends the episode where it is (the search loop's rule).
+    row-major from the NW corner, then the 40 m layer, then the start). With a time budget ``action_mask`` (in
+    the observation and in ``info``) marks the unvisited viewpoints affordable in the time left; a visited one
+    may be chosen again (a revisit, R_re), an unaffordable one ends the episode where it is (the search loop's
+    rule).
 
-    **Observation** ``obs="cells"`` (default; ``(30, 30)`` maps, with ``action_mask`` and ``time_left_s``) or
-    ``"image"``, as ActiveSearchEnv's. **Fusion** default Bayes (Table III's). **Reward** as ActiveSearchEnv's:
-    terminal (default) or shaped; the last step is the one after which no view is left or affordable.
+    **Observation** ``obs="cells"`` (default; ``(30, 30)`` maps, with a time budget ``action_mask`` and
+    ``time_left_s``) or ``"image"``, as ActiveSearchEnv's. **Fusion** default Table III's for the budget
+    (TABLE3): ``calibrated:0.25`` at T = 8, ``calibrated:0.75`` at 240 s, the calibrated fusion fitted on the
+    family's first 20 training scenes (read from the shipped wide-area policies, which saved that very fit, when
+    the perception is theirs; else fitted on those scenes); any name of ActiveSearchEnv's, ``name:prior``
+    (``bayes:0.3``) or ``calibrated:GAMMA`` otherwise. **Reward** as ActiveSearchEnv's: terminal (default) or
+    shaped; the last step is the one after which no view is left or affordable.
 
-    **Episode end.** ``terminated`` after the 8th view, when no unvisited viewpoint is affordable in the time
-    left, or on an unaffordable choice; never truncated.
+    **Scenes** (Table III's split, ``large``): ``part="train"`` (default; 500 scenes) to learn on, ``"val"`` (50,
+    where Table III chose its fusion, rule and best fixed route) or ``"test"`` (100, Table III's rows).
+    ``limit=N`` keeps the part's first N scenes. A scene's views cost about 21 s to render and 19 MB under
+    cache/ (WIDE_SCENE_S, WIDE_SCENE_MB): the first reset says how many scenes it renders, how long and how
+    big, and without ``limit`` refuses in one line to render more than a few unless ``render_all=True``.
 
-    **Views.** The family's caches are large (73 views x 900 cells a scene): ``limit`` keeps the split's
-    first scenes (the ``large`` split: 500 train / 50 val / 100 test). Other arguments as ActiveSearchEnv's.
+    **Render.** ``render_mode="rgb_array"``: in cells mode the fused map (p, the cells it calls occupied
+    outlined) beside the ground truth (the occupied cells; grey: cells no view has measured yet), uint8 RGB.
+
+    **Episode end.** ``terminated`` after the last view of the budget, when no unvisited viewpoint is
+    affordable in the time left, or on an unaffordable choice; never truncated. Other arguments as
+    ActiveSearchEnv's.
     """
 
     def __init__(self, config: SearchConfig | None = None, setting: int | str = "wide", split: str | None = None,
-                 part: str = "train", obs: str = "cells", limit: int | None = None, **kwargs):
+                 part: str = "train", obs: str = "cells", limit: int | None = None, budget: str | int | None = "8",
+                 fusion: str | None = None, **kwargs):
         if settings.setting_params(setting).task.mission != "team":
             raise UavsearchError(f"WideSearchEnv searches a scene family, not setting {setting!r}")
-        super().__init__(config=config, setting=setting, split=split, part=part, obs=obs, limit=limit, **kwargs)
+        config, table_fusion = wide_task(setting, budget, config, kwargs.get("cache"))
+        super().__init__(config=config, setting=setting, split=split, part=part, obs=obs, limit=limit,
+                         fusion=fusion or table_fusion, **kwargs)
+        self.budget = None if budget is None else str(budget).removesuffix("s")
 
 
-__all__ = ["ActiveSearchEnv", "OBS_MODES", "SceneViews", "VIEW_MODES", "WideSearchEnv", "cells_space",
-           "default_fusion"]
+__all__ = ["ActiveSearchEnv", "CALIBRATION_SCENES", "LoopPolicyPlayer", "OBS_MODES", "SceneViews", "TABLE3", "Table3Task",
+           "VIEW_MODES", "WideSearchEnv", "cells_frame", "cells_space", "default_fusion", "wide_task"]

@@ -20,7 +20,6 @@ from ...errors import UavsearchError
 from ...world import settings
 from ..cells import SearchBatch, TableSource
 from ..config import SearchConfig, setting_config
-from ..agents import make_fusion
 from .search_env import SceneViews, cells_space, default_fusion
 from ..search_loop import R_FP, R_RE, R_TP
 
@@ -54,7 +53,7 @@ class SearchVectorEnv(VectorEnv):
                  fusion: str | None = None, limit: int | None = None, perception=None, models_dir=None,
                  cache_dir=None, cache=None, r_tp: float = R_TP, r_fp: float = R_FP, r_revisit: float = R_RE,
                  progress: bool = True, views: str = "cache", render_mode: str | None = None, workers: int = 1,
-                 device: str = "cpu"):
+                 device: str = "cpu", render_all: bool = False):
         if obs != "cells" or views != "cache":
             raise UavsearchError("the native vector env steps cached 'cells' observations only; for images use "
                                  "gym.make_vec(..., vectorization_mode='sync') of the single env")
@@ -65,10 +64,9 @@ class SearchVectorEnv(VectorEnv):
         self.config = config or getattr(cache, "config", None) or setting_config(setting)
         self.setting, self.split, self.part = setting, split or settings.setting_params(setting).split, part
         self.device = resolve_device(device)
-        self.fusion = make_fusion(fusion or default_fusion(setting), setting=setting, models_dir=models_dir,
-                                  device=self.device)
-        self.scenes = SceneViews(setting, self.split, part, self.config, self.fusion, perception, limit, cache_dir,
-                                 cache, progress, workers, self.device)
+        self.scenes = SceneViews(setting, self.split, part, self.config, None, perception, limit, cache_dir,
+                                 cache, progress, workers, self.device, render_all=render_all)
+        self.fusion = self.scenes.use_fusion(fusion or default_fusion(setting), models_dir)
         self.render_mode = render_mode
         self.single_observation_space = cells_space(self.config)
         self.single_action_space = gym.spaces.Discrete(self.config.num_actions)
