@@ -33,15 +33,15 @@ from uavsearch.testing.mavlink_client import NAN, Client
 M = mavutil.mavlink
 
 
-def _hover_rtf(seconds: float, links: bool) -> tuple[float, float, int]:
-    """(wall RTF, CPU RTF, packets sent) of the in-process vehicle hovering at 20 m."""
+def _hover_rtf(seconds: float, links: bool, ulog: bool = True) -> tuple[float, float, int]:
+    """(wall RTF, CPU RTF, packets sent) of the in-process vehicle hovering at 20 m (writing its flight.ulg, or not)."""
     sinks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
     for s in sinks:
         s.bind(("127.0.0.1", 0))
     with tempfile.TemporaryDirectory() as tmp:
         ports = [s.getsockname()[1] for s in sinks] if links else [0, 0]
         cfg = SitlConfig(scene_seed=None, speed=float("inf"), api_port=ports[0], gcs_port=ports[1], api_local_port=0,
-                         gcs_local_port=0, run_dir=Path(tmp), params={"MIS_TAKEOFF_ALT": 20.0})
+                         gcs_local_port=0, run_dir=Path(tmp), params={"MIS_TAKEOFF_ALT": 20.0}, ulog=ulog)
         sitl = Sitl(cfg)
         sitl.run(1.0)
         sitl.commander.handle_command(VehicleCommand(400, 1.0))
@@ -59,10 +59,13 @@ def _hover_rtf(seconds: float, links: bool) -> tuple[float, float, int]:
 
 def _rtf_in_process(seconds: float) -> list[tuple[str, float, str]]:
     w0, c0, _ = _hover_rtf(seconds, links=False)
+    w1, c1, _ = _hover_rtf(seconds, links=False, ulog=False)
     w2, c2, tx = _hover_rtf(seconds, links=True)
     return [
         ("vehicle + autopilot, no MAVLink links, hover: real-time factor (wall)", w0, "x"),
         ("vehicle + autopilot, no MAVLink links, hover: real-time factor (CPU)", c0, "x"),
+        ("vehicle + autopilot, no links, no flight.ulg (--no-ulog), hover: real-time factor (CPU)", c1, "x"),
+        ("flight.ulg: cost per simulated second (CPU)", (1.0 / c0 - 1.0 / c1) * 1e3, "ms"),
         ("whole vehicle + MAVLink (2 links), hover: real-time factor (wall)", w2, "x"),
         ("whole vehicle + MAVLink (2 links), hover: real-time factor (CPU)", c2, "x"),
         ("whole vehicle + MAVLink: messages sent per simulated second", tx / (seconds + 16.0), "msg"),

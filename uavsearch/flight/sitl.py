@@ -36,6 +36,7 @@ from ..paths import RUNS_DIR
 from .camera import CAPTURE_MIN_FREE_MB, Camera, background_scene_renderer
 from .commander import Commander, autopilot_params
 from .lockstep import LockstepGate
+from .logger import ULOG_NAME, FlightLogger
 from .mavlink.endpoint import MavlinkEndpoint
 from .mavlink.links import LinkConfig
 from .mavlink.signing import parse_signing_key
@@ -70,6 +71,7 @@ class SitlConfig:
     vehicles: int = 1  # simulated in this process on one clock
     instance: int = 0  # the first vehicle's instance number I (sysid, ports, seed and home follow it)
     one_api_port: bool = False  # every vehicle's API link sends to api_port itself (one client for the team)
+    ulog: bool = True  # each vehicle writes its flight.ulg (PX4's ULog) into its run directory
 
 
 HOME_SPACING_M = 10.0  # instance I's home lies this far east of instance 0's (PX4's multi-vehicle SITL spaces them)
@@ -175,6 +177,14 @@ class SimVehicle:
         self._io_period_us = int(1e6 / cfg.io_hz)
         self._stream_period_us = int(1e6 / cfg.stream_hz)
         self._next_ap_us = self._next_io_us = self._next_stream_us = int(self.vehicle.time_us)
+        self.logger = None
+        if cfg.ulog:
+            try:
+                self.logger = FlightLogger(self, run_dir / ULOG_NAME)
+            except OSError as e:
+                self.close()
+                raise UavsearchError(f"cannot write {run_dir / ULOG_NAME} ({e.strerror or e})") from None
+            self.endpoint.text_listeners.append(self.logger.on_text)
 
     @property
     def sysid(self) -> int:
@@ -199,6 +209,8 @@ class SimVehicle:
         if now >= self._next_ap_us:
             self._next_ap_us = _next_tick(self._next_ap_us, self._ap_period_us, now)
             self.commander.update(wall_s)
+        if self.logger is not None:
+            self.logger.update()
         if now < self._next_io_us:
             return False
         self._next_io_us = _next_tick(self._next_io_us, self._io_period_us, now)
@@ -211,6 +223,8 @@ class SimVehicle:
     def close(self) -> None:
         self.camera.close()  # the images in flight are written before the renderer goes
         self.endpoint.close()
+        if self.logger is not None:
+            self.logger.close()
 
 
 def separation_check(team: list[SimVehicle], me: SimVehicle):
@@ -338,6 +352,8 @@ class Sitl:
             self._wall = time.monotonic()
             for m in self.team:
                 m.endpoint.hold(self._wall)
+                if m.logger is not None:
+                    m.logger.flush()  # a vehicle killed while it waits leaves its log up to now
             if self._wait_readable(0.005 if any(m.camera.busy for m in self.team) else 0.2):  # an image may come
                 self._poll()
         self._pace_wall0 = None  # pacing starts afresh: no burst to catch up the time stood still
@@ -406,6 +422,8 @@ class Sitl:
         lines.append(f"  camera    {cam.width_px}x{cam.height_px} px, {cam.hfov_deg:g} deg horizontal FOV, nadir "
                      "(compid 100)")
         lines.append(f"  run dir   {self.run_dir}")
+        if c.ulog:
+            lines.append(f"  ULog      {ULOG_NAME} per vehicle, in its run dir (PX4 Flight Review, PlotJuggler, pyulog)")
         lines.append("ready; Ctrl-C to stop")
         return "\n".join(lines)
 
@@ -513,6 +531,7 @@ def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--param", type=_parse_param, action="append", default=[], metavar="NAME=VALUE",
                    help="set a parameter at start (repeatable)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of simulation time")
+    p.add_argument("--no-ulog", action="store_true", help=f"do not write {ULOG_NAME} (PX4's ULog flight log)")
 
 
 def config_from_args(args) -> SitlConfig:
@@ -552,6 +571,7 @@ def config_from_args(args) -> SitlConfig:
         vehicles=args.vehicles,
         instance=args.instance,
         one_api_port=args.one_api_port,
+        ulog=not args.no_ulog,
     )
 
 

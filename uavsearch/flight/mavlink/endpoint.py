@@ -53,6 +53,7 @@ class MavlinkEndpoint:
         self.acks_sent = 0  # COMMAND_ACKs sent (commands.py checks each command got exactly one)
         self._hold_hb_wall = -math.inf
         self._text_id = 0  # the id of the last chunked STATUSTEXT
+        self.text_listeners: list = []  # callables(severity, text) that hear every status text sent (the flight log)
         self._fds = [link.sock.fileno() for link in self.links]
         self.telemetry = Telemetry(commander, lambda: self.rx_dropped)
         self.camera_protocol = CameraProtocol(self, camera) if camera is not None else None
@@ -134,6 +135,8 @@ class MavlinkEndpoint:
     def statustext(self, severity: int, text: str, compid: int = AUTOPILOT_COMPID) -> None:
         """STATUSTEXT to every destination; a text longer than one message (50 characters) goes in chunks
         sharing an id, as MAVLink 2 defines (a short or empty chunk ends it)."""
+        for listener in self.text_listeners:
+            listener(severity, text)
         data = text.encode("utf-8", "replace")
         if len(data) <= 50:
             return self.broadcast(M.MAVLink_statustext_message(severity, data, 0, 0), compid)
