@@ -166,7 +166,7 @@ def train(args: Args) -> dict:
         writer.writerow([step, np.mean(episodic) if episodic else "", np.mean(finals) if finals else "", round(sps),
                          float(pg.detach()), float(v_loss.detach()), float(ent.detach()), approx_kl])
         if update % 10 == 0 or update == updates - 1:
-            print(f"step {step:>8}  return {np.mean(episodic) if episodic else float('nan'):6.2f}  final F1 "
+            print(f"step {step:>8}  return {np.mean(episodic) if episodic else float('nan'):6.2f}  final F1 on training scenes "
                   f"{np.mean(finals) if finals else float('nan'):.3f}  {sps:,.0f} steps/s", flush=True)
     log.close()
     envs.close()
@@ -179,6 +179,10 @@ def train(args: Args) -> dict:
         "trainer": "examples/cleanrl_ppo.py", "args": asdict(args), "steps": step,
         "wall_s": time.perf_counter() - t0})
     print(f"wrote {ckpt} ({step} steps, {time.perf_counter() - t0:.0f} s)")
+    print("what it is compared with: the final F1 above is on the training scenes; `uavsearch eval search --setting "
+          f"{args.setting}` (the checkpoint in models/, --ship) scores it on the test scenes as Table II's 'PPO "
+          "(external)' row, paired against the coverage route (docs/learning.md: setting 2's coverage route 0.716 "
+          "test AF1)")
     if args.ship:
         shutil.copyfile(ckpt, MODELS_DIR / name)
         print(f"copied to {MODELS_DIR / name}")
