@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from . import __version__
-from .errors import UavsearchError, run_command
+from .errors import UavsearchError, run_command, sigterm_as_interrupt
 from .flight.sitl import add_sitl_parser
 
 
@@ -106,8 +106,9 @@ def _cmd_fly(args) -> int:
     if team:  # the mission's validation says what its method can fly
         mission = mission.with_team(**team)
     try:
-        r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
-                progress=lambda line: print(line, flush=True))
+        with sigterm_as_interrupt():  # SIGTERM lands like Ctrl-C and writes the summary; a second ends at once
+            r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
+                    progress=lambda line: print(line, flush=True))
     except OSError as e:
         full = disk_full(Path(e.filename).parent if e.filename else Path(args.out or "."), e)
         if full is None:

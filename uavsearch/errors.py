@@ -1,6 +1,9 @@
 """User-facing errors: the CLI prints these as one line, never a traceback."""
 
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 
 
 class UavsearchError(Exception):
@@ -48,3 +51,35 @@ def run_command(func, args, prog: str = "uavsearch") -> int:
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the main thread is, so a command that ends cleanly on Ctrl-C ends so on it too."""
+
+    def __str__(self) -> str:
+        return "SIGTERM"
+
+
+@contextmanager
+def sigterm_as_interrupt():
+    """Within: SIGTERM raises Terminated (a KeyboardInterrupt) in the main thread, so `fly` lands and writes its
+    summary as on Ctrl-C; a second raises it again (a second Ctrl-C abandons the landing and ends at once), and a
+    third is the default (the process dies). The handler before comes back on leaving. Commands set it, never
+    an import, and only the main thread can: elsewhere nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received = 0
+
+    def on_sigterm(signum, frame):
+        nonlocal received
+        received += 1
+        if received >= 2:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        raise Terminated()
+
+    before = signal.signal(signal.SIGTERM, on_sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if before is None else before)  # None: set outside Python

@@ -265,10 +265,10 @@ def fly_search(vehicles: list[MavlinkVehicle], method, recorder: FlightRecorder,
         if full is None:
             raise
         status = f"failed: {full}"
-    except KeyboardInterrupt:
-        status = "interrupted"
-        _log_failure(log, step=len(recorder.records), error="interrupted (Ctrl-C)", sim_time_s=lead.sim_time_s)
-        progress("interrupted (Ctrl-C): ending the mission")
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM (errors.Terminated, when the command turns it into one)
+        status, why = "interrupted", f"interrupted ({e or 'Ctrl-C'})"
+        _log_failure(log, step=len(recorder.records), error=why, sim_time_s=lead.sim_time_s)
+        progress(f"{why}: ending the mission")
     return status
 
 
@@ -460,9 +460,9 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
             check = None if connect is None else lambda: [
                 progress(check_vehicle_scene(v, spec, config, mission.spec_path is not None)) for v in vehicles]
             status = fly_search(vehicles, method, recorder, progress, phases=phases, wall0=wall0, before_takeoff=check)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as e:
             status = "interrupted"
-            _log_failure(log, step=None, error="interrupted (Ctrl-C)", sim_time_s=vehicles[0].sim_time_s)
+            _log_failure(log, step=None, error=f"interrupted ({e or 'Ctrl-C'})", sim_time_s=vehicles[0].sim_time_s)
         except FlightError as e:
             status = f"failed: {e}"
             _log_failure(log, step=None, error=str(e), sim_time_s=vehicles[0].sim_time_s)
@@ -481,10 +481,10 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         except FlightError as e:
             end = f"end action failed: {e or type(e).__name__}"
             progress(end)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as e:
             left = ("the vehicle is left as it is" if n == 1 else "the vehicles are left as they are") if connect \
                 else "the vehicle process is stopped in the air"
-            end = f"end action abandoned: Ctrl-C again during the {mission.flight.end_action}; {left}"
+            end = f"end action abandoned: {e or 'Ctrl-C'} again during the {mission.flight.end_action}; {left}"
             progress(end)
         phases["landed_s"] = time.monotonic() - wall0
     finally:

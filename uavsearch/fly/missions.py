@@ -379,6 +379,8 @@ class Mission(_Strict):
     @property
     def perception_path(self) -> Path:
         if self.perception:
+            if self.perception.startswith("detector:"):  # a detector of your own (search/detector.py), by name
+                return Path(self.perception)
             return self._resolve(self.perception)
         from ..search.checkpoints import shipped
 

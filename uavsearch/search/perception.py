@@ -50,6 +50,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import hashlib
+import importlib
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -488,7 +489,14 @@ def register_perception(kind: str):
     return deco
 
 
+# Kinds whose module registers them when imported, found by name as gymnasium finds an entry point: the module
+# imports this one, so this one never imports it.
+KIND_MODULES = {"detector": "uavsearch.search.detector"}
+
+
 def perception_kind(kind: str) -> type:
+    if kind not in PERCEPTIONS and kind in KIND_MODULES:
+        importlib.import_module(KIND_MODULES[kind])
     if kind not in PERCEPTIONS:
         raise UavsearchError(f"unknown perception kind {kind!r} (known: {', '.join(sorted(PERCEPTIONS))})")
     return PERCEPTIONS[kind]
@@ -763,7 +771,10 @@ def save_perception(net: Perception, path, extra: dict | None = None) -> Path:
 def load_perception(path, map_location: str = "cpu") -> tuple[Perception, dict]:
     """Rebuild the net from a checkpoint through the registry (eval mode); returns (net, extra metadata). A
     checkpoint without a kind (every one written before kinds existed, the shipped ones) is the CNN. The net is
-    put on `map_location` (a device: "cpu", "cuda", a torch.device)."""
+    put on `map_location` (a device: "cpu", "cuda", a torch.device). `detector:NAME` wraps a detector of your
+    own instead (search/detector.py)."""
+    if str(path).startswith("detector:"):
+        return perception_kind("detector").from_spec(str(path)).eval().to(map_location), {}
     path = Path(path)
     if not path.is_file():
         raise UavsearchError(f"perception checkpoint {path} not found (train one: uavsearch train perception)")

@@ -386,7 +386,7 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
             lines += table_lines(fam, name, cond, r)
             print(f"uavsearch: {fam}, {name}: done ({time.perf_counter() - t0:.0f} s)", flush=True)
     net_path = perception_of(args, families[0])
-    altitudes = ("trained across altitudes" if load_perception(net_path)[0].cfg.altitude_feature
+    altitudes = ("trained across altitudes" if load_perception(net_path)[0].reads_altitude
                  else "trained at 70 m only")
     meta = {"altitudes": altitudes, "fusion": "chosen on validation per family and budget" if auto
             else args.wide_fusion, "perception": display_path(perception_of(args, families[0])), "tag": tag,
