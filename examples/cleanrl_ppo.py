@@ -179,10 +179,14 @@ def train(args: Args) -> dict:
         "trainer": "examples/cleanrl_ppo.py", "args": asdict(args), "steps": step,
         "wall_s": time.perf_counter() - t0})
     print(f"wrote {ckpt} ({step} steps, {time.perf_counter() - t0:.0f} s)")
-    print("what it is compared with: the final F1 above is on the training scenes; `uavsearch eval search --setting "
-          f"{args.setting}` (the checkpoint in models/, --ship) scores it on the test scenes as Table II's 'PPO "
-          "(external)' row, paired against the coverage route (docs/learning.md: setting 2's coverage route 0.716 "
-          "test AF1)")
+    if str(setting).isdigit():
+        print("what it is compared with: the final F1 above is on the training scenes; `uavsearch eval search "
+              f"--setting {setting}` (the checkpoint in models/, --ship) scores it on the test scenes as Table II's "
+              "'PPO (external)' row, paired against the coverage route (docs/learning.md: setting 2's coverage route "
+              "0.716 test AF1)")
+    else:
+        print("what it is compared with: the final F1 above is on the training scenes; examples/wide_ppo.py scores "
+              "such an actor on validation scenes against Table III's rule and best fixed route")
     if args.ship:
         shutil.copyfile(ckpt, MODELS_DIR / name)
         print(f"copied to {MODELS_DIR / name}")

@@ -112,3 +112,17 @@ def test_the_rule_through_the_env_equals_table3s_code_on_validation_scenes():
         ep = run_search(CachedViews(cache, np.arange(cache.num_scenes), env.config), Agent(env.fusion, rule))
     assert [ep.lattice_idx[i].tolist() for i in range(len(routes))] == routes
     np.testing.assert_array_equal(np.float32(f1), np.float32(score_episode(ep).f1[:, -1]))
+
+
+@pytest.mark.slow
+def test_the_wide_ppo_example_reports_against_the_rule_and_the_best_fixed_route(tmp_path, capsys):
+    import sys
+
+    sys.path.insert(0, str(REPO_ROOT / "examples"))
+    import wide_ppo
+
+    out = wide_ppo.main(["--train-scenes", "2", "--val-scenes", "2", "--total-timesteps", "1024",
+                         "--runs-dir", str(tmp_path)])
+    assert set(out["af1"]) == {"PPO (this run)", "the rule", "best fixed route"}
+    assert set(out["delta"]) == {"the rule", "best fixed route"}
+    assert "compared on the first 2 validation scenes" in capsys.readouterr().out
