@@ -10,6 +10,8 @@ import time
 
 import pytest
 
+from uavsearch.flight.commander import PX4_MODES
+
 from uavsearch.fly.connection import MavlinkConnection
 from uavsearch.fly.vehicle import MavlinkVehicle
 from uavsearch.flight.sitl_process import SitlProcess
@@ -41,6 +43,9 @@ def test_each_system_sees_only_its_own_frames(link):
             s.subscribe(t, lambda m, s=s: strays.append((s.sysid, m.get_srcSystem())) if m.get_srcSystem() != s.sysid
                         else None)
     assert one.params.get("MAV_SYS_ID") == 1 and two.params.get("MAV_SYS_ID") == 2
+    assert type(two.params.get("MAV_SYS_ID")) is int and type(two.params.get("MPC_XY_CRUISE")) is float
+    assert str(one.telemetry.mode()) in ("HOLD", "LAND", "TAKEOFF", "POSCTL") and one.telemetry.mode() == (
+        PX4_MODES[str(one.telemetry.mode())])  # readable, and still the (main, sub) tuple
     assert two.params.set_float("MPC_XY_CRUISE", 7.0)  # a change on system 2 only
     assert two.params.get("MPC_XY_CRUISE") == pytest.approx(7.0)
     assert one.params.get("MPC_XY_CRUISE") == pytest.approx(5.0)

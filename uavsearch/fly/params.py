@@ -12,11 +12,13 @@ class Params:
         self.system, self.compid = system, compid
 
     @staticmethod
-    def _value(m) -> float:
-        """int32 parameters arrive bytewise in the float (PX4's encoding)."""
-        return decode_param(m.param_value, m.param_type, m.param_type == M.MAV_PARAM_TYPE_INT32)
+    def _value(m) -> float | int:
+        """int32 parameters arrive bytewise in the float (PX4's encoding): an int comes back, as the vehicle keeps it."""
+        is_int = m.param_type == M.MAV_PARAM_TYPE_INT32
+        value = decode_param(m.param_value, m.param_type, is_int)
+        return int(value) if is_int else value
 
-    def get(self, name: str) -> float | None:
+    def get(self, name: str) -> float | int | None:
         """The parameter's value, None if the vehicle has none of that name."""
         s = self.system
         m = s.request("PARAM_VALUE", lambda: s.mav.param_request_read_send(s.sysid, self.compid, name.encode(), -1),

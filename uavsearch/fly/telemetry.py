@@ -4,11 +4,29 @@ from __future__ import annotations
 
 import math
 import time
+from typing import NamedTuple
 
 import numpy as np
 
 from ..flight.mavlink import wire_units as wire
 from .dialect import AUTOPILOT_COMPID, M
+
+class FlightMode(NamedTuple):
+    """A PX4 custom mode (main, sub) as HEARTBEAT.custom_mode = sub << 24 | main << 16: equal to the plain tuple,
+    printed as PX4's name (HOLD, LAND, ...), which `name` gives."""
+
+    main: int
+    sub: int
+
+    @property
+    def name(self) -> str:
+        from ..flight.commander import PX4_MODES  # lazy: only when printed (fly's start imports no autopilot)
+
+        return next((n for n, ms in PX4_MODES.items() if ms == tuple(self)), f"custom mode {self.main}.{self.sub}")
+
+    def __str__(self) -> str:
+        return self.name
+
 
 # PX4 custom modes (main, sub) as HEARTBEAT.custom_mode = sub << 24 | main << 16.
 MODE_HOLD = (4, 3)
@@ -87,9 +105,9 @@ class Telemetry:
         g = self.global_position
         return None if g is None else wire.seconds(g.time_boot_ms)
 
-    def mode(self) -> tuple[int, int] | None:
+    def mode(self) -> FlightMode | None:
         hb = self.heartbeat
-        return (hb["main"], hb["sub"]) if hb else None
+        return FlightMode(hb["main"], hb["sub"]) if hb else None
 
     @property
     def armed(self) -> bool:

@@ -200,7 +200,8 @@ class MavlinkVehicle:
     def velocity_enu(self) -> np.ndarray | None:
         return None if self.system is None else self.system.telemetry.velocity_enu_m_s()
 
-    def mode(self) -> tuple[int, int] | None:
+    def mode(self):
+        """The autopilot's FlightMode (a (main, sub) tuple printed as PX4's name), None before its heartbeat."""
         return None if self.system is None else self.system.telemetry.mode()
 
     @property
