@@ -106,7 +106,7 @@ def test_the_envs_state_follows_run_search():
             torch.testing.assert_close(env.fused[taken[:, t]], ep.maps[taken[:, t], t], atol=1e-6, rtol=0)
         assert env.done.all()
         if ep.flight_s is not None:
-            assert torch.equal(env.state.clock_s[:, 0].float(), ep.flight_s)
+            assert torch.equal(torch.from_numpy(env.state.clock_s[:, 0]).float(), ep.flight_s)
 
 
 class _FeatureReader(GreedyUncertainty):

@@ -265,3 +265,20 @@ def test_calibrated_fusion_fits_an_overconfident_net_and_discounts_repeated_view
         CalibratedFusion(fit.coef, fit.prior, 2.0)
     with pytest.raises(UavsearchError, match="both occupied and empty"):
         CalibratedFusion.fit(FusionViews(p, valid, area, labels=torch.zeros(S, N, dtype=torch.bool)))
+
+
+def test_the_numpy_kernels_equal_the_torch_ones_to_float32():
+    """fuse_host (the envs' per-step fusion, numpy in the calling thread) gives fuse's maps after float32 rounding."""
+    from uavsearch.search.fusion import FUSIONS, CalibratedFusion, FusionViews, LearnedFusion
+
+    rng = np.random.default_rng(0)
+    B, T, N = 16, 6, 200
+    p, v = rng.random((B, T, N)), rng.random((B, T, N)) < 0.6
+    v[:, :, :5] = False  # cells no view measured get the prior
+    views = FusionViews(p, v, rng.random((B, T, N)) * 300, scores=rng.normal(size=(B, T, N)),
+                        labels=rng.random((B, N)) < 0.2)
+    methods = [FUSIONS[n]() for n in ("bayes", "average", "size", "oracle")] + [
+        LearnedFusion(None), CalibratedFusion(), CalibratedFusion([1.1, 0.2, -0.3, 0.05], 0.07, 0.5)]
+    for f in methods:
+        want = f.fuse(FusionViews(*(None if x is None else torch.as_tensor(x) for x in views))).numpy()
+        np.testing.assert_array_equal(f.fuse_host(views).astype(np.float32), want.astype(np.float32), err_msg=f.name)

@@ -4,14 +4,21 @@
 
 Rows: the single env with images rendered live and from the caches, with "cells" observations; the native vector
 env at 1 / 16 / 256 episodes; and `run_search` on `CachedViews` (256 episodes of random moves, no grad), the rate
-the project's own trainer rolls out at. Every env row steps uniformly random actions and resets ended episodes
+the project's own trainer rolls out at. With the wide family's caches (``--team-scenes N``, 0: skip): the single wide env
+and the PettingZoo team env (3 vehicles, 80 s), whose row counts vehicle-steps (one vehicle decides a step). Every env row steps uniformly random actions and resets ended episodes
 (the vector env autoresets). The load average is printed at the start and the end: run it on a quiet machine.
+
+A second table runs the 256-env vector env as a user does: at torch's default thread count on its own, beside one
+busy neighbour (a spinning process the bench starts and stops), and at one thread, with the load beside each row;
+the line under it checks busy >= 0.8x one thread, >= 20,000 steps/s and >= 1000x the live-rendering env.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -57,6 +64,23 @@ def bench_vector(env_id: str, num_envs: int, seconds: float, **kw) -> tuple[floa
     return n / dt, n, dt
 
 
+def bench_team(env, seconds: float) -> tuple[float, int, float]:
+    """Vehicle-steps/s of the team env: the deciding vehicle picks a viewpoint its mask allows, uniformly."""
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=0)
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        d = env.deciding_agent
+        acts = {a: env.KEEP_GOING for a in env.agents}
+        acts[d] = int(rng.choice(np.flatnonzero(obs[d]["action_mask"][:-1])))
+        obs, *_ = env.step(acts)
+        n += 1
+        if not env.agents:
+            obs, _ = env.reset()
+    dt = time.perf_counter() - t0
+    return n / dt, n, dt
+
+
 @torch.no_grad()
 def bench_limit(cache, fusion, batch: int, seconds: float) -> tuple[float, int, float]:
     agent = Agent(fusion.frozen(), RandomPolicy(cache.config.num_actions))
@@ -76,9 +100,12 @@ def main(argv=None) -> int:
     p.add_argument("--fusion", default=None, help="the envs' fusion (default: learned for the paper's settings)")
     p.add_argument("--seconds", type=float, default=5.0, help="seconds per row")
     p.add_argument("--live-steps", type=int, default=12, help="steps of the live-rendering row at most")
-    p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's own, as users run)")
+    p.add_argument("--team-scenes", type=int, default=5, help="wide training scenes of the team rows (0: skip them)")
     a = p.parse_args(argv)
-    torch.set_num_threads(a.threads)
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    threads = torch.get_num_threads()
     env_id, setting = "uavsearch/ActiveSearch-v0", int(a.setting)
     kw = {"setting": setting, "progress": False, **({"fusion": a.fusion} if a.fusion else {})}
     start_load = _load()
@@ -94,15 +121,51 @@ def main(argv=None) -> int:
     rows.append(("single env, cells", bench_single(cells, a.seconds)))
     for n in (1, 16, 256):
         rows.append((f"native vector env, cells, {n} envs", bench_vector(env_id, n, a.seconds, obs="cells", **kw)))
+    if a.team_scenes:
+        from uavsearch.search.envs.search_env import WideSearchEnv
+        from uavsearch.envs import team_parallel_env
+
+        wide = WideSearchEnv(limit=a.team_scenes, progress=False)
+        rows.append(("single wide env, cells (steps/s)", bench_single(wide, a.seconds)))
+        team = team_parallel_env(limit=a.team_scenes, progress=False)
+        rows.append(("team env (PettingZoo, 3 vehicles, 80 s), vehicle-steps/s", bench_team(team, a.seconds)))
     limit = rows[0][1][0]
-    print(f"\nsetting {setting}, {fusion.name} fusion, {a.threads} torch thread(s); load average (1/5/15 min) "
+    print(f"\nsetting {setting}, {fusion.name} fusion, {threads} torch thread(s); load average (1/5/15 min) "
           f"{start_load} at the start, {_load()} at the end, {os.cpu_count()} CPUs\n")
     print("| run | steps/s | share of the limit | steps | s |")
     print("|---|---|---|---|---|")
     for name, (rate, n, dt) in rows:
         print(f"| {name} | {rate:,.0f} | {rate / limit:.3f} | {n} | {dt:.1f} |" if rate >= 100 else
               f"| {name} | {rate:.2f} | {rate / limit:.5f} | {n} | {dt:.1f} |")
+    vec = bench_threads(env_id, a.seconds, threads, obs="cells", **kw)
+    print("\n| native vector env, cells, 256 envs | steps/s | load (1 min) |\n|---|---|---|")
+    for name, (rate, load) in vec.items():
+        print(f"| {name} | {rate:,.0f} | {load:.2f} |")
+    busy, one, live_rate = vec[f"{threads} torch threads, one busy neighbour"][0], vec["1 torch thread"][0], rows[1][1][0]
+    print(f"\nbusy neighbour / one thread {busy / one:.2f} (want >= 0.80); busy {busy:,.0f} steps/s (want >= 20,000); "
+          f"busy / live rendering {busy / live_rate:,.0f}x (want >= 1000x)")
     return 0
+
+
+def bench_threads(env_id: str, seconds: float, threads: int, **kw) -> dict[str, tuple[float, float]]:
+    """The 256-env vector env at `threads` on its own and beside one spinning process, then at one thread:
+    {row: (steps/s, 1-min load at its end)}."""
+    out = {}
+    for busy in (False, True):
+        spin = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
+        try:
+            rate = bench_vector(env_id, 256, seconds, **kw)[0]
+            out[f"{threads} torch threads, " + ("one busy neighbour" if busy else "on its own")] = (rate, os.getloadavg()[0])
+        finally:
+            if spin is not None:
+                spin.kill()
+                spin.wait()
+    torch.set_num_threads(1)  # the reference row; this script's own process
+    try:
+        out["1 torch thread"] = (bench_vector(env_id, 256, seconds, **kw)[0], os.getloadavg()[0])
+    finally:
+        torch.set_num_threads(threads)
+    return out
 
 
 if __name__ == "__main__":

@@ -18,7 +18,10 @@ The map is kept one of two ways. The loops step their episodes in lockstep and k
 state (`Fusion.update`; differentiable, stage 2 trains through it). The envs start and end episodes one by
 one (`buffered`): each view goes into fixed (B, T, N) float64 buffers and the fusion re-fuses an episode's
 views when it takes one, so the map rounds to the same float32 whatever the batch (a vector env equals its
-single envs bit for bit).
+single envs bit for bit). A buffered state lives on the host as numpy arrays, whatever the run's device, and
+fuses with `Fusion.fuse_host`: an env step is many small ops, which numpy runs in the calling thread, where
+torch would hand each to its intra-op thread pool, whose threads wait for a core whenever another process
+keeps one busy (an env beside a learner ran 10-100x slower at torch's default thread count).
 
 A team (`team=True`) keeps viewpoints apart: a vehicle's choices exclude every viewpoint taken or claimed by
 another vehicle's flight, and the views the pending flights will take count against `max_views`. One
@@ -29,6 +32,7 @@ from __future__ import annotations
 
 from typing import NamedTuple, Protocol
 
+import numpy as np
 import torch
 
 from .config import SearchConfig
@@ -106,6 +110,17 @@ def fusion_view(o: Observation, lattice_idx: torch.Tensor, labels: torch.Tensor 
 SLACK_S = 1e-9  # a flight that fits the time left to this many seconds is affordable
 
 
+def host(x) -> np.ndarray:
+    """A tensor (on any device) or array-like as a numpy array on the host (a CPU tensor's memory is shared)."""
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def host_observation(o: Observation) -> Observation:
+    """What a buffered state keeps of an observation, as numpy arrays: p, valid, pixel areas, scores."""
+    return Observation(None, None, None, host(o.cell_area_px), host(o.valid).astype(bool),
+                       None if o.scores is None else host(o.scores), host(o.prob()))
+
+
 class SearchState:
     """B episodes x `vehicles` vehicles of one search (module docstring).
 
@@ -127,6 +142,10 @@ class SearchState:
         self.start_idx = lat.start_index if start_idx is None else int(start_idx)
         B, V, P, N = self.B, self.V, self.P, self.N
         self.device = dev = torch.device("cpu") if device is None else torch.device(device)
+        self.last: Observation | None = None  # the latest observation (lockstep)
+        if buffered:
+            self._init_host(lat, fusion)
+            return
         self.cost_s, self.moves = lat.flight_time_t.to(dev), lat.moves.to(dev)  # (P, P) float64 seconds, (P, A)
         self._ar = torch.arange(B, device=dev)
         self.labels = labels if not buffered else torch.zeros(B, N, dtype=torch.bool, device=dev)
@@ -139,20 +158,32 @@ class SearchState:
         self.views = torch.zeros(B, dtype=torch.long, device=dev)
         self.allowed = torch.ones(B, P, dtype=torch.bool, device=dev)
         self.fused = torch.full((B, N), float(fusion.prior), device=dev)
-        self.last: Observation | None = None  # the latest observation (lockstep)
-        if buffered:
-            T = self.max_views
-            self.hist_p = torch.zeros(B, T, N, dtype=torch.float64, device=dev)
-            self.hist_valid = torch.zeros(B, T, N, dtype=torch.bool, device=dev)
-            self.hist_area = torch.zeros(B, T, N, dtype=torch.float64, device=dev)
-            self.hist_scores = torch.zeros(B, T, N, dtype=torch.float64, device=dev)
-        else:
-            self.state = fusion.init_state(B, N)
-            self.positions: list[torch.Tensor] = []  # per lockstep view: (B,) viewpoint, (B, N) p, (B, N) valid
-            self.probs: list[torch.Tensor] = []
-            self.valids: list[torch.Tensor] = []
-            # kept only when asked: stacking every view's (B, N, D) features costs time nobody else needs
-            self.features: list[torch.Tensor] | None = [] if view_features else None
+        self.state = fusion.init_state(B, N)
+        self.positions: list[torch.Tensor] = []  # per lockstep view: (B,) viewpoint, (B, N) p, (B, N) valid
+        self.probs: list[torch.Tensor] = []
+        self.valids: list[torch.Tensor] = []
+        # kept only when asked: stacking every view's (B, N, D) features costs time nobody else needs
+        self.features: list[torch.Tensor] | None = [] if view_features else None
+
+    def _init_host(self, lat, fusion: Fusion) -> None:
+        """A buffered state's arrays: the lockstep ones' dtypes, in numpy on the host (module docstring)."""
+        B, V, P, N, T = self.B, self.V, self.P, self.N, self.max_views
+        self.cost_s, self.moves = host(lat.flight_time_t), host(lat.moves)
+        self._ar = np.arange(B)
+        self.labels = np.zeros((B, N), dtype=bool)
+        self.pos = np.full((B, V), self.start_idx, dtype=np.int64)
+        self.clock_s = np.zeros((B, V), dtype=np.float64)
+        self.capture = np.zeros((B, V), dtype=bool)
+        self.capture[:, 0] = True
+        self.active = np.ones((B, V), dtype=bool)
+        self.visits = np.zeros((B, P), dtype=np.int64)
+        self.views = np.zeros(B, dtype=np.int64)
+        self.allowed = np.ones((B, P), dtype=bool)
+        self.fused = np.full((B, N), fusion.prior, dtype=np.float32)
+        self.hist_p = np.zeros((B, T, N), dtype=np.float64)
+        self.hist_valid = np.zeros((B, T, N), dtype=bool)
+        self.hist_area = np.zeros((B, T, N), dtype=np.float64)
+        self.hist_scores = np.zeros((B, T, N), dtype=np.float64)
 
     # -- the clocks --------------------------------------------------------------------------------
 
@@ -174,6 +205,8 @@ class SearchState:
         """The episodes in `mask` (default all) take a view where `vehicle` (B,) (default 0) is and fuse it:
         (the observation, (B,) bool revisit). A lockstep state observes every episode and masks the others
         out; a buffered one re-fuses only the masked episodes."""
+        if self.buffered:
+            return self._take_host(source, mask)
         idx = self.pos[:, 0].clone() if vehicle is None else self.pos[self._ar, vehicle]
         if vehicle is not None and getattr(source, "per_vehicle", False):
             o = source.observe(idx, vehicle)
@@ -184,31 +217,47 @@ class SearchState:
         if not every:
             o = o._replace(valid=o.valid & m[:, None])
         revisit = (self.visits[self._ar, idx] > 0) & m
-        if self.buffered:
-            self._buffer(m.nonzero().reshape(-1), o)
-        else:
-            self.state, new = self.fusion.update(self.state, fusion_view(o, idx, self.labels))
-            self.fused = new if every else torch.where(m[:, None], new, self.fused)
-            self.positions.append(idx)
-            self.probs.append(o.prob())
-            self.valids.append(o.valid)
-            if self.features is not None and o.cell_features is not None and o.cell_features.shape[-1] > 0:
-                self.features.append(o.cell_features)
+        self.state, new = self.fusion.update(self.state, fusion_view(o, idx, self.labels))
+        self.fused = new if every else torch.where(m[:, None], new, self.fused)
+        self.positions.append(idx)
+        self.probs.append(o.prob())
+        self.valids.append(o.valid)
+        if self.features is not None and o.cell_features is not None and o.cell_features.shape[-1] > 0:
+            self.features.append(o.cell_features)
         self.visits[self._ar[m], idx[m]] += 1
         self.views += m.long()
         self.last = o
         return o, revisit
 
-    def _buffer(self, envs: torch.Tensor, o: Observation) -> None:
-        """Episodes `envs` write their view into the buffers at their own index and re-fuse their views."""
+    def _take_host(self, source, mask) -> tuple[Observation, np.ndarray]:
+        """`take` of a buffered state (numpy; a source with `observe_host` serves numpy arrays itself)."""
+        idx = self.pos[:, 0].copy()
+        m = np.ones(self.B, dtype=bool) if mask is None else host(mask).astype(bool)
+        observe = getattr(source, "observe_host", None)
+        o = observe(idx) if observe is not None else host_observation(source.observe(torch.as_tensor(idx)))
+        revisit = (self.visits[self._ar, idx] > 0) & m
+        envs = np.flatnonzero(m)
+        self._buffer(envs, o)
+        self.visits[envs, idx[envs]] += 1
+        self.views += m
+        self.last = o
+        return o, revisit
+
+    def _buffer(self, envs: np.ndarray, o: Observation) -> None:
+        """Episodes `envs` write their view into the buffers at their own index and re-fuse their views (only
+        the slots up to the latest view: a later one holds no view, and fusing it changes no bit)."""
+        if not len(envs):
+            return
         t = self.views[envs]
-        self.hist_p[envs, t], self.hist_valid[envs, t] = o.prob()[envs].double(), o.valid[envs]
-        self.hist_area[envs, t] = o.cell_area_px[envs].double()
+        self.hist_p[envs, t], self.hist_valid[envs, t] = o.p[envs], o.valid[envs]
+        self.hist_area[envs, t] = o.cell_area_px[envs]
         if o.scores is not None:
-            self.hist_scores[envs, t] = o.scores[envs].double()
-        views = FusionViews(self.hist_p[envs], self.hist_valid[envs], self.hist_area[envs],
-                            scores=self.hist_scores[envs] if o.scores is not None else None, labels=self.labels[envs])
-        self.fused[envs] = self.fusion.fuse(views).float()
+            self.hist_scores[envs, t] = o.scores[envs]
+        k, sel = int(t.max()) + 1, slice(None) if len(envs) == self.B else envs
+        views = FusionViews(self.hist_p[sel, :k], self.hist_valid[sel, :k], self.hist_area[sel, :k],
+                            scores=self.hist_scores[sel, :k] if o.scores is not None else None,
+                            labels=self.labels[sel])
+        self.fused[envs] = self.fusion.fuse_host(views)
 
     def view_scores(self) -> torch.Tensor | None:
         """(B, t+1, N) the confidence scores of the views so far (detached), or None (lockstep)."""
@@ -275,8 +324,8 @@ class SearchState:
 
     # -- episodes that start on their own (buffered) -----------------------------------------------
 
-    def restart(self, envs: torch.Tensor, labels: torch.Tensor) -> None:
-        """Start episodes `envs` (k,) afresh with ground truth `labels` (k, N) bool (a buffered state)."""
+    def restart(self, envs: np.ndarray, labels: np.ndarray) -> None:
+        """Start episodes `envs` (k,) afresh with ground truth `labels` (k, N) bool (a buffered state: numpy)."""
         self.pos[envs] = self.start_idx
         self.clock_s[envs] = 0.0
         self.active[envs] = True
@@ -287,7 +336,7 @@ class SearchState:
             buf[envs] = 0
         self.labels[envs] = labels
 
-    def ended(self) -> torch.Tensor:
+    def ended(self):
         """(B,) bool, after a view (one vehicle): the views are spent, or (time budget) no unvisited viewpoint
         is affordable; sets `allowed` to the affordable unvisited viewpoints."""
         end = self.views >= self.max_views

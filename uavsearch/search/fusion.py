@@ -184,6 +184,62 @@ def _oracle(p, v, prior, labels):
     return torch.where(_no_view(v), torch.full_like(out, prior), out)
 
 
+# The same kernels on numpy float64 arrays, for per-step work (the envs re-fuse each episode's views at every
+# step): numpy runs these small ops in the calling thread, where torch hands each to its intra-op thread pool, whose
+# threads wait for a core whenever another process keeps one busy. They equal the torch kernels to float32
+# rounding (tests/test_fusion.py).
+
+
+def _logit_np(p):
+    p = np.clip(p, EPS, 1.0 - EPS)
+    return np.log(p / (1.0 - p))
+
+
+def _sigmoid_np(x):
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def _bayes_np(p, v, prior):
+    l0 = float(np.log(prior / (1.0 - prior)))
+    return _sigmoid_np(l0 + np.where(v, _logit_np(p) - l0, 0.0).sum(axis=-2))
+
+
+def _average_np(p, v, prior):
+    n = v.sum(axis=-2)
+    s = np.where(v, p, 0.0).sum(axis=-2)
+    return np.where(n > 0, s / np.maximum(n, 1), prior)
+
+
+def _by_size_np(p, v, prior, area_px):
+    offset = -np.arange(p.shape[-2], dtype=area_px.dtype)[:, None] * 1e-9
+    idx = (np.where(v, area_px, -np.inf) + offset).argmax(axis=-2)[..., None, :]
+    return np.where(~v.any(axis=-2), prior, np.take_along_axis(p, idx, axis=-2)[..., 0, :])
+
+
+def _learned_np(p, v, prior, scores):
+    s = np.where(v, scores, np.finfo(scores.dtype).min / 4)
+    e = np.exp(s - s.max(axis=-2, keepdims=True))
+    w = np.where(v, e / e.sum(axis=-2, keepdims=True), 0.0)
+    return np.where(~v.any(axis=-2), prior, (w * p).sum(axis=-2))
+
+
+def _calibrated_np(p, v, prior, area_px, coef=None, gamma=0.0):
+    c0, c1, c2, c3 = coef or UNCALIBRATED
+    l0 = float(np.log(prior / (1.0 - prior)))
+    la = np.log(np.maximum(area_px, 1.0))
+    ev = np.where(v, (c0 + c1 * la) * _logit_np(p) + c2 + c3 * la - l0, 0.0)
+    if gamma:
+        same = ((np.abs(la[..., :, None, :] - la[..., None, :, :]) < SAME_SCALE) & v[..., None, :, :]).sum(axis=-2)
+        ev = ev / np.maximum(same, 1).astype(p.dtype) ** gamma
+    return _sigmoid_np(l0 + ev.sum(axis=-2))
+
+
+def _oracle_np(p, v, prior, labels):
+    hi = np.where(v, p, -np.inf).max(axis=-2)
+    lo = np.where(v, p, np.inf).min(axis=-2)
+    return np.where(~v.any(axis=-2), prior, np.where(labels, hi, lo))
+
+
 # --------------------------------------------------------------------------------------------------
 # Fusion objects: one class per method, what the loop, the checkpoints and the trainers hold
 
@@ -234,6 +290,20 @@ class Fusion:
     def fuse(self, views: FusionViews):
         """(..., T, N) views -> (..., N) fused p(y = 1)."""
         return _run(type(self), self.inputs(views), self.prior)
+
+    host_kernel: ClassVar[Callable | None] = None  # the numpy form of `kernel` (float64 arrays), where there is one
+
+    def _host_kernel(self) -> Callable | None:
+        return type(self).host_kernel
+
+    def fuse_host(self, views: FusionViews) -> np.ndarray:
+        """`fuse` of numpy views (p float64, valid bool, the rest as `needs` says) in the calling thread: the
+        per-step form (module notes above the numpy kernels). Equal to `fuse` to float32 rounding; a method
+        without a numpy kernel, or views lacking what it needs, go through `fuse`."""
+        kernel = self._host_kernel()
+        if kernel is None or any(getattr(views, n) is None for n in self.needs):
+            return np.asarray(self.fuse(views), dtype=np.float64)
+        return kernel(views.p, views.valid, self.prior, **{n: getattr(views, n) for n in self.needs})
 
     def init_state(self, batch_size: int, num_cells: int):
         """The state before any view (None: no views yet; a method with a running state builds it here)."""
@@ -294,14 +364,17 @@ class Fusion:
 
 class BayesFusion(Fusion):
     name, kernel = "bayes", staticmethod(_bayes)
+    host_kernel = staticmethod(_bayes_np)
 
 
 class AverageFusion(Fusion):
     name, kernel = "average", staticmethod(_average)
+    host_kernel = staticmethod(_average_np)
 
 
 class SizeFusion(Fusion):
     name, needs, kernel = "size", ("area_px",), staticmethod(_by_size)
+    host_kernel = staticmethod(_by_size_np)
 
 
 class CalibratedFusion(Fusion):
@@ -323,6 +396,9 @@ class CalibratedFusion(Fusion):
 
     def fuse(self, views: FusionViews):
         return _run(type(self), self.inputs(views), self.prior, kernel=self._kernel())
+
+    def _host_kernel(self) -> Callable:
+        return lambda p, v, prior, area_px: _calibrated_np(p, v, prior, area_px, self.coef, self.gamma)
 
     def update(self, state, view: FusionViews):
         """One view more in O(t N): only the new view's same-scale counts are computed, the earlier views' counts
@@ -372,6 +448,7 @@ class CalibratedFusion(Fusion):
 
 class OracleFusion(Fusion):
     name, needs, kernel = "oracle", ("labels",), staticmethod(_oracle)
+    host_kernel = staticmethod(_oracle_np)
 
 
 class _EvalScores(nn.Module):
@@ -397,6 +474,7 @@ class LearnedFusion(nn.Module, Fusion):
     """
 
     name, needs, trainable, kernel = "learned", ("scores",), True, staticmethod(_learned)
+    host_kernel = staticmethod(_learned_np)
 
     def __init__(self, net: nn.Module | None = None, prior: float = DEFAULT_PRIOR):
         nn.Module.__init__(self)

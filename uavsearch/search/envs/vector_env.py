@@ -85,20 +85,19 @@ class SearchVectorEnv(VectorEnv):
             self._source = TableSource(tables, self.num_envs)
             self._batch.source = self._source
         S = len(self.scenes.seeds)
-        rows = torch.as_tensor([int(self._rngs[i].integers(S)) for i in envs], dtype=torch.long, device=self.device)
-        envs_t = torch.as_tensor(envs, dtype=torch.long, device=self.device)
-        self._source.rows[envs_t] = rows
-        self._batch.start(envs_t, tables.labels[rows])
+        rows = np.array([int(self._rngs[i].integers(S)) for i in envs], dtype=np.int64)
+        self._source.set_rows(envs, rows)
+        self._batch.start(envs, self._source.host_tables()[4][rows])
 
     def _info(self) -> dict[str, Any]:
-        b = self._batch
+        b, st = self._batch, self._batch.state  # the engine's numpy arrays (episode.py)
         sc = b.scores()
-        info = {"f1": sc["f1"], "acc": sc["acc"], "revisit": b.revisit.cpu().numpy().copy(),
-                "scene_seed": self.scenes.tables.scene_seed[self._source.rows.cpu().numpy()],
-                "lattice_index": b.idx.cpu().numpy().copy(), "step": b.t.cpu().numpy().copy(),
-                "occupancy": b.labels.cpu().numpy().astype(np.int8)}
+        info = {"f1": sc["f1"], "acc": sc["acc"], "revisit": b.revisit_host.copy(),
+                "scene_seed": self.scenes.tables.scene_seed[b.source.host_rows()],
+                "lattice_index": st.pos[:, 0].copy(), "step": st.views - 1,
+                "occupancy": st.labels.astype(np.int8)}
         if self.config.budget_s is not None:
-            info["action_mask"] = b.allowed.cpu().numpy().astype(np.int8)
+            info["action_mask"] = st.allowed.astype(np.int8)
         ones = np.ones(self.num_envs, dtype=bool)
         return {**info, **{f"_{k}": ones for k in list(info)}}
 
@@ -131,8 +130,8 @@ class SearchVectorEnv(VectorEnv):
         again = self._autoreset.copy()
         if ((actions < 0) | (actions >= self.single_action_space.n))[~again].any():
             raise gym.error.InvalidAction(f"actions outside {self.single_action_space}: {actions}")
-        rewards, terminated = self._batch.step(np.where(again, 0, actions), active=torch.as_tensor(~again))
-        rewards, terminated = rewards.cpu().numpy().astype(np.float64), terminated.cpu().numpy().copy()
+        rewards, terminated = self._batch.step(np.where(again, 0, actions), active=~again)
+        rewards = rewards.astype(np.float64)
         if again.any():
             self._start(np.flatnonzero(again))
         truncated = np.zeros(self.num_envs, dtype=bool)
