@@ -195,8 +195,7 @@ class SceneViews:
         if todo == 0 or settings.setting_params(self.setting).task.mission != "team":
             return
         what = (f"{todo} scenes of {self.setting} {self.split}/{part} (about {_duration(todo * WIDE_SCENE_S)} at "
-                f"{WIDE_SCENE_S:g} s a scene, measured on 2 cores; about {todo * WIDE_SCENE_MB / 1000:.1f} GB under "
-                f"cache/)")
+                f"{WIDE_SCENE_S:g} s a scene, measured on 2 cores; about {_size(todo * WIDE_SCENE_MB)} under cache/)")
         if limit is None and todo > FEW_SCENES and not self.render_all:
             raise UavsearchError(f"the first reset would render {what}: pass limit=N to use the first N scenes "
                                  f"(e.g. limit=20), or render_all=True to render them all")
@@ -238,6 +237,10 @@ class SceneViews:
 
         key = CacheKey(self.setting, self.split, self.part, self.config, self.limit)
         return Path(self.cache_dir or CACHE_DIR) / "lattice_views" / world_tag(self.config, key.family) / key.part_name
+
+
+def _size(mb: float) -> str:
+    return f"{mb / 1000:.1f} GB" if mb >= 1000 else f"{mb:.0f} MB"
 
 
 def _duration(seconds: float) -> str:
