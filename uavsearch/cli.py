@@ -106,8 +106,9 @@ def _cmd_fly(args) -> int:
     if team:  # the mission's validation says what its method can fly
         mission = mission.with_team(**team)
     try:
+        _check_fly_ports(args)
         with sigterm_as_interrupt():  # SIGTERM lands like Ctrl-C and writes the summary; a second ends at once
-            r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port,
+            r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port, api_port=args.api_port,
                     progress=lambda line: print(line, flush=True))
     except OSError as e:
         full = disk_full(Path(e.filename).parent if e.filename else Path(args.out or "."), e)
@@ -137,6 +138,20 @@ def _cmd_fly(args) -> int:
     return 0 if r.status == "completed" else 1
 
 
+def _check_fly_ports(args) -> None:
+    """One line for a port out of range, taken, or meaningless with --connect, naming the flag to change."""
+    from .flight.sitl_process import udp_port_in_use
+
+    for flag, port in (("--api-port", args.api_port), ("--gcs-port", args.gcs_port)):
+        if not 0 <= port <= 65535:
+            raise UavsearchError(f"{flag} {port}: a UDP port is 0-65535")
+    if args.api_port and args.connect:
+        raise UavsearchError("--api-port is where a vehicle fly starts sends; with --connect the URL names the port")
+    if args.api_port and udp_port_in_use(args.api_port):
+        raise UavsearchError(f"UDP port {args.api_port} on 127.0.0.1 is in use (another flight or MAVLink client?); "
+                             "choose another with --api-port (0, the default: any free port)")
+
+
 def _speed_arg(text: str):
     if text.lower() == "max":
         return "max"
@@ -164,7 +179,11 @@ def _add_fly_parser(sub) -> None:
     p.add_argument("--connect", default=None, metavar="URL",
                    help="fly an already running vehicle instead, e.g. udpin:127.0.0.1:14540")
     p.add_argument("--gcs-port", type=int, default=14550,
-                   help="the started vehicle's ground-station link sends here (QGroundControl; 0: off)")
+                   help="the started vehicle's ground-station link sends here (QGroundControl; 0: off; on a shared "
+                        "machine another port or 0, so your ground station sees only your vehicle)")
+    p.add_argument("--api-port", type=int, default=0,
+                   help="the UDP port this controller listens on, where the started vehicle's API link sends "
+                        "(default 0: any free port)")
     p.add_argument("--vehicles", type=int, default=None, metavar="N",
                    help="fly N vehicles on one map (default: the mission's team.vehicles, else 1; a team planner's "
                         "mission, e.g. missions/wide_team.yaml)")

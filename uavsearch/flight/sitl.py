@@ -171,8 +171,14 @@ class SimVehicle:
                                             sysid=int(self.params["MAV_SYS_ID"]))
         except OSError as e:
             self.camera.close()
-            raise UavsearchError(f"cannot open the MAVLink UDP ports of vehicle {cfg.instance + 1} ({e}); is another "
-                                 "sitl running? Choose others with --api-local-port / --gcs-local-port") from None
+            from .sitl_process import udp_port_in_use
+
+            busy = [f"{port} (--{name}-local-port)" for name, port in (("api", cfg.api_local_port),
+                                                                       ("gcs", cfg.gcs_local_port))
+                    if port and udp_port_in_use(port)]
+            raise UavsearchError(f"vehicle {cfg.instance + 1}: UDP source port {' and '.join(busy)} is in use (another "
+                                 "sitl?); change that flag (0: any free port)" if busy else
+                                 f"cannot open the MAVLink UDP ports of vehicle {cfg.instance + 1} ({e})") from None
         self._ap_period_us = int(1e6 / cfg.autopilot_hz)
         self._io_period_us = int(1e6 / cfg.io_hz)
         self._stream_period_us = int(1e6 / cfg.stream_hz)
@@ -526,8 +532,10 @@ def add_sitl_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=None, metavar="RUN_DIR", help="run directory (images, captures.jsonl)")
     p.add_argument("--api-port", type=int, default=14540, help="UDP port the API link sends to (0: off)")
     p.add_argument("--gcs-port", type=int, default=14550, help="UDP port the GCS link sends to (0: off)")
-    p.add_argument("--api-local-port", type=int, default=14580, help="source port of the API link (0: any)")
-    p.add_argument("--gcs-local-port", type=int, default=18570, help="source port of the GCS link (0: any)")
+    p.add_argument("--api-local-port", type=int, default=None,
+                   help="source port of the API link (0: any; default PX4's 14580 + I with --api-port 14540, else any)")
+    p.add_argument("--gcs-local-port", type=int, default=None,
+                   help="source port of the GCS link (0: any; default PX4's 18570 + I with --gcs-port 14550, else any)")
     p.add_argument("--param", type=_parse_param, action="append", default=[], metavar="NAME=VALUE",
                    help="set a parameter at start (repeatable)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds of simulation time")
@@ -540,6 +548,11 @@ def config_from_args(args) -> SitlConfig:
     if not 0 <= args.instance < 250:
         raise UavsearchError(f"--instance must be 0..249, got {args.instance}")
     last = args.instance + args.vehicles - 1
+    # a source port follows its link: PX4's on PX4's ports, any free one once --api-port / --gcs-port move
+    if args.api_local_port is None:
+        args.api_local_port = SitlConfig.api_local_port if args.api_port == SitlConfig.api_port else 0
+    if args.gcs_local_port is None:
+        args.gcs_local_port = SitlConfig.gcs_local_port if args.gcs_port == SitlConfig.gcs_port else 0
     for port in (args.api_port, args.gcs_port, args.api_local_port, args.gcs_local_port):
         if not 0 <= port <= 65535 or (port and port != args.gcs_port and port + last > 65535):
             raise UavsearchError(f"UDP port {port} out of range")

@@ -38,6 +38,17 @@ def ephemeral_ports() -> tuple[int, int]:
         return EPHEMERAL_FALLBACK
 
 
+def udp_port_in_use(port: int, host: str = "127.0.0.1") -> bool:
+    """Whether another socket holds UDP `port` (a bind without SO_REUSEADDR fails): pymavlink binds with it, so
+    its own bind would succeed beside another client and the two would split the vehicle's packets."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        try:
+            sock.bind((host, int(port)))
+        except OSError:
+            return True
+    return False
+
+
 def free_udp_port() -> int:
     """A free UDP port on 127.0.0.1 for a link whose two ends bind at different moments (a vehicle sends to it,
     its client binds it later): free_udp_ports(1)."""

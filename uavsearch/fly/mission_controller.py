@@ -393,7 +393,7 @@ def default_run_dir(mission) -> Path:
 
 
 def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port: int = 14550,
-        torch_threads: int = 1) -> MissionResult:
+        torch_threads: int = 1, api_port: int = 0) -> MissionResult:
     """Fly `mission` with its `mission.vehicles` vehicles: start them (unless `connect` names the link of vehicles
     someone else started), search with the mission's method, land, log; the result scores the one map.
 
@@ -413,7 +413,7 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
     log = FlightLogWriter(run_dir)
     (run_dir / "mission.json").write_text(mission.model_dump_json(indent=2) + "\n")
     try:
-        conn = MavlinkConnection(connect or "udpin:127.0.0.1:0", tlog=log.tlog)
+        conn = MavlinkConnection(connect or f"udpin:127.0.0.1:{int(api_port)}", tlog=log.tlog)  # 0: any free port
     except FlightError:
         _discard(log, run_dir, made_run_dir)
         raise
