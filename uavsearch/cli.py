@@ -1,7 +1,8 @@
 """The `uavsearch` command: every subcommand is wired here; each one's work lives in its module.
 
 Imports of the subcommands' modules are lazy (inside the handlers) on purpose, measured on a shared
-2-core machine: `uavsearch --help` takes ~1.4 s; the scene modules (pydantic + OpenCV: world.scene, and
+2-core machine: `uavsearch --help` takes 0.03-0.05 s (sitl's and mission's parsers are built only when named: the
+autopilot, pymavlink and numpy cost 0.3 s); the scene modules (pydantic + OpenCV: world.scene, and
 search.config / search.views / viz, which import it) would add 0.3-0.45 s, and torch (replay, the train /
 eval groups; `fly` imports it once its vehicle process is starting) 2-5 s more. Nothing a subcommand imports ever
 imports this module back.
@@ -17,7 +18,6 @@ from pathlib import Path
 
 from . import __version__
 from .errors import UavsearchError, run_command, sigterm_as_interrupt
-from .flight.sitl import add_sitl_parser
 
 
 # --------------------------------------------------------------------------------------------------
@@ -316,7 +316,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"uavsearch {__version__}")
     sub = parser.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     _add_scene_parser(sub)
-    add_sitl_parser(sub)
+    if command is None or command == "sitl":
+        from .flight.sitl import add_sitl_parser  # lazy: the autopilot, pymavlink and numpy cost --help 0.2 s
+
+        add_sitl_parser(sub)
+    else:
+        sub.add_parser("sitl", help="run the simulated vehicle as a PX4-flavoured MAVLink system")
     for name, add, text in (("train", _add_train_parser, TRAIN_HELP), ("eval", _add_eval_parser, EVAL_HELP),
                             ("dataset", _add_dataset_parser, DATASET_HELP)):
         if command is None or command == name:
@@ -325,9 +330,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
             sub.add_parser(name, help=text)
     _add_fly_parser(sub)
     _add_replay_parser(sub)
-    from .fly.mission_upload import add_mission_parser
+    if command is None or command == "mission":
+        from .fly.mission_upload import add_mission_parser  # lazy: .plan parsing and numpy cost --help 0.1 s
 
-    add_mission_parser(sub)
+        add_mission_parser(sub)
+    else:
+        sub.add_parser("mission", help="QGroundControl .plan missions: upload (and fly) one")
     return parser
 
 
