@@ -97,15 +97,18 @@ def test_stepping_with_a_planners_choices_is_run_team(planner, fusion):
         assert last["acc"] == pytest.approx(float(map_accuracy(final, y)[row]), abs=1e-12)
 
 
+@pytest.mark.parametrize("reward", ["shaped", "f1"])
 @pytest.mark.parametrize("credit", ["team", "own"])
-def test_shaped_rewards_add_up_to_the_final_maps(credit):
-    env = _env(credit=credit)
+def test_per_view_rewards_add_up_to_the_final_maps(reward, credit):
+    env = _env(credit=credit, reward=reward, fusion="average")
     trace = _random_episode(env, 3)
     total = sum(sum(r.values()) if credit == "own" else next(iter(r.values())) for _, r, _ in trace[1:])
-    final_f1 = next(iter(trace[-1][2].values()))
+    final = next(iter(trace[-1][2].values()))
     st = env._st
-    assert total == pytest.approx(float(classification_reward(st.fused, st.labels)[0]), abs=1e-4)
-    assert final_f1["f1"] == pytest.approx(float(map_f1(st.fused.numpy(), st.labels.numpy())[0]))
+    f1 = float(map_f1(st.fused.numpy(), st.labels.numpy())[0])
+    assert final["f1"] == pytest.approx(f1) and (reward == "shaped" or f1 > 0)
+    want = float(classification_reward(st.fused, st.labels)[0]) if reward == "shaped" else f1
+    assert total == pytest.approx(want, abs=1e-4)
 
 
 def test_defaults_are_the_team_mission():

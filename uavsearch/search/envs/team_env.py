@@ -50,7 +50,7 @@ from .search_env import SceneViews, cells_space
 # The team task `uavsearch eval team` reports and missions/wide_team.yaml flies: three vehicles for 80 s of
 # flight on the wide family, Bayes fusion with prior 0.5 (chosen on validation for 3 vehicles at 80 s).
 TEAM_SETTING, TEAM_VEHICLES, TEAM_MISSION_TIME_S, TEAM_FUSION = "wide", 3, 80.0, "bayes:0.5"
-REWARDS = ("shaped", "terminal")
+REWARDS = ("shaped", "terminal", "f1")
 CREDITS = ("team", "own")
 
 
@@ -92,8 +92,9 @@ class TeamSearchEnv(ParallelEnv):
     **Reward** (per step, per agent), from `search_loop.step_rewards` (R_tp, R_fp = ``r_tp``, ``r_fp``):
     ``reward="shaped"`` (default) the change of N_tp R_tp + N_fp R_fp of the fused map (threshold 0.5) the step's
     views made (the first step also pays the start view's); ``"terminal"`` that of the final map at the last
-    step. ``credit="team"`` (default): every live agent gets the team's reward; ``"own"`` (shaped only): each
-    view's change goes to the vehicle that took it. An agent's return counts the steps it was alive for.
+    step; ``"f1"`` the change of the fused map's F1 the step's views made (the episode's sum: the final F1, the
+    metric the team table reports). ``credit="team"`` (default): every live agent gets the team's reward;
+    ``"own"`` (shaped or f1): each view's change goes to the vehicle that took it. An agent's return counts the steps it was alive for.
 
     **Info** (per agent): ``occupancy`` (N*N,) int8 ground truth, ``f1`` / ``acc`` of the fused map
     (search/metrics.py), ``time_s`` the mission time of this event, ``views`` the team's views so far,
@@ -125,7 +126,7 @@ class TeamSearchEnv(ParallelEnv):
         if reward not in REWARDS or credit not in CREDITS:
             raise UavsearchError(f"reward must be one of {', '.join(REWARDS)} and credit one of {', '.join(CREDITS)}")
         if reward == "terminal" and credit == "own":
-            raise UavsearchError("credit='own' needs reward='shaped' (a terminal reward belongs to the team)")
+            raise UavsearchError("credit='own' needs a per-view reward, shaped or f1 (a terminal one is the team's)")
         if settings.setting_params(setting).task.mission != "team":
             raise UavsearchError(f"the team env searches a scene family (wide, wide-uniform), not setting {setting!r}")
         self.config = team_config(setting, mission_time_s)
@@ -195,6 +196,7 @@ class TeamSearchEnv(ParallelEnv):
         self._cell_views = torch.zeros(self.N, device=dev)
         self._pending = torch.zeros(self.V, dtype=torch.float64)  # rewards earned since the last step
         self._stopped: set[int] = set()
+        self._f1 = 0.0  # the F1 of the map before any view (reward="f1")
         self.agents = self.possible_agents[:]
         self._advance()
         return self._observations(self.agents), self._infos(self.agents)
@@ -257,10 +259,14 @@ class TeamSearchEnv(ParallelEnv):
                     vi = int(v[0])
                     self._p_last[vi], self._valid_last[vi] = o.prob()[0], o.valid[0]
                     self._cell_views += o.valid[0]
-                    gain = step_rewards(torch.stack([prev, st.fused], 1), st.labels,
-                                        torch.zeros(1, 2, dtype=torch.bool, device=self.device), shaped=True,
-                                        **self.r)[0, 1]
-                    self._pending[vi] += float(gain)
+                    if self.reward_mode == "f1":
+                        f1 = float(map_f1(st.fused.cpu().numpy(), st.labels.cpu().numpy())[0])
+                        gain, self._f1 = f1 - self._f1, f1
+                    else:
+                        gain = float(step_rewards(torch.stack([prev, st.fused], 1), st.labels,
+                                                  torch.zeros(1, 2, dtype=torch.bool, device=self.device),
+                                                  shaped=True, **self.r)[0, 1])
+                    self._pending[vi] += gain
                 st.capture[ar, v] = False
                 visited = st.visited(v)
                 allowed = st.choices(visited, idx, now)
