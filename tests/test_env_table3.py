@@ -59,7 +59,7 @@ def test_a_first_reset_that_would_render_a_whole_part_says_how_much_and_refuses(
     with pytest.raises(UavsearchError) as e:
         env.reset(seed=0)
     msg = str(e.value)
-    assert "render 50 scenes of wide large/val" in msg and " min " in msg and "GB under cache/" in msg
+    assert "render 50 scenes of wide large/val" in msg and " min " in msg and "950 MB under cache/" in msg
     assert "limit=N" in msg and "render_all=True" in msg and "\n" not in msg
     assert not any(tmp_path.iterdir())  # nothing rendered
 
