@@ -7,6 +7,7 @@ estimation error becomes projection error exactly as on a real drone.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -41,14 +42,17 @@ def make_view(
     min_cell_area_px: float = 1.0,
     person_fraction: np.ndarray | None = None,
     person_index: np.ndarray | None = None,
+    geometry: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> View:
-    """Project the grid into an image taken at `pose` (Eq. 1) and package it."""
-    areas = cell_pixel_areas(grid, intrinsics, pose).astype(np.float32)
+    """Project the grid into an image taken at `pose` (Eq. 1) and package it. `geometry`: the pose's
+    (cell label image, cell areas) when the caller already has them."""
+    label, areas = geometry if geometry is not None else (cell_label_image(grid, intrinsics, pose),
+                                                          cell_pixel_areas(grid, intrinsics, pose).astype(np.float32))
     return View(
         image=image,
         pose=pose,
         position_enu=np.asarray(pose.position_enu, dtype=float),
-        cell_label=cell_label_image(grid, intrinsics, pose),
+        cell_label=label,
         cell_area_px=areas,
         cells_in_view=areas >= min_cell_area_px,
         person_mask=person_mask,
@@ -66,6 +70,16 @@ class Vehicle(Protocol):
         """Go to `position_enu` (heading north), take a picture, return it with the reported pose."""
 
     def close(self) -> None: ...
+
+
+@functools.lru_cache(maxsize=256)
+def _teleport_geometry(grid: Grid, intrinsics: CameraIntrinsics, position_enu: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """A nadir view's grid projection depends on its position only: every scene of a lattice shares it
+    (a third of a teleport capture's own time). Read-only, as the views share it."""
+    pose = nadir_camera_pose(np.array(position_enu, dtype=float))
+    label, areas = cell_label_image(grid, intrinsics, pose), cell_pixel_areas(grid, intrinsics, pose).astype(np.float32)
+    label.flags.writeable = areas.flags.writeable = False
+    return label, areas
 
 
 class TeleportVehicle:
@@ -95,7 +109,8 @@ class TeleportVehicle:
         r = self._renderer.render(pose, self._rng_for(key[:2]))
         self.renders += 1
         view = make_view(r.rgb, pose, self.config.grid, self.config.intrinsics, r.person_mask,
-                         self.config.min_cell_area_px, r.person_fraction, r.person_index)
+                         self.config.min_cell_area_px, r.person_fraction, r.person_index,
+                         _teleport_geometry(self.config.grid, self.config.intrinsics, tuple(pos.tolist())))
         if self._cache is not None:
             self._cache[key] = view
         return view
