@@ -14,6 +14,10 @@ the vehicle's clock over the flight; `move sim` the vehicle's clock per move aft
 settle, photo). CPU = the controller's own CPU seconds (the vehicle's are in its sitl.log). The load
 average beside them says how shared the machine was. `--out` writes the same table as markdown (the file
 docs/flying-measurements.md quotes).
+
+`--all` flies the three shipped missions instead (missions/default.yaml, the paper's; wide.yaml; wide_team.yaml)
+as they are, one flight each, and prints one row per mission: wall s, `import torch` s in the same run, their
+ratio and the load (targets on a quiet machine: paper <= 2.5x import torch, wide <= 12 s, team <= 15 s).
 """
 
 import argparse
@@ -73,6 +77,34 @@ def fly_once(mission_file: Path, out: Path) -> dict:
                 moves=moves)
 
 
+ALL_MISSIONS = ("missions/default.yaml", "missions/wide.yaml", "missions/wide_team.yaml")
+
+
+def fly_wall(mission_file: Path, out: Path) -> float:
+    """Wall seconds of one `uavsearch fly --mission FILE` as a user runs it."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                        os.environ.get("PYTHONPATH", "")])}
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(mission_file), "--out", str(out),
+                        "--gcs-port", "0"], capture_output=True, text=True, env=env)
+    if r.returncode != 0:
+        raise SystemExit(f"uavsearch fly --mission {mission_file} failed:\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}")
+    return time.monotonic() - t0
+
+
+def bench_all() -> int:
+    """One row per shipped mission (module docstring)."""
+    root = Path(__file__).resolve().parents[1]
+    print("| mission | wall s | import torch s | ratio | load (1 min) |\n|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, name in enumerate(ALL_MISSIONS):
+            torch_wall = import_torch_s()[0]
+            wall = fly_wall(root / name, Path(tmp) / f"run{i}")
+            print(f"| {name} | {wall:.2f} | {torch_wall:.2f} | {wall / torch_wall:.2f} | {os.getloadavg()[0]:.2f} |",
+                  flush=True)
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--mission", default=None, help="mission file (default missions/default.yaml)")
@@ -84,7 +116,10 @@ def main() -> int:
     ap.add_argument("--free-running", action="store_true",
                     help="vehicle without lockstep (not reproducible; shows what lockstep costs)")
     ap.add_argument("--out", type=Path, default=None, help="also write the table as markdown to this file")
+    ap.add_argument("--all", action="store_true", help="fly the three shipped missions, one row each (see above)")
     args = ap.parse_args()
+    if args.all:
+        return bench_all()
     if args.out is not None and not args.out.parent.is_dir():
         ap.error(f"no folder {args.out.parent} for --out")
     base = load_mission(args.mission).with_overrides(**{
