@@ -96,3 +96,17 @@ def test_two_altitude_search_end_to_end_in_teleport_mode(tmp_path):
     assert scores.f1.shape == (4, TWO_ALT.budget_T) and np.isfinite(scores.f1).all()
     with pytest.raises(UavsearchError, match="another viewpoint lattice"):
         build_agent("learned", "learned", SearchConfig(), checkpoint=out)
+
+
+def test_a_teleport_views_shared_grid_projection_is_the_one_make_view_computes():
+    """Every scene of a lattice shares each position's projection: the same arrays as computed per view."""
+    from uavsearch.geometry import cell_label_image, cell_pixel_areas, nadir_camera_pose
+    from uavsearch.search.views import _teleport_geometry
+
+    config = CacheKey("wide", "large", "val").search_config
+    for position in config.lattice.positions_enu[[0, 5, -1]]:
+        label, areas = _teleport_geometry(config.grid, config.intrinsics, tuple(position.tolist()))
+        pose = nadir_camera_pose(position)
+        assert np.array_equal(label, cell_label_image(config.grid, config.intrinsics, pose))
+        assert np.array_equal(areas, cell_pixel_areas(config.grid, config.intrinsics, pose).astype(np.float32))
+        assert not label.flags.writeable and _teleport_geometry(config.grid, config.intrinsics, tuple(position.tolist()))[0] is label
