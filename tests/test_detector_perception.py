@@ -67,7 +67,8 @@ def test_by_name_tag_and_bad_input():
     assert isinstance(net, DetectorPerception) and extra == {}
     assert perception_tag(net) == perception_tag(load_perception(name)[0])
     assert perception_tag(net) != perception_tag(load_perception(name + "?floor=0.05")[0])
-    for bad, words in ((f"detector:{__file__}:nothing", "no function"), ("detector:no_such_module_xyz:f", "cannot import"),
+    for bad, words in ((f"detector:{__file__}:nothing", "no function"),
+                       ("detector:no_such_module_xyz:f", "cannot import"),
                        ("detector:justaname", "MODULE:FUNCTION"), (name + "?flor=1", "unknown option"),
                        (name + "?floor=2", "floor must be in")):
         with pytest.raises(UavsearchError, match=words):

@@ -3,7 +3,8 @@ so a perception of ours and a detector of your own compare on one scale.
 
     uavsearch dataset export --setting wide --part test --scenes 5 --format coco --out runs/wide_test_coco
     python tools/perception_box_ap.py --coco runs/wide_test_coco
-    python tools/perception_box_ap.py --coco runs/wide_test_coco --perception detector:examples/detector_plugin.py:detect
+    python tools/perception_box_ap.py --coco runs/wide_test_coco \
+        --perception detector:examples/detector_plugin.py:detect
 
 Our perception is per cell: it says whether a 5 m cell holds a person, not where in it. The boxes read out of it:
 - **person head**: the dense person head every shipped net has (stage 1's auxiliary target, the renderer's person
@@ -100,7 +101,8 @@ def detections(net, images, labels, alts, thresholds=(0.3, 0.5), batch: int = 16
             for t in thresholds:
                 out.setdefault(f"person head, components > {t:g}", []).extend(head_boxes(p, t) for p in prob)
         p = o.log_probs[..., 1].exp().cpu().numpy()
-        out.setdefault("cell footprints, p(occupied)", []).extend(footprint_boxes(lab, q) for lab, q in zip(labels[sl], p))
+        footprints = out.setdefault("cell footprints, p(occupied)", [])
+        footprints.extend(footprint_boxes(lab, q) for lab, q in zip(labels[sl], p))
     return out
 
 

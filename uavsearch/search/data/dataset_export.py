@@ -271,7 +271,8 @@ def export_lattice(args: ExportArgs) -> Path:
 def _run_captures(run: Path) -> list[tuple[str, Path, dict]]:
     """(stem, image path, capture line) of every photo of a run folder: its own captures.jsonl, or one per
     vehicle of a team (vehicle<I>/captures.jsonl)."""
-    logs = sorted([run / "captures.jsonl"] if (run / "captures.jsonl").is_file() else run.glob("vehicle*/captures.jsonl"))
+    own = run / "captures.jsonl"
+    logs = sorted([own] if own.is_file() else run.glob("vehicle*/captures.jsonl"))
     if not logs:
         raise UavsearchError(f"{run} holds no captures.jsonl: not a flight's run folder")
     out = []
