@@ -10,7 +10,8 @@ and the PettingZoo team env (3 vehicles, 80 s), whose row counts vehicle-steps (
 
 A second table runs the 256-env vector env as a user does: at torch's default thread count on its own, beside one
 busy neighbour (a spinning process the bench starts and stops), and at one thread, with the load beside each row;
-the line under it checks busy >= 0.8x one thread, >= 20,000 steps/s and >= 1000x the live-rendering env.
+and one thread beside the neighbour; the line under it checks busy >= 0.8x one thread, >= 20,000 steps/s and
+>= 1000x the live-rendering env.
 """
 
 from __future__ import annotations
@@ -141,8 +142,11 @@ def main(argv=None) -> int:
     print("\n| native vector env, cells, 256 envs | steps/s | load (1 min) |\n|---|---|---|")
     for name, (rate, load) in vec.items():
         print(f"| {name} | {rate:,.0f} | {load:.2f} |")
-    busy, one, live_rate = vec[f"{threads} torch threads, one busy neighbour"][0], vec["1 torch thread"][0], rows[1][1][0]
-    print(f"\nbusy neighbour / one thread {busy / one:.2f} (want >= 0.80); busy {busy:,.0f} steps/s (want >= 20,000); "
+    busy, one = vec[f"{threads} torch threads, one busy neighbour"][0], vec["1 torch thread"][0]
+    live_rate = rows[1][1][0]
+    same = vec["1 torch thread, one busy neighbour"][0]
+    print(f"\nbusy neighbour / one thread {busy / one:.2f} (want >= 0.80; beside the same neighbour "
+          f"{busy / same:.2f}: on a loaded machine the neighbour's share of the cores shows too); busy {busy:,.0f} steps/s (want >= 20,000); "
           f"busy / live rendering {busy / live_rate:,.0f}x (want >= 1000x)")
     return 0
 
@@ -155,14 +159,22 @@ def bench_threads(env_id: str, seconds: float, threads: int, **kw) -> dict[str, 
         spin = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
         try:
             rate = bench_vector(env_id, 256, seconds, **kw)[0]
-            out[f"{threads} torch threads, " + ("one busy neighbour" if busy else "on its own")] = (rate, os.getloadavg()[0])
+            name = f"{threads} torch threads, " + ("one busy neighbour" if busy else "on its own")
+            out[name] = (rate, os.getloadavg()[0])
         finally:
             if spin is not None:
                 spin.kill()
                 spin.wait()
-    torch.set_num_threads(1)  # the reference row; this script's own process
+    torch.set_num_threads(1)  # the reference rows; this script's own process
     try:
         out["1 torch thread"] = (bench_vector(env_id, 256, seconds, **kw)[0], os.getloadavg()[0])
+        spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        try:
+            out["1 torch thread, one busy neighbour"] = (bench_vector(env_id, 256, seconds, **kw)[0],
+                                                         os.getloadavg()[0])
+        finally:
+            spin.kill()
+            spin.wait()
     finally:
         torch.set_num_threads(threads)
     return out
