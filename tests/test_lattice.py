@@ -101,12 +101,12 @@ def test_two_altitude_search_end_to_end_in_teleport_mode(tmp_path):
 def test_a_teleport_views_shared_grid_projection_is_the_one_make_view_computes():
     """Every scene of a lattice shares each position's projection: the same arrays as computed per view."""
     from uavsearch.geometry import cell_label_image, cell_pixel_areas, nadir_camera_pose
-    from uavsearch.search.views import _teleport_geometry
+    from uavsearch.search.views import nadir_view_geometry
 
     config = CacheKey("wide", "large", "val").search_config
     for position in config.lattice.positions_enu[[0, 5, -1]]:
-        label, areas = _teleport_geometry(config.grid, config.intrinsics, tuple(position.tolist()))
+        label, areas = nadir_view_geometry(config.grid, config.intrinsics, tuple(position.tolist()))
         pose = nadir_camera_pose(position)
         assert np.array_equal(label, cell_label_image(config.grid, config.intrinsics, pose))
         assert np.array_equal(areas, cell_pixel_areas(config.grid, config.intrinsics, pose).astype(np.float32))
-        assert not label.flags.writeable and _teleport_geometry(config.grid, config.intrinsics, tuple(position.tolist()))[0] is label
+        assert not label.flags.writeable and nadir_view_geometry(config.grid, config.intrinsics, tuple(position.tolist()))[0] is label

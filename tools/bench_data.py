@@ -10,6 +10,7 @@ wall projected for 100 scenes on 2 cores (from CPU seconds) and the load beside 
 from __future__ import annotations
 
 import argparse
+import ctypes
 import os
 import tempfile
 import time
@@ -21,6 +22,27 @@ from uavsearch.search.data.view_cache import CacheKey, build_view_cache, render_
 from uavsearch.search.perception import PerceptionConfig, PerceptionNet
 
 
+def _adopt_orphans() -> None:
+    """Make this process the reaper of its orphaned descendants (Linux): a render pool's processes end
+    before their render workers, whose CPU seconds then count in this tree once reaped (_reap)."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(36, 1, 0, 0, 0)  # PR_SET_CHILD_SUBREAPER
+    except (OSError, AttributeError):
+        pass
+
+
+def _reap(seconds: float = 3.0) -> None:
+    """Reap the adopted render workers as they exit (they stop once their pool process is gone)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        try:
+            pid, _ = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            return
+        if pid == 0:
+            time.sleep(0.1)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", type=int, default=4, help="the first N scenes of the part")
@@ -29,6 +51,7 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2, help="local render processes")
     ap.add_argument("--out", default=None, help="cache folder to build into (kept); default a temporary one")
     args = ap.parse_args()
+    _adopt_orphans()
     if args.scenes < 1:
         ap.error("--scenes must be at least 1")
     torch.manual_seed(0)  # a seeded stand-in net: the shipped one's architecture and cost, reproducible bytes
@@ -43,12 +66,14 @@ def main() -> None:
         world = world_tag(key.search_config, key.family)  # the folder build_view_cache reads its renders from
         render_lattice_views(key, scenes, root=f"{cache_dir}/lattice_views/{world}/{key.part_name}",
                              workers=args.workers, progress=True)
-        t1, c1 = time.perf_counter(), process_tree_cpu_s()
+        t1 = time.perf_counter()
+        _reap()
+        c1, t1_reaped = process_tree_cpu_s(), time.perf_counter()
         path = build_view_cache(net, key, scenes, cache_dir=cache_dir, workers=args.workers, progress=True)
         t2, c2 = time.perf_counter(), process_tree_cpu_s()
         load1 = os.getloadavg()[0]
     render_s, render_cpu = t1 - t0, c1 - c0
-    perceive_s, perceive_cpu = t2 - t1, c2 - c1  # the renders above are reused: this is perception
+    perceive_s, perceive_cpu = t2 - t1_reaped, c2 - c1  # the renders above are reused: this is perception
     cpu_per_scene = (render_cpu + perceive_cpu) / len(scenes)
     print(f"\n{args.family} {args.part}: {len(scenes)} scenes x {key.search_config.lattice.num_positions} views, "
           f"{args.workers} render workers, cache {path if args.out else '(temporary)'}")

@@ -73,7 +73,7 @@ class Vehicle(Protocol):
 
 
 @functools.lru_cache(maxsize=256)
-def _teleport_geometry(grid: Grid, intrinsics: CameraIntrinsics, position_enu: tuple) -> tuple[np.ndarray, np.ndarray]:
+def nadir_view_geometry(grid: Grid, intrinsics: CameraIntrinsics, position_enu: tuple) -> tuple[np.ndarray, np.ndarray]:
     """A nadir view's grid projection depends on its position only: every scene of a lattice shares it
     (a third of a teleport capture's own time). Read-only, as the views share it."""
     pose = nadir_camera_pose(np.array(position_enu, dtype=float))
@@ -110,7 +110,7 @@ class TeleportVehicle:
         self.renders += 1
         view = make_view(r.rgb, pose, self.config.grid, self.config.intrinsics, r.person_mask,
                          self.config.min_cell_area_px, r.person_fraction, r.person_index,
-                         _teleport_geometry(self.config.grid, self.config.intrinsics, tuple(pos.tolist())))
+                         nadir_view_geometry(self.config.grid, self.config.intrinsics, tuple(pos.tolist())))
         if self._cache is not None:
             self._cache[key] = view
         return view
@@ -125,4 +125,4 @@ class TeleportVehicle:
         self.close()
 
 
-__all__ = ["View", "Vehicle", "TeleportVehicle", "make_view"]
+__all__ = ["View", "Vehicle", "TeleportVehicle", "make_view", "nadir_view_geometry"]

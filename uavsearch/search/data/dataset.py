@@ -21,8 +21,8 @@ once and kept. A dataset is a folder, local or at an fsspec URL (parallel.Store)
         scene_seed, occupied_cells          ()-shaped int64
 
 Cell label images are not stored: the teleport camera is exactly nadir at a lattice position, so the label
-image is a pure function of the position (geometry.cell_label_image) and is recomputed once per position
-at load time.
+image is a pure function of the position (views.nadir_view_geometry), computed once per position and
+process and shared by every scene, rendered or loaded.
 
 Generation is one per-scene task (render_scene_shard) mapped over the scenes by parallel.map_scenes, on
 local processes or on Ray; resumable (scenes whose manifest entry matches are skipped; a shard is written
@@ -46,14 +46,13 @@ from typing import Iterable, NamedTuple
 import numpy as np
 
 from uavsearch.errors import UavsearchError
-from uavsearch.geometry import cell_label_image, nadir_camera_pose
 from uavsearch.parallel import Executor, Store, finished, manifest_entry, map_scenes, npz_bytes, process_tree_cpu_s
 from uavsearch.paths import REPO_ROOT
 from uavsearch.world.scene import generate_scene, scene_to_json
 from uavsearch.world.settings import SETTINGS, generate_setting_scene, scene_seeds, setting_params
 
 from ..config import SearchConfig, config_from_dict
-from ..views import TeleportVehicle
+from ..views import TeleportVehicle, nadir_view_geometry
 
 FORMAT = "uavsearch-views/2"
 DATA_DIR = REPO_ROOT / "data" / "views"
@@ -393,7 +392,7 @@ def load_views(root, scenes: Iterable[tuple[int, int]] | None = None, start_only
     cat = {k: np.concatenate(v) for k, v in parts.items()}
     uniq, label_id = np.unique(cat["lattice_index"], return_inverse=True)
     lattice = config.lattice.positions_enu
-    labels = np.stack([cell_label_image(config.grid, config.intrinsics, nadir_camera_pose(lattice[i])) for i in uniq])
+    labels = np.stack([nadir_view_geometry(config.grid, config.intrinsics, tuple(lattice[i].tolist()))[0] for i in uniq])
     return ViewSet(
         images=cat["images"], label_id=label_id.astype(np.int64), labels=labels,
         lattice_index=cat["lattice_index"], position_enu=cat["position_enu"], cell_area_px=cat["cell_area_px"],
