@@ -263,7 +263,7 @@ def test_the_envs_take_a_device_and_refuse_cuda_without_one():
     mark_host(cache)
     _host_lattices(WIDE)
     with HostVsDevice():
-        env = gym.make("uavsearch/WideSearch-v0", cache=cache, device="cpu", progress=False)
+        env = gym.make("uavsearch/WideSearch-v0", cache=cache, device="cpu", progress=False, budget="240")
         _, info = env.reset(seed=0)
         for _ in range(3):
             env.step(int(np.flatnonzero(info["action_mask"])[0]))

@@ -138,7 +138,7 @@ def calibrated_logit(p, area_px, coef):
     clutter far more often than for a person, and how often depends on how many pixels the cell covers."""
     lp = torch.logit(p.clamp(EPS, 1.0 - EPS))
     la = area_px.clamp(min=1.0).log()
-    c = torch.as_tensor(coef, dtype=p.dtype, device=p.device)
+    c = torch.as_tensor(coef, dtype=p.dtype).to(p)  # wherever p lives
     return (c[0] + c[1] * la) * lp + c[2] + c[3] * la
 
 
