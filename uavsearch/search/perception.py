@@ -636,8 +636,10 @@ class PooledPerception(nn.Module):
 
     # -- forward -----------------------------------------------------------------------------------
     def forward_all(self, images, labels, geometry: tuple[torch.Tensor, torch.Tensor] | None = None,
-                    altitude_m=None, cells: torch.Tensor | None = None) -> ViewOutputs:
-        """The pooled forward pass: backbone once per image, all cells at once.
+                    altitude_m=None, cells: torch.Tensor | None = None,
+                    pooling: CellPooling | None = None) -> ViewOutputs:
+        """The pooled forward pass: backbone once per image, all cells at once. `pooling`: cell_pooling of
+        `labels` when the caller already has it (a view cache's lattice repeats the same labels every scene).
 
         `geometry` ((B, N) pixels, (B, N, 2) centroids) overrides the cells' geometry features: training on
         crops passes those of the whole view, so a cell cut by the crop still reads as the cell it is.
@@ -653,7 +655,7 @@ class PooledPerception(nn.Module):
         if lab.shape[0] != x.shape[0] or lab.shape[1:] != x.shape[2:]:
             raise UavsearchError(f"label images {tuple(lab.shape)} do not match images {tuple(x.shape)}")
         deep, fmap, person = self.backbone.features(x)
-        pooling = cell_pooling(lab, self.cfg.stride, self.cfg.num_cells)
+        pooling = cell_pooling(lab, self.cfg.stride, self.cfg.num_cells) if pooling is None else pooling
         if geometry is not None:
             pooling = pooling._replace(pixels=torch.as_tensor(geometry[0]).to(dev),
                                        centroid=torch.as_tensor(geometry[1]).to(dev))
