@@ -110,3 +110,22 @@ def test_a_teleport_views_shared_grid_projection_is_the_one_make_view_computes()
         assert np.array_equal(label, cell_label_image(config.grid, config.intrinsics, pose))
         assert np.array_equal(areas, cell_pixel_areas(config.grid, config.intrinsics, pose).astype(np.float32))
         assert not label.flags.writeable and nadir_view_geometry(config.grid, config.intrinsics, tuple(position.tolist()))[0] is label
+
+
+def test_perception_outputs_with_shared_cell_poolings_equal_the_plain_ones():
+    """A view cache shares each lattice batch's cell pooling across scenes: the outputs stay the same bytes."""
+    from uavsearch.search.data.view_cache import perception_outputs
+    from uavsearch.search.views import nadir_view_geometry
+
+    config = SearchConfig()
+    torch.manual_seed(0)
+    net = PerceptionNet(PerceptionConfig()).eval()
+    labels = np.stack([nadir_view_geometry(config.grid, config.intrinsics, tuple(p.tolist()))[0]
+                       for p in config.lattice.positions_enu[:3]])
+    images = np.random.default_rng(0).integers(0, 256, (3, *labels.shape[1:], 3), dtype=np.uint8)
+    altitudes = np.full(3, config.altitude_m, np.float32)
+    plain = perception_outputs(net, images, labels, altitudes, batch=2)
+    poolings: dict = {}
+    for _ in range(2):  # the second scene reuses the first one's poolings
+        shared = perception_outputs(net, images, labels, altitudes, batch=2, poolings=poolings)
+        assert len(poolings) == 2 and all(np.array_equal(plain[k], shared[k]) for k in plain)
