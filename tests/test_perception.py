@@ -283,7 +283,7 @@ def test_a_checkpoint_records_its_kind_and_rebuilds_the_same_net(tmp_path, kind)
 def test_unknown_kinds_and_arguments_are_clear_errors(tmp_path):
     from uavsearch.search.perception import PerceptionNet, build_perception, register_perception
 
-    with pytest.raises(UavsearchError, match="unknown perception kind 'vgg'.*cnn, resnet"):
+    with pytest.raises(UavsearchError, match="unknown perception kind 'vgg'.*cnn, detector, resnet"):
         build_perception("vgg")
     with pytest.raises(UavsearchError, match="no argument.*layers"):
         build_perception("resnet", layers=((8, 3, 2),))

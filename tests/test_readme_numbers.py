@@ -46,12 +46,21 @@ QUOTES = [
     Quote("Makefile", "(a fresh setup takes about {} minute", "results/setup_time.md", "**about {} minute"),
     Quote("Makefile", "dependencies (about {} minute", "results/setup_time.md", "**about {} minute"),
     # flying the default mission: tools/bench_fly.py
-    Quote("README.md", "5 views chosen by the policy, land (about {} s", "results/flight/fly_timing.md",
-          "s wall, mean {} s"),
     Quote("README.md", "takes {} s of simulated flight", "results/flight/fly_timing.md", "simulated flight mean {} s"),
     # the wide missions: their mission files, and tools/wide_flights.py for the team's wall time
-    Quote("README.md", "for {} s of flight, choosing each next viewpoint among {} at {} m and {} m",
-          "missions/wide.yaml", ("mission_time_s: {}", "the next of the {} viewpoints", "viewpoint ({} m or {} m)")),
+    Quote("README.md", "search a {} m city block (10 occupied cells in groups) for {} s of simulated flight, "
+          "choosing each next viewpoint at {} m or {} m", "missions/wide.yaml",
+          ("searches a {} m x", "mission_time_s: {}", "viewpoint ({} m or {} m)")),
+    # the wide env: Table III's choices and the measured cost of a scene, as the env's code holds them
+    Quote("README.md", "(calibrated:{} at T = 8,", "uavsearch/search/envs/search_env.py",
+          '"8": Table3Task("calibrated:{}"'),
+    Quote("README.md", "calibrated:{} at 240 s)", "uavsearch/search/envs/search_env.py",
+          '"240": Table3Task("calibrated:{}"'),
+    Quote("README.md", "(about {} s to render and {} MB under cache/ each", "uavsearch/search/envs/search_env.py",
+          ("WIDE_SCENE_S = {}", "WIDE_SCENE_MB = {}")),
+    Quote("README.md", "(AF1 {} at T = 8,", "uavsearch/search/envs/search_env.py", '"viewset_per_s", {})'),
+    Quote("README.md", "{} at 240 s; `python tools/env_table3.py`", "uavsearch/search/envs/search_env.py",
+          '"survey_outer", {}),'),
     Quote("README.md", "vehicle over a {} m block", "missions/wide.yaml", "searches a {} m x"),
     Quote("README.md", "family for {} s of flight, sharing one fused map", "missions/wide_team.yaml",
           "mission_time_s: {}"),

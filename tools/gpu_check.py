@@ -146,12 +146,12 @@ def gpu_check(args) -> int:
             with contextlib.redirect_stdout(io.StringIO()):  # the trainers' own reports: only the table is ours
                 text, _, seconds = run()
             rows.append((what, str(device), text, seconds))
-            print(f"  {what}: {text} in {seconds:.1f} s", flush=True)
+            print(f"  {what}: {text} in {seconds:.2f} s", flush=True)
     print()
     print("| what | device | rate | seconds |")
     print("|---|---|---|---|")
     for what, dev, text, seconds in rows:
-        print(f"| {what} | {dev} | {text} | {seconds:.1f} |")
+        print(f"| {what} | {dev} | {text} | {seconds:.2f} |")
     return 0
 
 

@@ -498,7 +498,7 @@ def perception_kind(kind: str) -> type:
     if kind not in PERCEPTIONS and kind in KIND_MODULES:
         importlib.import_module(KIND_MODULES[kind])
     if kind not in PERCEPTIONS:
-        raise UavsearchError(f"unknown perception kind {kind!r} (known: {', '.join(sorted(PERCEPTIONS))})")
+        raise UavsearchError(f"unknown perception kind {kind!r} (known: {', '.join(sorted({*PERCEPTIONS, *KIND_MODULES}))})")
     return PERCEPTIONS[kind]
 
 
