@@ -76,11 +76,11 @@ TABLE3 = {
 # Table III fits the calibrated fusion on the family's first 20 training scenes (tools/reproduce.sh
 # --wide-train-scenes 20; `uavsearch train map --calibration-scenes 20` fits the shipped policies' alike).
 CALIBRATION_SCENES = 20
-# A wide scene's lattice views and caches, measured on the 2-core development machine: the 50 validation scenes
-# rendered (2 render processes) and run through perception in 1063 s at load 8-14; renders, features and the
-# cache's rows take 3.7 + 14.2 + 1.1 MB a scene under cache/.
+# A wide scene's lattice views and caches, measured on the 2-core development machine, quiet (load 1.1): an env's
+# first reset rendered 4 validation scenes (its one render process) and ran perception over them in 18.6 s, 76 MB
+# under cache/; renders, features and the cache's rows take 3.7 + 14.2 + 1.1 MB a scene.
 FEW_SCENES = 5  # a first reset renders at most this many scenes without being asked (limit= or render_all=True)
-WIDE_SCENE_S = 21.0
+WIDE_SCENE_S = 4.6
 WIDE_SCENE_MB = 19.0
 
 
@@ -700,7 +700,7 @@ class WideSearchEnv(ActiveSearchEnv):
 
     **Scenes** (Table III's split, ``large``): ``part="train"`` (default; 500 scenes) to learn on, ``"val"`` (50,
     where Table III chose its fusion, rule and best fixed route) or ``"test"`` (100, Table III's rows).
-    ``limit=N`` keeps the part's first N scenes. A scene's views cost about 21 s to render and 19 MB under
+    ``limit=N`` keeps the part's first N scenes. A scene's views cost about 4.6 s to render and 19 MB under
     cache/ (WIDE_SCENE_S, WIDE_SCENE_MB): the first reset says how many scenes it renders, how long and how
     big, and without ``limit`` refuses in one line to render more than a few unless ``render_all=True``.
 
