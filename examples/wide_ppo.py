@@ -19,12 +19,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from gymnasium.spaces import flatten
-from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import cleanrl_ppo  # noqa: E402
 
-from uavsearch.search.envs.search_env import TABLE3, LoopPolicyPlayer, WideSearchEnv  # noqa: E402
+from uavsearch.search.envs.search_env import TABLE3, LoopPolicyPlayer, WideSearchEnv, play_scenes  # noqa: E402
 from uavsearch.search.evaluate.bounds import bootstrap_ci  # noqa: E402
 from uavsearch.search.evaluate.wide import LABELS, fixed_agents  # noqa: E402
 from uavsearch.search.policy import load_search_model  # noqa: E402
@@ -32,14 +31,7 @@ from uavsearch.search.policy import load_search_model  # noqa: E402
 
 def play(env, act, desc: str) -> np.ndarray:
     """Final F1 per validation scene of a policy act(obs, info) -> action, played through the env."""
-    out = []
-    for seed in tqdm(env.scenes.seeds, desc=desc, unit="scene"):
-        obs, info = env.reset(options={"scene_seed": int(seed)})
-        done = False
-        while not done:
-            obs, _, done, _, info = env.step(act(obs, info))
-        out.append(info["f1"])
-    return np.asarray(out)
+    return np.asarray(play_scenes(env, act, env.scenes.seeds, desc)[0])
 
 
 def main(argv=None) -> dict:

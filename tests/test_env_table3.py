@@ -14,7 +14,7 @@ import uavsearch.envs  # noqa: F401 - registers the ids
 from uavsearch.errors import UavsearchError
 from uavsearch.paths import REPO_ROOT
 from uavsearch.search.config import setting_config
-from uavsearch.search.envs.search_env import (CALIBRATION_SCENES, TABLE3, LoopPolicyPlayer, WideSearchEnv,
+from uavsearch.search.envs.search_env import (CALIBRATION_SCENES, TABLE3, LoopPolicyPlayer, WideSearchEnv, play_scenes,
                                               cells_frame)
 from uavsearch.search.evaluate.wide import LABELS
 from uavsearch.search.fusion import CalibratedFusion
@@ -88,16 +88,7 @@ def test_cells_render_is_the_fused_map_beside_the_truth():
 
 
 def _play(env, policy, seeds):
-    player = LoopPolicyPlayer(policy, env.config)
-    f1, routes = [], []
-    for s in seeds:
-        obs, info = env.reset(options={"scene_seed": int(s)})
-        done = False
-        while not done:
-            obs, _, done, _, info = env.step(player.act(obs, info))
-        f1.append(info["f1"])
-        routes.append(info["visited"])
-    return f1, routes
+    return play_scenes(env, LoopPolicyPlayer(policy, env.config).act, seeds)
 
 
 @pytest.mark.slow

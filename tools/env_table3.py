@@ -11,9 +11,8 @@ import argparse
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
-from uavsearch.search.envs.search_env import TABLE3, LoopPolicyPlayer, WideSearchEnv
+from uavsearch.search.envs.search_env import TABLE3, LoopPolicyPlayer, WideSearchEnv, play_scenes
 from uavsearch.search.scoring import score_episode
 from uavsearch.search.search_loop import Agent, CachedViews, run_search
 from uavsearch.search.wide_policies import rule_policy
@@ -27,15 +26,7 @@ def main(argv=None) -> dict:
     env = WideSearchEnv(part="val", budget=args.budget, limit=args.scenes, render_all=True)
     task = TABLE3[args.budget]
     rule = rule_policy(env.config, task.rule)
-    player = LoopPolicyPlayer(rule, env.config)
-    f1, routes = [], []
-    for seed in tqdm(env.scenes.seeds, desc="the rule through the env", unit="scene"):
-        obs, info = env.reset(options={"scene_seed": int(seed)})
-        done = False
-        while not done:
-            obs, _, done, _, info = env.step(player.act(obs, info))
-        f1.append(info["f1"])
-        routes.append(info["visited"])
+    f1, routes = play_scenes(env, LoopPolicyPlayer(rule, env.config).act, env.scenes.seeds, "the rule through the env")
     cache = env.scenes.cache
     with torch.no_grad():
         ep = run_search(CachedViews(cache, np.arange(cache.num_scenes), env.config), Agent(env.fusion, rule))

@@ -655,6 +655,22 @@ class LoopPolicyPlayer:
         return int(action.reshape(-1)[0])
 
 
+def play_scenes(env, act, seeds, progress: str | None = None) -> tuple[list[float], list[list[int]]]:
+    """(final F1, route) per scene seed of a policy ``act(obs, info) -> action`` played through a single cells-mode
+    env (a LoopPolicyPlayer's act, a learner's); `progress` names a tqdm bar."""
+    from tqdm import tqdm
+
+    f1, routes = [], []
+    for seed in tqdm(seeds, desc=progress, unit="scene", disable=progress is None):
+        obs, info = env.reset(options={"scene_seed": int(seed)})
+        done = False
+        while not done:
+            obs, _, done, _, info = env.step(act(obs, info))
+        f1.append(info["f1"])
+        routes.append(info["visited"])
+    return f1, routes
+
+
 def wide_task(setting="wide", budget: str | int | None = "8", config: SearchConfig | None = None,
               cache=None) -> tuple[SearchConfig, str]:
     """(config, default fusion spec) of a scene family's one-budget task, as Table III searches it: budget "8"
@@ -723,5 +739,5 @@ class WideSearchEnv(ActiveSearchEnv):
         self.budget = None if budget is None else str(budget).removesuffix("s")
 
 
-__all__ = ["ActiveSearchEnv", "CALIBRATION_SCENES", "LoopPolicyPlayer", "OBS_MODES", "SceneViews", "TABLE3", "Table3Task",
+__all__ = ["ActiveSearchEnv", "CALIBRATION_SCENES", "LoopPolicyPlayer", "OBS_MODES", "play_scenes", "SceneViews", "TABLE3", "Table3Task",
            "VIEW_MODES", "WideSearchEnv", "cells_frame", "cells_space", "default_fusion", "wide_task"]
