@@ -36,6 +36,7 @@ def test_table3_constants_are_the_committed_tables():
         assert f"chosen on the validation scenes: **{task.rule}**" in part
         assert re.search(re.escape(f"{task.rule} {task.rule_val_af1:.3f}") + r"[,)]", part)
         assert f"{LABELS[task.best_fixed]} (best fixed)" in part
+        assert 0 < task.rule_val_af1 < 1 and task.source == "results/search_wide/table3.md"
     assert "--wide-train-scenes 20" in (REPO_ROOT / "tools/reproduce.sh").read_text() and CALIBRATION_SCENES == 20
 
 

@@ -18,10 +18,8 @@ method chose. `uavsearch fly` prints the table and writes it to the run folder (
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
-import re
 import time
 from pathlib import Path
 
@@ -29,11 +27,11 @@ import numpy as np
 
 from ..flight.camera import SCENE_FILE
 from ..logs.flight_log import read_flight_log
-from ..paths import REPO_ROOT, display_path
+from ..errors import UavsearchError
+from ..paths import display_path
 from ..world.scene import load_scene
 
 COMPARISON_FILE = "comparison.json"
-RESULTS_DIR = REPO_ROOT / "results"
 FIRST_VIEW = "first_view"
 OWN = "teleport_own"
 FLOWN = "flown"
@@ -61,32 +59,26 @@ class _SceneViews:
 
 
 def table3_choice(family: str, budget: str) -> dict:
-    """Table III's best fixed route and rule variant for a family and budget ("240 s", "T = 8 views"), read from
-    the committed table (results/search_<family>/table3.csv and .md); a view set searched on training scenes
-    gives way to the best hand-made route by the table's validation AF1, which needs no training views."""
+    """Table III's best fixed route and rule variant for a family and budget ("240 s", "T = 8 views"), from the
+    committed table (evaluate/table3_choices.py); a view set searched on training scenes gives way to the best
+    hand-made route by the table's validation AF1, which needs no training views."""
+    from ..search.evaluate.table3_choices import table3_choice as read_choice
     from ..search.wide_policies import RULE_VARIANTS
 
-    folder = RESULTS_DIR / f"search_{family.replace('-', '_')}"
     choice = {"best_fixed": "survey_outer", "rule_variant": None, "source": None, "note": ""}
     try:
-        with open(folder / "table3.csv", newline="") as f:
-            rows = [r for r in csv.DictReader(f) if r["setting"] == family and r["budget"] == budget]
-        text = (folder / "table3.md").read_text()
-    except OSError:
-        choice["note"] = f"no Table III of {family} in {display_path(folder)}: the hand-made defaults"
+        table = read_choice(family, budget)
+    except UavsearchError:
+        choice["note"] = f"no Table III of {family} in results/: the hand-made defaults"
         return choice
-    choice["source"] = display_path(folder / "table3.md")
-    best = next((r["key"] for r in rows if r["best_fixed"] == "True"), None)
-    if best is not None and best not in HAND_MADE:
-        val = {r["key"]: float(r["val_af1"]) for r in rows if r["key"] in HAND_MADE}
+    choice["source"], best = table.source, table.best_fixed
+    if best not in HAND_MADE:
         choice["note"] = (f"Table III's best fixed route ({best}) is a view set searched on training scenes; the best "
                           "hand-made one on its validation scenes is shown")
-        best = max(HAND_MADE, key=lambda k: (val.get(k, -1.0), -HAND_MADE.index(k))) if val else None
-    choice["best_fixed"] = best or choice["best_fixed"]
-    sections = {part.split("\n", 1)[0]: part for part in text.split("\n### ")}
-    m = re.search(r"The rule's .*?chosen on the validation scenes: \*\*([^*]+)\*\*", sections.get(f"{family}, {budget}", ""),
-                  re.S)
-    choice["rule_variant"] = m.group(1) if m and m.group(1) in RULE_VARIANTS else None
+        val = table.val_af1
+        best = max(HAND_MADE, key=lambda k: (val.get(k, -1.0), -HAND_MADE.index(k))) if val else choice["best_fixed"]
+    choice["best_fixed"] = best
+    choice["rule_variant"] = table.rule if table.rule in RULE_VARIANTS else None
     return choice
 
 

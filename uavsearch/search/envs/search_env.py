@@ -17,7 +17,7 @@ import sys
 import warnings
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -31,6 +31,7 @@ from ...world.scene import SceneSpec, scene_from_json, scene_to_json
 from ..cells import REWARD_MODES, SearchBatch, TableSource, cell_tables, observation_keys
 from ..config import SearchConfig, setting_config
 from ..episode import Observation, PolicyInput
+from ..evaluate.table3_choices import BUDGET_HEADS, Table3Choice, table3_choice
 from ..agents import make_fusion
 from ..fusion import CalibratedFusion, Fusion, calibrated_gamma
 from ..perception import perceive
@@ -58,21 +59,10 @@ def default_fusion(setting) -> str:
     return settings.setting_params(setting).task.fusion
 
 
-class Table3Task(NamedTuple):
-    """What Table III (results/search_wide/table3.md) chose on the validation scenes for one budget of the wide
-    family; tests/test_env_table3.py checks these against that file."""
-
-    fusion: str  # the fusion every row but ours and the oracles fuses with
-    rule: str  # the rule's variant (wide_policies.RULE_VARIANTS)
-    best_fixed: str  # the best fixed route (evaluate/wide.py FIXED)
-    rule_val_af1: float  # the rule's mean AF1 on the 50 validation scenes it was chosen on
-
-
-TABLE3 = {
-    "8": Table3Task("calibrated:0.25", "4 covering, resurvey below p 0.4", "viewset_per_s", 0.581),
-    "240": Table3Task("calibrated:0.75", "4 covering + 4 inner, resurvey below p 0.6, per second", "survey_outer",
-                      0.631),
-}
+# What Table III (results/search_wide/table3.md) chose on the validation scenes per budget of the wide family: the
+# fusion every row but ours fuses with, the rule's variant, the best fixed route and the rule's validation AF1
+TABLE3 = {budget: table3_choice("wide", budget) for budget in BUDGET_HEADS}
+Table3Task = Table3Choice
 # Table III fits the calibrated fusion on the family's first 20 training scenes (tools/reproduce.sh
 # --wide-train-scenes 20; `uavsearch train map --calibration-scenes 20` fits the shipped policies' alike).
 CALIBRATION_SCENES = 20
