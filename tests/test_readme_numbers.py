@@ -51,16 +51,20 @@ QUOTES = [
     Quote("README.md", "search a {} m city block (10 occupied cells in groups) for {} s of simulated flight, "
           "choosing each next viewpoint at {} m or {} m", "missions/wide.yaml",
           ("searches a {} m x", "mission_time_s: {}", "viewpoint ({} m or {} m)")),
-    # the wide env: Table III's choices and the measured cost of a scene, as the env's code holds them
-    Quote("README.md", "(calibrated:{} at T = 8,", "uavsearch/search/envs/search_env.py",
-          '"8": Table3Task("calibrated:{}"'),
-    Quote("README.md", "calibrated:{} at 240 s)", "uavsearch/search/envs/search_env.py",
-          '"240": Table3Task("calibrated:{}"'),
+    # the wide env: Table III's choices, read from the committed table (the T = 8 section comes first, so a
+    # template's first match is T = 8's; the 240 s ones name that section's own words), and a scene's cost
+    Quote("README.md", "(calibrated:{} at T = 8,", "results/search_wide/table3.md",
+          "(AF1 gain per second)**. Fusion **calibrated:{}**"),
+    Quote("README.md", "calibrated:{} at 240 s)", "results/search_wide/table3.md",
+          "then 40 m lawnmower**. Fusion **calibrated:{}**"),
     Quote("README.md", "(about {} s to render and {} MB under cache/ each", "uavsearch/search/envs/search_env.py",
           ("WIDE_SCENE_S = {}", "WIDE_SCENE_MB = {}")),
-    Quote("README.md", "(AF1 {} at T = 8,", "uavsearch/search/envs/search_env.py", '"viewset_per_s", {})'),
-    Quote("README.md", "{} at 240 s; `python tools/env_table3.py`", "uavsearch/search/envs/search_env.py",
-          '"survey_outer", {}),'),
+    Quote("README.md", "(AF1 {} at T = 8,", "results/search_wide/table3.md",
+          "**4 covering, resurvey below p 0.4** (4 covering {_}, 4 covering, per second {_}, 4 covering, resurvey "
+          "below p 0.2 {_}, 4 covering, resurvey below p 0.2, per second {_}, 4 covering, resurvey below p 0.3 {_}, "
+          "4 covering, resurvey below p 0.3, per second {_}, 4 covering, resurvey below p 0.4 {},"),
+    Quote("README.md", "{} at 240 s; `python tools/env_table3.py`", "results/search_wide/table3.md",
+          "per second {}). The learned policy: models/search_wide_240s_map.pt"),
     Quote("README.md", "vehicle over a {} m block", "missions/wide.yaml", "searches a {} m x"),
     Quote("README.md", "family for {} s of flight, sharing one fused map", "missions/wide_team.yaml",
           "mission_time_s: {}"),
