@@ -72,6 +72,31 @@ def test_fly_prints_progress_map_and_metrics(flown):
     assert summary["photos_asked"] == 2 and summary["photos_received"] == 2
 
 
+def test_the_comparison_run_beside_the_flight_is_the_one_run_after_it(flown):
+    """The end-of-flight comparison starts once the vehicle has generated the scene and runs beside the flight
+    (fly's on_scene): its rows equal those computed from the finished run folder alone, and the flight's own row
+    closes the table."""
+    from types import SimpleNamespace
+
+    from uavsearch.fly.missions import mission_from_dict
+    from uavsearch.fly.scene_baselines import COMPARISON_FILE, compare
+
+    r, run, mission = flown
+    assert r.returncode == 0, r.stdout + r.stderr
+    beside = json.loads((run / COMPARISON_FILE).read_text())
+    summary = json.loads((run / "summary.json").read_text())
+    result = SimpleNamespace(run_dir=run, labels=summary["labels"], steps=summary["steps"], acc=summary["acc"],
+                             f1=summary["f1"])
+    after = json.loads(json.dumps(compare(mission_from_dict(mission, "m.yaml"), result)))
+    assert [row["key"] for row in beside["rows"]] == ["first_view", "coverage", "greedy", "teleport_own", "flown"]
+    assert beside["rows"][:-1] == after["rows"][:-1]  # the teleport rows, to the bit
+    flown_row, again = beside["rows"][-1], after["rows"][-1]  # summary.json keeps 6 decimals of the flight's F1
+    assert flown_row.pop("f1") == pytest.approx(again.pop("f1"), abs=1e-6) and flown_row == again
+    assert {k: v for k, v in beside.items() if k not in ("rows", "wall_s")} == \
+        {k: v for k, v in after.items() if k not in ("rows", "wall_s")}
+    assert "hand-written rule" in r.stdout and "this flight" in r.stdout
+
+
 def test_flight_log_records_every_step(flown):
     _, run, mission = flown
     lines = [json.loads(ln) for ln in (run / "search.jsonl").read_text().splitlines()]

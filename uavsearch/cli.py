@@ -99,17 +99,21 @@ def _cmd_fly(args) -> int:
     # the mission is read without the agent registry (fly checks it then)
     from .fly.missions import FLY_MISSION, load_mission
     from .fly.mission_controller import VEHICLE_LOST, disk_full, fly, format_maps
+    from .fly.scene_baselines import SceneComparison
 
     mission = load_mission(args.mission or FLY_MISSION, check_registry=False)
     mission = mission.with_overrides(check_registry=False, **{"scene.seed": args.scene, "flight.speed": args.speed})
     team = {k: v for k, v in (("vehicles", args.vehicles), ("mission_time_s", args.mission_time)) if v is not None}
     if team:  # the mission's validation says what its method can fly
         mission = mission.with_team(**team)
+    # what the flight bought: other searches of its scene, computed beside the flight once the scene is known
+    comparison = None if args.no_compare else SceneComparison(mission)
     try:
         _check_fly_ports(args)
         with sigterm_as_interrupt():  # SIGTERM lands like Ctrl-C and writes the summary; a second ends at once
             r = fly(mission, connect=args.connect, out=args.out, gcs_port=args.gcs_port, api_port=args.api_port,
-                    progress=lambda line: print(line, flush=True))
+                    progress=lambda line: print(line, flush=True),
+                    on_scene=comparison.start if comparison is not None else None)
     except OSError as e:
         full = disk_full(Path(e.filename).parent if e.filename else Path(args.out or "."), e)
         if full is None:
@@ -127,11 +131,9 @@ def _cmd_fly(args) -> int:
     f1 = f"{r.f1:.3f}" if r.f1 is not None else "n/a"
     print(f"{r.status}: {r.steps} view(s); Aacc {acc}  F1 {f1}  sim time {sim}  wall time {r.wall_s:.1f} s "
           f"(flight {r.flight_wall_s:.1f} s); photos {r.photos_received} of {r.photos_asked} received; {r.end}")
-    if r.status == "completed" and not args.no_compare:  # what the flight bought: other searches of its scene
-        from .fly.scene_baselines import compare_flight
-
+    if r.status == "completed" and comparison is not None:
         try:
-            print(compare_flight(mission, r, progress=lambda line: print(line, flush=True)))
+            print(comparison.finish(r, progress=lambda line: print(line, flush=True)))
         except (UavsearchError, KeyboardInterrupt) as e:
             print(f"uavsearch fly: no comparison ({e or 'Ctrl-C'})", file=sys.stderr)
     print(f"flight log: {r.run_dir}  (uavsearch replay {r.run_dir} --out REPLAY_DIR)")

@@ -393,7 +393,7 @@ def default_run_dir(mission) -> Path:
 
 
 def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port: int = 14550,
-        torch_threads: int = 1, api_port: int = 0) -> MissionResult:
+        torch_threads: int = 1, api_port: int = 0, on_scene=None) -> MissionResult:
     """Fly `mission` with its `mission.vehicles` vehicles: start them (unless `connect` names the link of vehicles
     someone else started), search with the mission's method, land, log; the result scores the one map.
 
@@ -401,7 +401,8 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
     and built during take-off) runs while this process loads the models. The scene's ground truth (the
     log's labels) is the one the vehicle generated (its scene.json); with `connect`, generated here.
     `torch_threads`: perception on one 224 px image gains nothing from more, and on a 2-core machine two
-    threads fight the vehicle process for the cores.
+    threads fight the vehicle process for the cores. `on_scene(spec, labels)` is called once the scene is known,
+    before take-off (the CLI starts its end-of-flight comparison there, to run beside the flight).
     """
     wall0 = time.monotonic()
     phases = {"start_unix": time.time()}  # then: wall seconds since the start at which each stage ended
@@ -445,6 +446,8 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
         spec = mission.scene_spec() if sitl is None else load_scene(sitl.wait_file(SCENE_FILE))
         labels = np.asarray(spec.occupancy_array(), dtype=bool)
         phases["scene_s"] = time.monotonic() - wall0
+        if on_scene is not None:
+            on_scene(spec, labels)
         family = {} if mission.family is None else {"setting": mission.family}
         log.header(mission=mission.model_dump(mode="json"), mission_file=mission.source, connect=connect,
                    scene={"seed": spec.seed, **family, "occupied_cells": int(labels.sum())}, labels=labels.astype(int),

@@ -137,6 +137,17 @@ def _flown_row(mission, result, method: str) -> dict:
 
 def compare(mission, result, progress=None) -> dict:
     """The comparison of a completed flight (a MissionResult of `mission`): its rows and what they were run with."""
+    scene_file = Path(result.run_dir) / SCENE_FILE
+    spec = load_scene(scene_file) if scene_file.is_file() else mission.scene_spec()
+    if progress is not None:
+        progress("comparing: the same scene searched by the first view alone, the best fixed route and the rule "
+                 "(teleport: rendered at each viewpoint) ...")
+    return with_flight(teleport_rows(mission, spec, result.labels), mission, result)
+
+
+def teleport_rows(mission, spec, labels) -> dict:
+    """The comparison's teleport rows on the scene `spec` (ground truth `labels`): everything but the flight's own
+    row, so it can run while the vehicle flies (SceneComparison)."""
     import torch
 
     from ..search.agents import PLANNERS, POLICIES, make_planner
@@ -149,15 +160,10 @@ def compare(mission, result, progress=None) -> dict:
     t0 = time.monotonic()
     mission = mission.check_registry()
     config = mission.search_config()
-    scene_file = Path(result.run_dir) / SCENE_FILE
-    spec = load_scene(scene_file) if scene_file.is_file() else mission.scene_spec()
-    labels = np.asarray(result.labels, dtype=bool)
-    own = OWN_NAMES.get(mission.policy, f"{mission.policy} {'policy' if mission.family is None else 'planner'}")
+    labels = np.asarray(labels, dtype=bool)
+    own = _own_name(mission)
     out = {"scene": int(spec.seed), "family": mission.family, "vehicles": mission.vehicles, "rows": []}
     rows, seen = out["rows"], {}
-    if progress is not None:
-        progress("comparing: the same scene searched by the first view alone, the best fixed route and the rule "
-                 "(teleport: rendered at each viewpoint) ...")
     with torch.no_grad(), TeleportVehicle(spec, config) as vehicle:
         if mission.family is None:  # the paper's settings: Table II's rows
             loaded = mission.agent(config)
@@ -198,9 +204,56 @@ def compare(mission, result, progress=None) -> dict:
             rows.append(_team_row(OWN, f"{own}, teleported", src(), fusion, method.planner, n, budget_s, max_views))
             out.update(budget=f"{budget_s:g} s of flight" + (f", at most {max_views} views" if max_views else ""),
                        fusion=fusion_name(fusion))
-    rows.append(_flown_row(mission, result, own))
     out.update(perception=display_path(mission.perception_path), wall_s=time.monotonic() - t0)
     return out
+
+
+def _own_name(mission) -> str:
+    return OWN_NAMES.get(mission.policy, f"{mission.policy} {'policy' if mission.family is None else 'planner'}")
+
+
+def with_flight(teleport: dict, mission, result) -> dict:
+    """The teleport rows of the flown scene and, last, the flight's own row."""
+    return {**teleport, "rows": [*teleport["rows"], _flown_row(mission, result, _own_name(mission))]}
+
+
+class SceneComparison:
+    """The comparison computed while the vehicle flies: `start(spec, labels)` (fly's `on_scene`, once the vehicle
+    has generated the scene) runs the teleport rows in a background thread, so their render process starts and
+    their searches run beside the flight instead of after the landing; `finish(result)` adds the flight's row.
+
+    The flight is unchanged by it: the vehicle runs in lockstep with the controller, so a busier controller only
+    makes the flight's wall time longer, never its simulated path, and every row draws from its own generator."""
+
+    def __init__(self, mission):
+        from ..world.render import start_idle_worker
+
+        self.mission, self._thread, self._rows, self._error = mission, None, None, None
+        start_idle_worker()  # the rows' render process starts while the vehicle starts and the models load
+
+    def start(self, spec, labels) -> None:
+        import threading
+
+        def run():
+            try:
+                self._rows = teleport_rows(self.mission, spec, labels)
+            except BaseException as e:  # noqa: BLE001 - said by finish(), in the command's own words
+                self._error = e
+
+        self._thread = threading.Thread(target=run, name="scene-comparison", daemon=True)
+        self._thread.start()
+
+    def finish(self, result, progress=None) -> str:
+        """Wait for the rows (saying so if they are not done), write comparison.json, return the table's text."""
+        if self._thread is None:  # no scene was handed over (e.g. a vehicle someone else started): compute it now
+            return compare_flight(self.mission, result, progress)
+        if self._thread.is_alive() and progress is not None:
+            progress("comparing: the same scene searched by the first view alone, the best fixed route and the rule "
+                     "(teleport: rendered at each viewpoint) ...")
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return _write(with_flight(self._rows, self.mission, result), result)
 
 
 def format_comparison(c: dict) -> str:
@@ -225,9 +278,13 @@ def format_comparison(c: dict) -> str:
 
 def compare_flight(mission, result, progress=print) -> str:
     """Compare a completed flight, write comparison.json into its run folder, and return the table's text."""
-    c = compare(mission, result, progress)
+    return _write(compare(mission, result, progress), result)
+
+
+def _write(c: dict, result) -> str:
     (Path(result.run_dir) / COMPARISON_FILE).write_text(json.dumps(c, indent=1) + "\n")
     return format_comparison(c)
 
 
-__all__ = ["COMPARISON_FILE", "compare", "compare_flight", "format_comparison", "table3_choice"]
+__all__ = ["COMPARISON_FILE", "SceneComparison", "compare", "compare_flight", "format_comparison", "table3_choice",
+           "teleport_rows", "with_flight"]

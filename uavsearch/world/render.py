@@ -712,12 +712,18 @@ def _stop_idle_workers() -> None:
             w.kill()
 
 
+def start_idle_worker() -> None:
+    """An idle worker started now (unless one is idle), which the next isolated SceneRenderer takes: its
+    interpreter and PyBullet start (0.3-0.5 s) run beside the caller's own work instead of in the renderer's."""
+    if not _IDLE:
+        _IDLE.append(_Worker())
+
+
 def generate_in_worker(seed: int, occupied_cells: int) -> SceneSpec:
     """generate_scene(seed, occupied_cells), run in an idle worker (started if none), which the next
     isolated SceneRenderer then takes: the generator's 0.5-1 s of Python run beside the caller's own work
     (a flight's vehicle: importing and building its physics) instead of holding its GIL."""
-    if not _IDLE:
-        _IDLE.append(_Worker())
+    start_idle_worker()
     worker = _IDLE[-1]
     try:
         return scene_from_json(worker.call("generate", int(seed), int(occupied_cells)))
