@@ -5,9 +5,10 @@ Table III's rule and its best fixed route with the paired 95% bootstrap interval
     python examples/wide_ppo.py --long           # 50 training scenes, all 50 validation scenes, 10x the steps
 
 Training is examples/cleanrl_ppo.py's PPO on the native vector env of the family's first training scenes
-(rendered on first use, about 21 s a scene); the best fixed route is Table III's view set searched on those
-same training scenes (evaluate/wide.py fixed_agents); the rule and the route are played through the same env as
-the PPO actor (search_env.LoopPolicyPlayer), so all three are scored on the same maps.
+(rendered on first use, about 5 s a scene on 2 cores: search_env.WIDE_SCENE_S); the best fixed route is Table
+III's view set searched on those same training scenes (evaluate/wide.py fixed_agents); the rule and the route
+are played through the same env as the PPO actor (search_env.LoopPolicyPlayer), so all three are scored on the
+same maps.
 """
 
 from __future__ import annotations
