@@ -111,6 +111,34 @@ def test_flight_log_round_trip_and_torn_last_line(tmp_path):
     assert len(log.steps) == 3
 
 
+def test_a_header_known_later_comes_first_and_once(tmp_path):
+    """header_later: a flight arms while its models load; whatever is written first (the header itself, a
+    failure, a step or the summary), the header leads the log, and only once."""
+    asked = []
+
+    def fields():
+        asked.append(1)
+        return dict(labels=np.zeros(100, dtype=int), grid={"n": 10, "cell_m": 5.0}, mission={"name": "m"})
+
+    for first in ("failure", "step", "summary", "header"):
+        run = tmp_path / first
+        w = FlightLogWriter(run, tlog=False)
+        w.header_later(fields)
+        if first == "failure":
+            w.failure(step=None, error="arming refused")
+        elif first == "step":
+            w.step(_step(0))
+        elif first == "summary":
+            w.summary({"status": "failed: arming refused"})
+        w.write_header()
+        w.step(_step(1))
+        w.close()
+        lines = [json.loads(ln) for ln in (run / "search.jsonl").read_text().splitlines()]
+        assert lines[0]["type"] == "header" and [ln["type"] for ln in lines].count("header") == 1, first
+        assert read_flight_log(run).header["mission"] == {"name": "m"}
+    assert len(asked) == 4
+
+
 def test_not_a_flight_log(tmp_path):
     with pytest.raises(LogError, match="no search.jsonl"):
         read_flight_log(tmp_path)

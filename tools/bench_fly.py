@@ -5,11 +5,13 @@ beside the time `import torch` takes in the same run (the floor of any command t
                               [--out results/flight/fly_timing.md]
 
 Each flight is `python -m uavsearch fly` in a fresh process. Stages (wall seconds, each from the end of
-the one before): imports = process start until the mission controller runs (Python, torch, the
-controller's modules, reading the mission); agent = loading the checkpoints (the vehicle process starts
-meanwhile); scene = waiting for the vehicle's scene.json (the labels); vehicle = waiting for the vehicle
-to be ready; take-off = link up, arm, climb to the search altitude; search = the T views (goto, settle,
-photo, perception, fusion, policy); landing = down and disarmed; exit = printing and leaving. `sim` is
+the one before): imports = process start until the mission controller runs (the controller's modules,
+reading the mission); scene = waiting for the vehicle's scene.json (the vehicle process starts, while torch
+and the checkpoints load in a thread); vehicle = waiting for the vehicle to be ready; arm = link up, health,
+arming; models = waiting for the checkpoints after that (0 when they were ready first); take-off = the climb
+to the search altitude; search = the T views (goto, settle, photo, perception, fusion, policy); landing =
+down and disarmed; exit = the end-of-flight comparison's rest (it runs beside the flight), printing and
+leaving. `sim` is
 the vehicle's clock over the flight; `move sim` the vehicle's clock per move after the first view (goto,
 settle, photo). CPU = the controller's own CPU seconds (the vehicle's are in its sitl.log). The load
 average beside them says how shared the machine was. `--out` writes the same table as markdown (the file
@@ -39,8 +41,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from uavsearch.fly.missions import load_mission  # noqa: E402
 from uavsearch.logs.flight_log import read_flight_log  # noqa: E402
 
-STAGES = ("imports", "agent", "scene", "vehicle", "take-off", "search", "landing", "exit")
-_MARKS = ("agent_s", "scene_s", "vehicle_ready_s", "took_off_s", "searched_s", "landed_s")
+STAGES = ("imports", "scene", "vehicle", "arm", "models", "take-off", "search", "landing", "exit")
+_MARKS = ("scene_s", "vehicle_ready_s", "armed_s", "models_s", "took_off_s", "searched_s", "landed_s")
 
 
 def _child_cpu() -> float:

@@ -29,6 +29,7 @@ import json
 import math
 import os
 import shutil
+import threading
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -196,6 +197,40 @@ class AgentSearch:
                 "wall_phases_s": {"agent": self.loaded.description}}
 
 
+class _Models:
+    """The mission's models, loaded in a thread from fly's start: importing torch is most of a second, which the
+    vehicle's start-up, link and arming hide. `result()` waits for them (and raises what their loading raised)."""
+
+    def __init__(self, mission, method, torch_threads: int, progress, phases: dict, wall0: float):
+        self._mission, self._error = mission, None
+        self._thread = threading.Thread(target=self._load, args=(method, torch_threads, progress, phases, wall0),
+                                        name="models", daemon=True)
+        self._thread.start()
+
+    def _load(self, method, torch_threads, progress, phases, wall0) -> None:
+        try:
+            import torch
+
+            torch.set_num_threads(int(torch_threads))
+            self._mission = self._mission.check_registry()  # its names, if read without the registry (REGISTRY)
+            method.load(self._mission, progress)
+            import_rotation_in_background()  # the first view's pose needs it; the take-off hides it
+            phases["agent_s"] = time.monotonic() - wall0
+        except BaseException as e:  # noqa: BLE001 - raised in the flying thread by result()
+            self._error = e
+
+    def loaded(self) -> bool:
+        self._thread.join()
+        return self._error is None
+
+    def result(self):
+        """The mission checked against the registry, once its models are loaded."""
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._mission
+
+
 def check_vehicle_scene(vehicle: MavlinkVehicle, spec, config, mission_uses_spec_file: bool = False) -> str:
     """What a vehicle we did not start simulates (SIM_SCENE_* parameters, CAMERA_INFORMATION) against the scene
     and camera we score against: a MissionError line on a mismatch, else a note of what was checked."""
@@ -232,19 +267,25 @@ def check_vehicle_scene(vehicle: MavlinkVehicle, spec, config, mission_uses_spec
 
 
 def fly_search(vehicles: list[MavlinkVehicle], method, recorder: FlightRecorder, progress=print,
-               phases: dict | None = None, wall0: float = 0.0, before_takeoff=None) -> str:
+               phases: dict | None = None, wall0: float = 0.0, before_takeoff=None, arm_first: bool = False) -> str:
     """Connect, take off together, search with `method` (AgentSearch, TeamSearch), every view recorded; returns the
     status. `phases` gets the wall time (since `wall0`) at which the take-off and the search ended;
-    `before_takeoff()` runs once the links are up (a MissionError from it ends the mission on the ground)."""
-    import torch
-
+    `before_takeoff()` runs once the links are up (a MissionError from it ends the mission on the ground);
+    `arm_first`: one vehicle is armed before it (fly's own vehicle, while the models finish loading: the same
+    commands at the same simulated times as arming at take-off, since the vehicle runs in lockstep)."""
     phases = {} if phases is None else phases
     log, run_dir, lead = recorder.log, recorder.run_dir, vehicles[0]
     try:
         for v in vehicles:
             v.connect()
+        if arm_first and len(vehicles) == 1:
+            lead.arm()
+        phases["armed_s"] = time.monotonic() - wall0
         if before_takeoff is not None:
             before_takeoff()
+        phases["models_s"] = time.monotonic() - wall0
+        import torch  # loaded by now (fly's models)
+
         _take_off(vehicles)
         phases["took_off_s"] = time.monotonic() - wall0
         with torch.no_grad():
@@ -401,8 +442,8 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
     and built during take-off) runs while this process loads the models. The scene's ground truth (the
     log's labels) is the one the vehicle generated (its scene.json); with `connect`, generated here.
     `torch_threads`: perception on one 224 px image gains nothing from more, and on a 2-core machine two
-    threads fight the vehicle process for the cores. `on_scene(spec, labels)` is called once the scene is known,
-    before take-off (the CLI starts its end-of-flight comparison there, to run beside the flight).
+    threads fight the vehicle process for the cores. `on_scene(spec, labels)` is called once the scene and the
+    models are known, before take-off (the CLI starts its end-of-flight comparison there, beside the flight).
     """
     wall0 = time.monotonic()
     phases = {"start_unix": time.time()}  # then: wall seconds since the start at which each stage ended
@@ -436,33 +477,42 @@ def fly(mission, connect: str | None = None, out=None, progress=print, gcs_port:
                 v.watch(_watch(sitl))
         progress(f"models    loading {mission.fusion} fusion + {mission.policy} policy (torch)"
                  + (" while the vehicle starts ..." if sitl is not None else " ..."))
-        import torch  # while the vehicle starts (see the note at the imports)
-
-        torch.set_num_threads(int(torch_threads))
-        mission = mission.check_registry()  # its names, if it was read without the registry (REGISTRY)
-        method.load(mission, progress)
-        import_rotation_in_background()  # the first view's pose needs it; the vehicle's start and take-off hide it
-        phases["agent_s"] = time.monotonic() - wall0
+        models = _Models(mission, method, torch_threads, progress, phases, wall0)
+        if connect is not None:  # someone else's vehicle: nothing is asked of it before the models are known good
+            mission = models.result()
         spec = mission.scene_spec() if sitl is None else load_scene(sitl.wait_file(SCENE_FILE))
         labels = np.asarray(spec.occupancy_array(), dtype=bool)
         phases["scene_s"] = time.monotonic() - wall0
-        if on_scene is not None:
-            on_scene(spec, labels)
         family = {} if mission.family is None else {"setting": mission.family}
-        log.header(mission=mission.model_dump(mode="json"), mission_file=mission.source, connect=connect,
-                   scene={"seed": spec.seed, **family, "occupied_cells": int(labels.sum())}, labels=labels.astype(int),
-                   grid={"n": config.grid.n, "cell_m": config.grid.cell_m}, **method.header(),
-                   home=mission.home.model_dump(), started_utc=datetime.now(timezone.utc).isoformat(),
-                   tlog_clock="simulated (vehicle time_boot_ms from the start's wall time)")
+        started = datetime.now(timezone.utc).isoformat()
+
+        def header() -> dict:  # the method's fields once its models are loaded (none if they failed to load)
+            return dict(mission=mission.model_dump(mode="json"), mission_file=mission.source, connect=connect,
+                        scene={"seed": spec.seed, **family, "occupied_cells": int(labels.sum())},
+                        labels=labels.astype(int), grid={"n": config.grid.n, "cell_m": config.grid.cell_m},
+                        **(method.header() if models.loaded() else {}), home=mission.home.model_dump(),
+                        started_utc=started, tlog_clock="simulated (vehicle time_boot_ms from the start's wall time)")
+
+        log.header_later(header)
         if sitl is not None:
             sitl.wait_ready()
         phases["vehicle_ready_s"] = time.monotonic() - wall0
         fwall0 = time.monotonic()
         recorder = FlightRecorder(log, labels, run_dir, progress)
+
+        def before_takeoff() -> None:  # the models (a MissionError ends the mission on the ground); a vehicle
+            nonlocal mission  # someone else started: is it simulating this mission's scene?
+            mission = models.result()
+            log.write_header()  # before the flight's images take the run folder's disk
+            if connect is not None:
+                for v in vehicles:
+                    progress(check_vehicle_scene(v, spec, config, mission.spec_path is not None))
+            if on_scene is not None:  # after the models: their import is not slowed by it
+                on_scene(spec, labels)
+
         try:
-            check = None if connect is None else lambda: [
-                progress(check_vehicle_scene(v, spec, config, mission.spec_path is not None)) for v in vehicles]
-            status = fly_search(vehicles, method, recorder, progress, phases=phases, wall0=wall0, before_takeoff=check)
+            status = fly_search(vehicles, method, recorder, progress, phases=phases, wall0=wall0,
+                                before_takeoff=before_takeoff, arm_first=connect is None)
         except KeyboardInterrupt as e:
             status = "interrupted"
             _log_failure(log, step=None, error=f"interrupted ({e or 'Ctrl-C'})", sim_time_s=vehicles[0].sim_time_s)

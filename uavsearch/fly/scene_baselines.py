@@ -37,6 +37,7 @@ OWN = "teleport_own"
 FLOWN = "flown"
 # Table III's hand-made fixed routes (the registry builds them); its view sets are searched on training scenes
 HAND_MADE = ("lawnmower_high", "lawnmower_low", "survey_inner", "survey_outer")
+BACKGROUND_NICE = 10  # the priority offset of the render process of rows computed beside a flight
 OWN_NAMES = {"map": "learned wide-area policy", "learned": "learned policy (paper)", "reactive": "reactive policy"}
 
 
@@ -226,16 +227,16 @@ class SceneComparison:
     makes the flight's wall time longer, never its simulated path, and every row draws from its own generator."""
 
     def __init__(self, mission):
-        from ..world.render import start_idle_worker
-
         self.mission, self._thread, self._rows, self._error = mission, None, None, None
-        start_idle_worker()  # the rows' render process starts while the vehicle starts and the models load
 
     def start(self, spec, labels) -> None:
         import threading
 
         def run():
+            from ..world.render import start_idle_worker
+
             try:
+                start_idle_worker(nice=BACKGROUND_NICE)  # the rows' renderer: the flight keeps the cores first
                 self._rows = teleport_rows(self.mission, spec, labels)
             except BaseException as e:  # noqa: BLE001 - said by finish(), in the command's own words
                 self._error = e

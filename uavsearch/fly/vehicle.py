@@ -362,7 +362,8 @@ class MavlinkVehicle:
         takes off together: every vehicle begins, then one wait for all)."""
         st, s = self.settings, self.system
         alt_amsl = self._takeoff_alt_amsl()
-        self.arm()
+        if not self.armed:  # fly arms its own vehicle while the models load (mission_controller.fly_search)
+            self.arm()
         r = s.commands.long(M.MAV_CMD_NAV_TAKEOFF, math.nan, 0, 0, math.nan, math.nan, math.nan, alt_amsl)
         if r != M.MAV_RESULT_ACCEPTED:
             raise CommandError(f"takeoff refused ({s.last_texts(2) or f'MAV_RESULT {r}'})", M.MAV_CMD_NAV_TAKEOFF, r)

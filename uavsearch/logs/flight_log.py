@@ -74,6 +74,7 @@ class FlightLogWriter:
         self.views = 0  # step records written
         self._known: dict = {}  # the provisional summary's fields from the header
         self._final = False  # the final summary is written: no provisional one replaces it
+        self._header_fields = None  # header_later's callable, until the header is written
 
     def _write(self, record: dict | str) -> None:
         self._f.write((record if isinstance(record, str) else dumps_line(record)) + "\n")
@@ -97,12 +98,26 @@ class FlightLogWriter:
             (self.run_dir / RESERVE).unlink(missing_ok=True)
         self._provisional()
 
+    def header_later(self, fields) -> None:
+        """The header from `fields()`, written by `write_header()` or else just before the first record after it:
+        a flight arms while its models load, and the header names them (nothing that follows a header comes
+        before it)."""
+        self._header_fields = fields
+
+    def write_header(self) -> None:
+        """header_later's header, now (once; nothing if there is none pending)."""
+        if self._header_fields is not None:
+            fields, self._header_fields = self._header_fields, None
+            self.header(**fields())
+
     def step(self, record: StepRecord) -> None:
+        self.write_header()
         self._write(record.to_json())
         self.views += 1
         self._provisional()
 
     def failure(self, **fields) -> None:
+        self.write_header()
         self._write({"type": "failure", **fields})
 
     def kept(self) -> dict:
@@ -127,6 +142,7 @@ class FlightLogWriter:
     def summary(self, summary: dict) -> Path:
         """The final summary; one of a flight that did not complete says what was kept. On a full disk the
         reserve makes room for it."""
+        self.write_header()
         if summary.get("status") != "completed":
             summary = {**summary, "kept": self.kept()}
         path = self.run_dir / "summary.json"

@@ -638,10 +638,11 @@ _IDLE: list["_Worker"] = []
 
 
 class _Worker:
-    def __init__(self):
+    def __init__(self, nice: int = 0):
         pkg_parent = str(Path(__file__).resolve().parents[2])
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (pkg_parent, os.environ.get("PYTHONPATH")) if p))
-        code = "import os; fd = os.dup(1); os.dup2(2, 1); from uavsearch.world.render import _worker_main; _worker_main(fd)"
+        code = (f"import os; os.nice({int(nice)}); fd = os.dup(1); os.dup2(2, 1); "
+                "from uavsearch.world.render import _worker_main; _worker_main(fd)")
         self.proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=subprocess.DEVNULL, env=env)  # fmt: skip
         self.scenes = 0
@@ -712,11 +713,12 @@ def _stop_idle_workers() -> None:
             w.kill()
 
 
-def start_idle_worker() -> None:
+def start_idle_worker(nice: int = 0) -> None:
     """An idle worker started now (unless one is idle), which the next isolated SceneRenderer takes: its
-    interpreter and PyBullet start (0.3-0.5 s) run beside the caller's own work instead of in the renderer's."""
+    interpreter and PyBullet start (0.3-0.5 s) run beside the caller's own work instead of in the renderer's.
+    `nice` > 0 starts it at a lower priority (work in the background that must not slow a flight)."""
     if not _IDLE:
-        _IDLE.append(_Worker())
+        _IDLE.append(_Worker(nice))
 
 
 def generate_in_worker(seed: int, occupied_cells: int) -> SceneSpec:
