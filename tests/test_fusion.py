@@ -125,7 +125,7 @@ def test_all_methods_torch_and_numpy_agree_and_never_nan():
     v = rng.uniform(size=(4, 5, 100)) < 0.6
     v[:, :, 0] = False  # a cell nobody saw
     kw = dict(area_px=rng.uniform(50, 300, p.shape), scores=rng.normal(size=p.shape), labels=rng.uniform(size=(4, 100)) < 0.1)
-    for m in FUSIONS:
+    for m in (m for m, cls in FUSIONS.items() if hasattr(cls, "kernel")):  # the functional forms
         a = fuse(m, p, v, **kw)
         b = fuse(m, torch.tensor(p), torch.tensor(v), **{k: torch.tensor(x) for k, x in kw.items()}).numpy()
         assert a == pytest.approx(b)
@@ -164,7 +164,7 @@ def test_fusion_objects_step_by_step_equal_the_kernels_bit_for_bit():
     area, feats, labels = torch.rand(B, T, N) * 300, torch.randn(B, T, N, D), torch.rand(B, N) < 0.1
     net = ConfidenceNet(D).eval()
     given = {"area_px": area, "scores": net(feats), "labels": labels}
-    for name, cls in FUSIONS.items():
+    for name, cls in ((n, c) for n, c in FUSIONS.items() if hasattr(c, "kernel")):
         fusion = LearnedFusion(net) if name == "learned" else cls()
         views = FusionViews(p, v, area, feats, None, torch.zeros(B, T, dtype=torch.long), labels)
         state = fusion.init_state(B, N)

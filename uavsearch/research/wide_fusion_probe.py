@@ -35,35 +35,15 @@ from tqdm import tqdm
 from ..paths import display_path
 from ..search.agents import budget_text, load_wide_agent
 from ..search.evaluate.bounds import bootstrap_ci
-from ..search.fusion import calibrated_logit
 from ..search.map_policy import wide_checkpoint
 from ..search.metrics import map_f1
+from ..search.neighbour_fusion import CorrectionNet, NeighbourFusion, view_planes
 from ..search.search_loop import Agent, CachedViews, run_search
 from ..search.symmetry import square_symmetry
 from ..search.wide_policies import lowest_layer
 from .wide_policy_probes import FUSION, NoisyRule, fit_adam, probe_parser, probe_setting, write_markdown
 
 SHIFTS = np.arange(-2.0, 2.01, 0.25)  # decision thresholds tried, as log-odds shifts
-
-
-def view_planes(fused, p, v, area, idx, coef, config) -> torch.Tensor:
-    """(B, 11, rows, cols) from a map fused from views (B, T, N) taken at lattice positions idx (B, T): the fused
-    log-odds, then per altitude layer (lowest first) the cell's views: count (capped at 4, / 4), highest, mean and
-    lowest calibrated log-odds, mean log pixel area."""
-    c = calibrated_logit(p, area, coef)
-    low = lowest_layer(config)
-    planes = [torch.logit(fused.float().clamp(1e-5, 1 - 1e-5))]
-    for layer in (low, ~low):
-        m = v & layer[idx][..., None]
-        n = m.sum(1).float()
-        seen = (n > 0).float()
-        planes += [n.clamp(max=4) / 4,
-                   torch.where(m, c, torch.full_like(c, -20.0)).amax(1).clamp(min=-8) * seen,
-                   torch.where(m, c, torch.zeros_like(c)).sum(1) / n.clamp(min=1),
-                   torch.where(m, c, torch.full_like(c, 20.0)).amin(1).clamp(max=8) * seen,
-                   torch.where(m, area.clamp(min=1).log(), torch.zeros_like(area)).sum(1) / n.clamp(min=1)]
-    g = config.grid
-    return torch.stack(planes, 1).view(len(idx), len(planes), g.n, g.n)
 
 
 def cell_planes(cache, rows, episode, fusion, config, step: int = -1) -> torch.Tensor:
@@ -74,49 +54,7 @@ def cell_planes(cache, rows, episode, fusion, config, step: int = -1) -> torch.T
     taken = episode.taken if episode.taken is not None else torch.ones_like(episode.lattice_idx, dtype=torch.bool)
     v = cache.valid[r, idx] & taken[:, :idx.shape[1], None]
     return view_planes(episode.maps[:, step], cache.log_probs[r, idx, :, 1].exp().float(), v,
-                       cache.cell_area_px[r, idx].float(), idx, fusion.coef, config)
-
-
-class CorrectedFusion:
-    """The calibrated fusion with its map corrected by a CorrectionNet after every view, so that the policy reads
-    the corrected map too (the search loop's fusion interface: init_state / update / view_scores)."""
-
-    name = "calibrated+correction"
-
-    def __init__(self, base, net, shift: float, config):
-        self.base, self.net, self.shift, self.config = base, net, shift, config
-        self.prior = base.prior
-
-    def init_state(self, batch_size: int, num_cells: int):
-        return None
-
-    def update(self, state, view):
-        """The calibrated fusion's state keeps the views so far; only their viewpoints are kept beside it."""
-        base_state, idx = state if state is not None else (None, None)
-        base_state, fused = self.base.update(base_state, view)
-        idx = view.viewpoints if idx is None else torch.cat([idx, view.viewpoints], 1)
-        h = base_state.views
-        with torch.no_grad():
-            planes = view_planes(fused, h.p.float(), h.valid, h.area_px.float(), idx, self.base.coef, self.config)
-            z = self.net(planes).flatten(1) + self.shift
-        return (base_state, idx), torch.sigmoid(z)
-
-    def view_scores(self, state):
-        return None
-
-
-class CorrectionNet(nn.Module):
-    """A correction to the calibrated log-odds (plane 0), from each cell's planes (kernel 1) or its neighbours'."""
-
-    def __init__(self, planes: int, kernel: int, hidden: int = 24):
-        super().__init__()
-        pad = kernel // 2
-        self.net = nn.Sequential(nn.Conv2d(planes, hidden, kernel, padding=pad), nn.ReLU(),
-                                 nn.Conv2d(hidden, hidden, kernel, padding=pad), nn.ReLU(),
-                                 nn.Conv2d(hidden, hidden, 1), nn.ReLU(), nn.Conv2d(hidden, 1, 1))
-
-    def forward(self, x):
-        return self.net(x)[:, 0] + x[:, 0]
+                       cache.cell_area_px[r, idx].float(), idx, fusion.coef, lowest_layer(config), config.grid.n)
 
 
 def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) -> CorrectionNet:
@@ -201,10 +139,11 @@ def main() -> None:
     bar.update()
     ours = load_wide_agent(wide_checkpoint(args.budget), config)
     agents = {"the rule, calibrated fusion": Agent(fusion, rule),
-              "the rule, learned correction during the search": Agent(CorrectedFusion(fusion, net, shift, config), rule),
+              "the rule, learned correction during the search": Agent(NeighbourFusion.around(fusion, net, shift,
+                                                                                             config), rule),
               "ours (shipped learned policy), its calibrated fusion": ours,
-              "ours, learned correction during the search": Agent(CorrectedFusion(ours.fusion, net, shift, config),
-                                                                 ours.policy)}
+              "ours, learned correction during the search": Agent(NeighbourFusion.around(ours.fusion, net, shift,
+                                                                                        config), ours.policy)}
     f1s = {}
     for name, agent in agents.items():
         f1s[name] = map_f1(rollout(val, agent).maps[:, -1].numpy(), yv)

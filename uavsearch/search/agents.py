@@ -35,6 +35,7 @@ from uavsearch.world.settings import setting_params
 from .checkpoints import checkpoint_path
 from .config import SearchConfig, config_from_dict
 from .fusion import FUSIONS, Fusion, calibrated_candidates, calibrated_gamma, check_buildable, fusion_from_spec
+from .neighbour_fusion import neighbour_from_spec
 from .perception import load_perception
 from .policy import (ArgmaxPolicy, CoverageRoute, GreedyUncertainty, PolicyConfig, PolicyNet, RandomPolicy,
                      load_search_model)
@@ -127,6 +128,9 @@ def make_fusion(spec: str, train=None, *, setting=None, models_dir=None, device=
     fusion without weights or labels), or "calibrated[:GAMMA]" fitted on the training view cache `train` (Table
     III's --wide-fusion, a wide mission's fusion, the map policy's). With `setting` (an env's): any method of
     FUSIONS by name, a trained one with the weights of the setting's shipped checkpoint (its net on `device`)."""
+    neighbour = neighbour_from_spec(spec)  # "neighbour:PATH.pt": a trained checkpoint of its own
+    if neighbour is not None:
+        return neighbour
     if setting is None:
         gamma = calibrated_gamma(spec)
         if gamma is not None and train is not None:

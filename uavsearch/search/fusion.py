@@ -61,6 +61,8 @@ def fuse(
     prior: float = DEFAULT_PRIOR,
 ):
     """Fuse T views into one occupancy map; see the module docstring for shapes and methods."""
+    if not hasattr(fusion_class(method), "kernel"):
+        raise UavsearchError(f"the {method} fusion has weights and no functional form: build it (make_fusion)")
     return _run(fusion_class(method), FusionViews(p_occ, valid, area_px=area_px, scores=scores, labels=labels), prior)
 
 
@@ -597,3 +599,6 @@ def load_fusion(d: dict) -> Fusion:
         fusion.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in d["state_dict"].items()})
         fusion.eval()
     return fusion
+
+
+from . import neighbour_fusion  # noqa: E402,F401  registers the neighbour fusion (built on CalibratedFusion above)

@@ -1,0 +1,164 @@
+"""The neighbour fusion: the calibrated fusion's map corrected by a small conv net over each cell's views and its
+neighbours' (people come in groups; a view that fools perception on one cell fools it on the next).
+
+After every view the net reads, per cell, the calibrated fusion's log-odds and the cell's views per altitude layer
+(how many, their highest, mean and lowest calibrated log-odds, their mean log pixel area: `view_planes`) over the
+N x N map, and outputs a correction to those log-odds; a fitted log-odds shift sets the decision threshold. It
+reads each view's viewpoint (its altitude layer), which the loop's views carry (FusionViews.viewpoints) and the
+envs' buffered numpy path does not keep: `fuse_host` is a one-line error.
+
+A checkpoint (`save_neighbour`) holds the fusion's `save_dict()`; the spec "neighbour:PATH.pt" loads it
+(`neighbour_from_spec`, what agents.make_fusion calls).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from uavsearch.errors import UavsearchError
+
+from .fusion import FUSIONS, CalibratedFusion, Fusion, FusionViews, calibrated_logit
+
+FORMAT = "uavsearch-neighbour-fusion/1"
+PLANES = 11  # view_planes' channels
+
+
+def view_planes(fused, p, v, area, idx, coef, lowest, n: int) -> torch.Tensor:
+    """(B, 11, n, n) from a map fused from views (B, T, N) taken at lattice positions idx (B, T): the fused
+    log-odds, then per altitude layer (`lowest` (P,) bool: the lowest layer's viewpoints, first) the cell's views:
+    count (capped at 4, / 4), highest, mean and lowest calibrated log-odds, mean log pixel area."""
+    c = calibrated_logit(p, area, coef)
+    planes = [torch.logit(fused.float().clamp(1e-5, 1 - 1e-5))]
+    for layer in (lowest, ~lowest):
+        m = v & layer[idx][..., None]
+        k = m.sum(1).float()
+        seen = (k > 0).float()
+        planes += [k.clamp(max=4) / 4,
+                   torch.where(m, c, torch.full_like(c, -20.0)).amax(1).clamp(min=-8) * seen,
+                   torch.where(m, c, torch.zeros_like(c)).sum(1) / k.clamp(min=1),
+                   torch.where(m, c, torch.full_like(c, 20.0)).amin(1).clamp(max=8) * seen,
+                   torch.where(m, area.clamp(min=1).log(), torch.zeros_like(area)).sum(1) / k.clamp(min=1)]
+    return torch.stack(planes, 1).view(len(idx), len(planes), n, n)
+
+
+class CorrectionNet(nn.Module):
+    """A correction to the calibrated log-odds (plane 0), from each cell's planes (kernel 1) or its neighbours'."""
+
+    def __init__(self, planes: int = PLANES, kernel: int = 5, hidden: int = 24):
+        super().__init__()
+        self.planes, self.kernel, self.hidden = planes, kernel, hidden
+        pad = kernel // 2
+        self.net = nn.Sequential(nn.Conv2d(planes, hidden, kernel, padding=pad), nn.ReLU(),
+                                 nn.Conv2d(hidden, hidden, kernel, padding=pad), nn.ReLU(),
+                                 nn.Conv2d(hidden, hidden, 1), nn.ReLU(), nn.Conv2d(hidden, 1, 1))
+
+    def forward(self, x):
+        return self.net(x)[:, 0] + x[:, 0]
+
+
+class NeighbourFusion(nn.Module, Fusion):
+    """The calibrated fusion (`base`) with its map corrected by a CorrectionNet after every view, then shifted by
+    `shift` log-odds, so that the policy reads the corrected map too. `lowest`: (P,) bool, the lattice's lowest
+    layer (wide_policies.lowest_layer); `n`: the grid's side."""
+
+    name, needs, trainable = "neighbour", ("area_px", "viewpoints"), True
+
+    def __init__(self, base: CalibratedFusion, net: CorrectionNet, shift: float, lowest, n: int):
+        nn.Module.__init__(self)
+        Fusion.__init__(self, base.prior)
+        self.base, self.net, self.shift, self.n = base, net, float(shift), int(n)
+        self.register_buffer("lowest", torch.as_tensor(lowest, dtype=torch.bool))
+
+    @classmethod
+    def around(cls, base: CalibratedFusion, net: CorrectionNet, shift: float, config) -> "NeighbourFusion":
+        """The fusion for a search config's lattice and grid."""
+        from .wide_policies import lowest_layer
+
+        return cls(base, net, shift, lowest_layer(config), config.grid.n)
+
+    def _correct(self, fused, views: FusionViews, idx) -> torch.Tensor:
+        if idx.numel() and int(idx.max()) >= len(self.lowest) or fused.shape[-1] != self.n * self.n:
+            raise UavsearchError(f"the neighbour fusion was fitted for {len(self.lowest)} viewpoints and "
+                                 f"{self.n} x {self.n} cells, not this search's")
+        with torch.no_grad():
+            planes = view_planes(fused, views.p.float(), views.valid, views.area_px.float(), idx, self.base.coef,
+                                 self.lowest.to(idx.device), self.n)
+            return torch.sigmoid(self.net.to(planes.device)(planes).flatten(1) + self.shift)
+
+    def fuse(self, views: FusionViews):
+        if views.viewpoints is None or views.area_px is None:
+            raise UavsearchError("the neighbour fusion needs each view's viewpoint and pixel areas")
+        fused = self.base.fuse(views)
+        return self._correct(fused, views._replace(valid=torch.as_tensor(views.valid).bool()), views.viewpoints)
+
+    def update(self, state, view: FusionViews):
+        """The calibrated fusion's state keeps the views so far; only their viewpoints are kept beside it."""
+        if view.viewpoints is None:
+            raise UavsearchError("the neighbour fusion needs each view's viewpoint")
+        base_state, idx = state if state is not None else (None, None)
+        base_state, fused = self.base.update(base_state, view)
+        idx = view.viewpoints if idx is None else torch.cat([idx, view.viewpoints], 1)
+        return (base_state, idx), self._correct(fused, base_state.views, idx)
+
+    def fuse_host(self, views: FusionViews) -> np.ndarray:
+        raise UavsearchError("the neighbour fusion reads each view's viewpoint, which the envs' buffered episodes "
+                             "do not keep; use it through run_search (uavsearch eval search, missions)")
+
+    def view_scores(self, state):
+        return None
+
+    def config(self) -> dict:
+        return {"coef": self.base.coef, "prior": self.base.prior, "gamma": self.base.gamma, "shift": self.shift,
+                "kernel": self.net.kernel, "hidden": self.net.hidden, "planes": self.net.planes,
+                "lowest": [bool(b) for b in self.lowest], "n": self.n}
+
+    @classmethod
+    def from_config(cls, config: dict) -> "NeighbourFusion":
+        c = config
+        return cls(CalibratedFusion(c["coef"], c["prior"], c["gamma"]),
+                   CorrectionNet(int(c["planes"]), int(c["kernel"]), int(c["hidden"])), c["shift"], c["lowest"],
+                   c["n"])
+
+    @property
+    def spec(self) -> str:
+        return f"neighbour(calibrated:{self.base.gamma:g})"
+
+
+FUSIONS[NeighbourFusion.name] = NeighbourFusion  # fusion.py imports this module at its end: one registry
+
+
+def save_neighbour(fusion: NeighbourFusion, path, meta: dict | None = None) -> Path:
+    """Write the fusion (and what made it, `meta`) to a checkpoint file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"format": FORMAT, "fusion": fusion.save_dict(), "meta": dict(meta or {})}, path)
+    return path
+
+
+def load_neighbour(path) -> NeighbourFusion:
+    """The fusion of a checkpoint save_neighbour wrote; a missing or foreign file is a one-line error."""
+    from .fusion import load_fusion
+
+    if not Path(path).is_file():
+        raise UavsearchError(f"neighbour fusion checkpoint {path} not found")
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+        if ck.get("format") != FORMAT:
+            raise KeyError("format")
+        return load_fusion(ck["fusion"])
+    except (OSError, KeyError, AttributeError, RuntimeError, ValueError) as e:
+        raise UavsearchError(f"{path} is not a neighbour fusion checkpoint ({type(e).__name__})") from None
+
+
+def neighbour_from_spec(spec: str) -> NeighbourFusion | None:
+    """The fusion "neighbour:PATH.pt" names, None for another spec; "neighbour" alone is a one-line error."""
+    name, _, path = str(spec).partition(":")
+    if name != NeighbourFusion.name:
+        return None
+    if not path:
+        raise UavsearchError("the neighbour fusion loads its weights: name it neighbour:PATH.pt")
+    return load_neighbour(path)
