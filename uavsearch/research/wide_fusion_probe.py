@@ -19,6 +19,9 @@ the shipped learned policy (trained on the calibrated fusion's maps) fly with it
 with the calibrated fusion, and against each other with the correction.
 
     python tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --out results/map_policy/fusion_probe_T8.md
+
+`--save runs/neighbour_T8.pt` also writes the in-search net as the product's neighbour fusion
+(search/neighbour_fusion.py), which `uavsearch eval search --wide-fusion neighbour:runs/neighbour_T8.pt` names.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from ..search.agents import budget_text, load_wide_agent
 from ..search.evaluate.bounds import bootstrap_ci
 from ..search.map_policy import wide_checkpoint
 from ..search.metrics import map_f1
-from ..search.neighbour_fusion import CorrectionNet, NeighbourFusion, view_planes
+from ..search.neighbour_fusion import CorrectionNet, NeighbourFusion, save_neighbour, view_planes
 from ..search.search_loop import Agent, CachedViews, run_search
 from ..search.symmetry import square_symmetry
 from ..search.wide_policies import lowest_layer
@@ -83,6 +86,8 @@ def main() -> None:
                     help="fit without the square's symmetries (the net with neighbours then memorises scenes)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds of the learned fusions")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--save", help="write the in-search neighbour fusion (the rule's) to this checkpoint "
+                                   "(a spec then names it: neighbour:PATH)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
@@ -137,6 +142,11 @@ def main() -> None:
     with torch.no_grad():
         shift = best_shift(flat(net(X)), yt)
     bar.update()
+    if args.save:
+        save_neighbour(NeighbourFusion.around(fusion, net, shift, config), args.save,
+                       {"budget": args.budget, "family": args.family, "train_scenes": train.num_scenes,
+                        "rollouts": args.rollouts, "epochs": args.epochs, "seed": seed, "shift": shift,
+                        "fit_s": time.perf_counter() - t0})
     ours = load_wide_agent(wide_checkpoint(args.budget), config)
     agents = {"the rule, calibrated fusion": Agent(fusion, rule),
               "the rule, learned correction during the search": Agent(NeighbourFusion.around(fusion, net, shift,
