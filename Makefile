@@ -2,8 +2,9 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
+DETECTOR_VENV ?= .venv-detector
 
-.PHONY: setup browser run test test-all clean
+.PHONY: setup browser run test test-all clean detector-venv
 
 setup: $(VENV)/.installed
 
@@ -39,6 +40,18 @@ test: setup browser
 test-all: setup browser
 	$(PY) -m pip install --progress-bar off --disable-pip-version-check -e '.[test,ray]'
 	$(PY) -m pytest -q -n 2 --dist loadfile -m ''
+
+# A venv for examples/detector_plugin.py's Faster R-CNN: torchvision needs the torch it was built for (2.14.1, not
+# the project's 2.13.0), so uavsearch goes in without its dependencies and those, less torch, are listed here.
+detector-venv:
+	$(PYTHON) -m venv $(DETECTOR_VENV)
+	$(DETECTOR_VENV)/bin/pip install --progress-bar off --disable-pip-version-check torch==2.14.1 torchvision==0.29.1
+	$(DETECTOR_VENV)/bin/pip install --progress-bar off --disable-pip-version-check --no-deps -e .
+	$(DETECTOR_VENV)/bin/pip install --progress-bar off --disable-pip-version-check 'numpy>=1.26,<3' 'scipy>=1.11' \
+		jsbsim==1.3.3 pybullet==3.2.7 pymavlink==2.4.50 mavsdk==4.1.0 gymnasium==1.4.0 'opencv-python-headless>=4.9' \
+		'matplotlib>=3.8' 'imageio>=2.34' 'tqdm>=4.66' 'pydantic>=2.6,<3' 'pyyaml>=6' 'plotly>=6,<8' \
+		'fsspec>=2024.2' pycocotools==2.0.11
+	$(DETECTOR_VENV)/bin/python -c "import torch, torchvision, uavsearch; print(torchvision.ops.nms(torch.tensor([[0., 0., 9., 9.]] * 2), torch.tensor([.9, .8]), .5))"
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache
