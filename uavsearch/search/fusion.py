@@ -600,5 +600,3 @@ def load_fusion(d: dict) -> Fusion:
         fusion.eval()
     return fusion
 
-
-from . import neighbour_fusion  # noqa: E402,F401  registers the neighbour fusion (built on CalibratedFusion above)

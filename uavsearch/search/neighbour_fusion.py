@@ -128,7 +128,7 @@ class NeighbourFusion(nn.Module, Fusion):
         return f"neighbour(calibrated:{self.base.gamma:g})"
 
 
-FUSIONS[NeighbourFusion.name] = NeighbourFusion  # fusion.py imports this module at its end: one registry
+FUSIONS[NeighbourFusion.name] = NeighbourFusion  # one registry; agents.py imports this module (make_fusion)
 
 
 def save_neighbour(fusion: NeighbourFusion, path, meta: dict | None = None) -> Path:
