@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import threading
 import time
 from pathlib import Path
 
@@ -37,6 +38,8 @@ OWN = "teleport_own"
 FLOWN = "flown"
 # Table III's hand-made fixed routes (the registry builds them); its view sets are searched on training scenes
 HAND_MADE = ("lawnmower_high", "lawnmower_low", "survey_inner", "survey_outer")
+COMPARING = ("comparing: the same scene searched by the first view alone, the best fixed route and the rule "
+             "(teleport: rendered at each viewpoint) ...")
 BACKGROUND_NICE = 10  # the priority offset of the render process of rows computed beside a flight
 OWN_NAMES = {"map": "learned wide-area policy", "learned": "learned policy (paper)", "reactive": "reactive policy"}
 
@@ -141,8 +144,7 @@ def compare(mission, result, progress=None) -> dict:
     scene_file = Path(result.run_dir) / SCENE_FILE
     spec = load_scene(scene_file) if scene_file.is_file() else mission.scene_spec()
     if progress is not None:
-        progress("comparing: the same scene searched by the first view alone, the best fixed route and the rule "
-                 "(teleport: rendered at each viewpoint) ...")
+        progress(COMPARING)
     return with_flight(teleport_rows(mission, spec, result.labels), mission, result)
 
 
@@ -230,8 +232,6 @@ class SceneComparison:
         self.mission, self._thread, self._rows, self._error = mission, None, None, None
 
     def start(self, spec, labels) -> None:
-        import threading
-
         def run():
             from ..world.render import start_idle_worker
 
@@ -249,8 +249,7 @@ class SceneComparison:
         if self._thread is None:  # no scene was handed over (e.g. a vehicle someone else started): compute it now
             return compare_flight(self.mission, result, progress)
         if self._thread.is_alive() and progress is not None:
-            progress("comparing: the same scene searched by the first view alone, the best fixed route and the rule "
-                     "(teleport: rendered at each viewpoint) ...")
+            progress(COMPARING)
         self._thread.join()
         if self._error is not None:
             raise self._error
