@@ -1,6 +1,7 @@
 """Exact checks of frames, the camera model and the grid projection."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from uavsearch.geometry import (
     polygon_area,
     project_points,
     quaternion_from_euler,
+    rotation_ned_from_body,
 )
 from uavsearch.geometry import NEAR_PLANE_M, _clip_to_view
 
@@ -175,6 +177,29 @@ def test_quaternion_round_trip():
     q = quaternion_from_euler(*rpy)
     assert np.linalg.norm(q) == pytest.approx(1.0)
     assert euler_from_quaternion(q) == pytest.approx(rpy)
+
+
+def test_attitude_conversions_are_scipys_to_the_bit():
+    """The written-out conversions give scipy's Rotation bits, so flights and their logs stay the same."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    flown = np.column_stack([rng.normal(0, 0.05, (2000, 2)), rng.uniform(-np.pi, np.pi, 2000)])
+    wild = rng.uniform(-np.pi, np.pi, (2000, 3))
+    for roll, pitch, yaw in np.concatenate([flown, wild]):
+        rot = Rotation.from_euler("ZYX", [yaw, pitch, roll])
+        assert np.array_equal(rotation_ned_from_body(roll, pitch, yaw), rot.as_matrix())
+        x, y, z, w = rot.as_quat()
+        assert np.array_equal(quaternion_from_euler(roll, pitch, yaw), [w, x, y, z])
+    locked = [quaternion_from_euler(0.3, s * np.pi / 2, 1.0) for s in (1, -1)]
+    for q in [*rng.normal(size=(4000, 4)), *(rng.normal(0, 1e-3, 4) + [1, 0, 0, 0] for _ in range(500)), *locked]:
+        w, x, y, z = q
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # scipy warns of the gimbal lock
+            yaw, pitch, roll = Rotation.from_quat([x, y, z, w]).as_euler("ZYX")
+        assert euler_from_quaternion(q) == (roll, pitch, yaw)
+    with pytest.raises(ValueError):
+        euler_from_quaternion([0.0, 0.0, 0.0, 0.0])
 
 
 def test_stabilised_gimbal_ignores_roll_and_pitch():

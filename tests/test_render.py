@@ -1,5 +1,7 @@
 """The PyBullet camera agrees with geometry's camera model, is deterministic and sees people."""
 
+import os
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -217,3 +219,21 @@ def test_paper_views_keep_their_pixels(key):
         v = r.render(nadir_camera_pose(pos))
     digest = hashlib.sha256(v.rgb.tobytes() + v.person_index.tobytes() + v.person_fraction.tobytes()).hexdigest()
     assert digest == PAPER_VIEW_SHA256[key]
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="Linux's scheduling classes")
+def test_a_background_worker_runs_on_idle_time_until_brought_to_the_foreground():
+    """Work beside a flight takes only CPU time nothing else wants; after the flight a busy machine must not
+    starve it, so it goes back to the normal class."""
+    from uavsearch.world import render
+
+    render._stop_idle_workers()
+    render.start_idle_worker(background=True)
+    worker = render._IDLE[-1]
+    try:
+        assert worker.call("generate", 3, 5)  # it serves as any worker does (and has set its class by then)
+        assert os.sched_getscheduler(worker.proc.pid) == os.SCHED_IDLE
+        render.foreground_workers()
+        assert os.sched_getscheduler(worker.proc.pid) == os.SCHED_OTHER
+    finally:
+        render._stop_idle_workers()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import functools
 import math
-import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -73,38 +72,69 @@ class GeodeticOrigin:
         return np.stack([east, north, q[..., 2] - self.alt_m], axis=-1)
 
 
-def _rotation():
-    """scipy's Rotation, imported on first use: scipy.spatial costs every process that imports this module
-    0.3-0.6 s (measured, shared 2-core machine), and the vehicle and render processes rarely or never need it."""
-    from scipy.spatial.transform import Rotation
+# Attitude conversions, written out: scipy's Rotation gives the same bits (tests/test_geometry.py compares them
+# over random attitudes) but importing scipy.spatial costs every process 0.3-0.6 s of CPU (shared 2-core machine),
+# which a flight's controller paid during its take-off. The operations and their order are scipy's own
+# (intrinsic ZYX = quaternion products z * y * x; its quaternion -> matrix terms; its quaternion -> Euler angles,
+# with the C library's hypot as scipy calls it).
 
-    return Rotation
 
+def _quat_xyzw_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float, float, float]:
+    """[x, y, z, w] of the intrinsic ZYX rotation (yaw, then pitch, then roll)."""
 
-def import_rotation_in_background() -> None:
-    """Import scipy's Rotation in a daemon thread: a process that will need it (a flight's first view) and
-    mostly waits meanwhile (on its vehicle) takes the 0.3-0.9 s of import while it waits."""
-    threading.Thread(target=_rotation, name="import-scipy-rotation", daemon=True).start()
+    def axis(i: int, a: float) -> list[float]:
+        q = [0.0, 0.0, 0.0, math.cos(a / 2.0)]
+        q[i] = math.sin(a / 2.0)
+        return q
+
+    def compose(p: list[float], q: list[float]) -> list[float]:
+        c0, c1, c2 = p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0]
+        return [p[3] * q[0] + q[3] * p[0] + c0, p[3] * q[1] + q[3] * p[1] + c1, p[3] * q[2] + q[3] * p[2] + c2,
+                p[3] * q[3] - p[0] * q[0] - p[1] * q[1] - p[2] * q[2]]
+
+    x, y, z, w = compose(compose(axis(2, float(yaw_rad)), axis(1, float(pitch_rad))), axis(0, float(roll_rad)))
+    return x, y, z, w
 
 
 def rotation_ned_from_body(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
     """Body FRD -> NED rotation matrix (aerospace ZYX Euler angles)."""
-    if roll_rad == 0.0 and pitch_rad == 0.0 and yaw_rad == 0.0:  # the lattice's poses: scipy's exact identity,
-        return np.eye(3)  # without importing it (a learned wide policy's footprints at load, 0.9 s)
-    return _rotation().from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_matrix()
+    if roll_rad == 0.0 and pitch_rad == 0.0 and yaw_rad == 0.0:  # the lattice's poses: the exact identity
+        return np.eye(3)
+    x, y, z, w = _quat_xyzw_from_euler(roll_rad, pitch_rad, yaw_rad)
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return np.array([[x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)],
+                     [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
+                     [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2]])
 
 
 def quaternion_from_euler(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
     """[w, x, y, z] of the body FRD -> NED rotation, as MAVLink's attitude quaternions."""
-    x, y, z, w = _rotation().from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad]).as_quat()
+    x, y, z, w = _quat_xyzw_from_euler(roll_rad, pitch_rad, yaw_rad)
     return np.array([w, x, y, z])
 
 
 def euler_from_quaternion(q_wxyz) -> tuple[float, float, float]:
     """(roll, pitch, yaw) in rad from a MAVLink [w, x, y, z] quaternion; yaw in (-pi, pi]."""
-    w, x, y, z = q_wxyz
-    yaw, pitch, roll = _rotation().from_quat([x, y, z, w]).as_euler("ZYX")
-    return float(roll), float(pitch), float(yaw)
+    w, x, y, z = (float(v) for v in q_wxyz)
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if not norm > 0.0:
+        raise ValueError("Found zero norm quaternions in `quat`.")
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    a, b, c, d = w - y, x + z, y + w, z - x  # the intrinsic ZYX sequence as scipy permutes it
+    hypot = np.hypot  # the C library's (math.hypot rounds differently)
+    mid = 2 * math.atan2(float(hypot(c, d)), float(hypot(a, b)))
+    half_sum, half_diff = math.atan2(b, a), math.atan2(d, c)
+    if abs(mid) <= 1e-7:  # gimbal lock (pitch +-90 deg): roll set to zero, as scipy does
+        roll, yaw = 0.0, 2 * half_sum
+    elif abs(mid - math.pi) <= 1e-7:
+        roll, yaw = 0.0, 2 * half_diff
+    else:
+        roll, yaw = half_sum - half_diff, half_sum + half_diff
+    angles = [roll, mid - math.pi / 2, yaw]
+    for i, v in enumerate(angles):
+        angles[i] = v + 2 * math.pi if v < -math.pi else v - 2 * math.pi if v > math.pi else v
+    return angles[0], angles[1], angles[2]
 
 
 def wrap_pi(angle_rad):

@@ -41,7 +41,6 @@ import numpy as np
 from ..errors import MissionError
 from ..flight.camera import SCENE_FILE
 from ..flight.sitl_process import SitlProcess
-from ..geometry import import_rotation_in_background
 from ..logs.flight_log import FlightLogWriter
 from ..logs.step_record import StepRecord, TruePose
 from ..paths import RUNS_DIR
@@ -214,7 +213,6 @@ class _Models:
             torch.set_num_threads(int(torch_threads))
             self._mission = self._mission.check_registry()  # its names, if read without the registry (REGISTRY)
             method.load(self._mission, progress)
-            import_rotation_in_background()  # the first view's pose needs it; the take-off hides it
             phases["agent_s"] = time.monotonic() - wall0
         except BaseException as e:  # noqa: BLE001 - raised in the flying thread by result()
             self._error = e

@@ -40,7 +40,6 @@ FLOWN = "flown"
 HAND_MADE = ("lawnmower_high", "lawnmower_low", "survey_inner", "survey_outer")
 COMPARING = ("comparing: the same scene searched by the first view alone, the best fixed route and the rule "
              "(teleport: rendered at each viewpoint) ...")
-BACKGROUND_NICE = 10  # the priority offset of the render process of rows computed beside a flight
 OWN_NAMES = {"map": "learned wide-area policy", "learned": "learned policy (paper)", "reactive": "reactive policy"}
 
 
@@ -229,14 +228,14 @@ class SceneComparison:
     makes the flight's wall time longer, never its simulated path, and every row draws from its own generator."""
 
     def __init__(self, mission):
+        from ..world.render import start_idle_worker
+
         self.mission, self._thread, self._rows, self._error = mission, None, None, None
+        start_idle_worker(background=True)  # the rows' renderer: its start-up uses the cores the start leaves idle
 
     def start(self, spec, labels) -> None:
         def run():
-            from ..world.render import start_idle_worker
-
             try:
-                start_idle_worker(nice=BACKGROUND_NICE)  # the rows' renderer: the flight keeps the cores first
                 self._rows = teleport_rows(self.mission, spec, labels)
             except BaseException as e:  # noqa: BLE001 - said by finish(), in the command's own words
                 self._error = e
@@ -248,8 +247,12 @@ class SceneComparison:
         """Wait for the rows (saying so if they are not done), write comparison.json, return the table's text."""
         if self._thread is None:  # no scene was handed over (e.g. a vehicle someone else started): compute it now
             return compare_flight(self.mission, result, progress)
-        if self._thread.is_alive() and progress is not None:
-            progress(COMPARING)
+        if self._thread.is_alive():
+            from ..world.render import foreground_workers
+
+            foreground_workers()  # the flight is over: its renderer is no longer background work
+            if progress is not None:
+                progress(COMPARING)
         self._thread.join()
         if self._error is not None:
             raise self._error

@@ -30,6 +30,7 @@ import pickle
 import subprocess
 import sys
 import tempfile
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -634,19 +635,35 @@ class _World:
 
 RECYCLE_AFTER_SCENES = 8
 MAX_IDLE_WORKERS = 2
+BACKGROUND_NICE = 10  # a background worker's priority offset, where SCHED_IDLE is not at hand
+_BACKGROUND: "weakref.WeakSet[_Worker]" = weakref.WeakSet()
 _IDLE: list["_Worker"] = []
 
 
 class _Worker:
-    def __init__(self, nice: int = 0):
+    def __init__(self, background: bool = False):
         pkg_parent = str(Path(__file__).resolve().parents[2])
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (pkg_parent, os.environ.get("PYTHONPATH")) if p))
-        code = (f"import os; os.nice({int(nice)}); fd = os.dup(1); os.dup2(2, 1); "
+        lower = ""
+        if background:  # SCHED_IDLE keeps its nice value, so foreground() may undo it without privileges
+            lower = ("os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0)); " if hasattr(os, "SCHED_IDLE")
+                     else f"os.nice({BACKGROUND_NICE}); ")
+        code = (f"import os; {lower}fd = os.dup(1); os.dup2(2, 1); "
                 "from uavsearch.world.render import _worker_main; _worker_main(fd)")
         self.proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                      stderr=subprocess.DEVNULL, env=env)  # fmt: skip
         self.scenes = 0
         self.owner_pid = os.getpid()
+        if background:
+            _BACKGROUND.add(self)
+
+    def foreground(self) -> None:
+        """Back to the normal scheduling class (Linux; a nice value once raised stays)."""
+        if hasattr(os, "SCHED_OTHER") and self.proc.poll() is None:
+            try:
+                os.sched_setscheduler(self.proc.pid, os.SCHED_OTHER, os.sched_param(0))
+            except OSError:  # gone meanwhile, or a platform without it: it keeps its class
+                pass
 
     def call(self, *msg):
         try:
@@ -713,12 +730,20 @@ def _stop_idle_workers() -> None:
             w.kill()
 
 
-def start_idle_worker(nice: int = 0) -> None:
+def start_idle_worker(background: bool = False) -> None:
     """An idle worker started now (unless one is idle), which the next isolated SceneRenderer takes: its
     interpreter and PyBullet start (0.3-0.5 s) run beside the caller's own work instead of in the renderer's.
-    `nice` > 0 starts it at a lower priority (work in the background that must not slow a flight)."""
+    `background` runs it on CPU time that nothing else wants (Linux's SCHED_IDLE; elsewhere nice
+    BACKGROUND_NICE): work beside a flight, which must not slow it, until foreground_workers()."""
     if not _IDLE:
-        _IDLE.append(_Worker(nice))
+        _IDLE.append(_Worker(background))
+
+
+def foreground_workers() -> None:
+    """Every background worker back to normal scheduling: once the work it ran beside is over, a busy machine
+    must not starve it."""
+    for worker in list(_BACKGROUND):
+        worker.foreground()
 
 
 def generate_in_worker(seed: int, occupied_cells: int) -> SceneSpec:
