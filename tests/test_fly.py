@@ -487,3 +487,38 @@ def test_compare_flights_ignores_the_folder_a_run_lay_in(flown, tmp_path):
     img.write_bytes(img.read_bytes()[:-1] + b"\0")
     r = compare()
     assert r.returncode == 1 and f"images/{img.name}  differs  image bytes" in r.stdout, r.stdout + r.stderr
+
+
+def test_a_flown_run_exports_as_a_coco_dataset_whose_boxes_hold_its_people(flown, tmp_path):
+    """`uavsearch dataset export --run`: the flight's own photos, each labelled from its true camera pose; every
+    box holds its person's projection, and every labelled person on the grid stands in an occupied cell in view."""
+    pytest.importorskip("pycocotools")
+    import cv2
+    from pycocotools.coco import COCO
+
+    from uavsearch.geometry import CameraIntrinsics, CameraPose, project_points
+
+    _, run, _ = flown
+    out = tmp_path / "ds"
+    r = subprocess.run([sys.executable, "-m", "uavsearch", "dataset", "export", "--run", str(run), "--format", "coco",
+                        "--out", str(out)], capture_output=True, text=True, timeout=240, env=clean_env())
+    assert r.returncode == 0, r.stdout + r.stderr
+    coco = COCO(str(out / "coco_annotations.json"))
+    assert len(coco.imgs) == T
+    people = 0
+    for im in coco.imgs.values():
+        name = Path(im["file_name"]).name
+        assert np.array_equal(cv2.imread(str(out / im["file_name"])), cv2.imread(str(run / "images" / name)))
+        cam = im["camera"]
+        intr = CameraIntrinsics(im["width"], im["height"], cam["hfov_deg"])
+        pose = CameraPose(np.array(cam["position_enu"]), np.array(cam["R_enu_from_cam"]))
+        record = json.loads((out / "records" / f"{Path(name).stem}.json").read_text())
+        where = {q["person_index"]: q["position_enu"] for q in record["people"]}
+        for a in coco.loadAnns(coco.getAnnIds(imgIds=im["id"])):
+            if a["cell"] >= 0:  # -1: a person beyond the search grid, in view all the same
+                assert a["cell"] in im["occupied_cells"] and a["cell"] in im["cells_in_view"]
+            (u, v), _ = project_points(np.array([*where[a["person_index"]], 0.9]), intr, pose)  # mid-body
+            x, y, w, h = a["bbox"]
+            assert x - 3 <= u <= x + w + 3 and y - 3 <= v <= y + h + 3, (u, v, a["bbox"])
+            people += 1
+    assert people > 0
