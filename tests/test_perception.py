@@ -424,3 +424,29 @@ def test_altitudes_may_come_as_a_tensor_and_stay_in_torch():
     with torch.no_grad():
         assert torch.equal(net.forward_all(img, lab, altitude_m=alt).log_probs,
                            net.forward_all(img, lab, altitude_m=[70.0, 40.0]).log_probs)
+
+
+def test_test_time_flips_average_the_four_mirrored_views(tmp_path):
+    """`flips:PATH` is the net on the view and its three mirror images (image and cell labels mirrored together),
+    the per-cell probabilities and features averaged; its caches are keyed apart from the plain net's."""
+    from uavsearch.search.perception import FLIPS, FLIPS_PREFIX, load_perception, perception_tag, save_perception
+
+    torch.manual_seed(0)
+    path = save_perception(PerceptionNet(PerceptionConfig(num_cells=16)), tmp_path / "p.pt")
+    plain, _ = load_perception(path)
+    flipped, extra = load_perception(FLIPS_PREFIX + str(path))
+    assert extra["test_time_flips"] == 4 and perception_tag(flipped) != perception_tag(plain)
+    x = torch.rand(2, 3, 64, 64)
+    lab = torch.randint(-1, 16, (2, 64, 64))
+    with torch.no_grad():
+        got = flipped.forward_all(x, lab)
+        seen = [plain.forward_all(x.flip(d) if d else x, lab.flip(ld) if d else lab) for d, ld in FLIPS]
+    p = torch.stack([o.log_probs.exp() for o in seen]).mean(0)
+    assert torch.allclose(got.log_probs.exp(), p, atol=1e-6)
+    assert torch.allclose(got.cell_features, torch.stack([o.cell_features for o in seen]).mean(0), atol=1e-6)
+    sym_x = (x + x.flip(3)) + (x + x.flip(3)).flip(2)  # a view equal to its mirror images: the plain net's output
+    sym_lab = torch.full((2, 64, 64), -1)
+    sym_lab[:, 24:40, 24:40] = 5
+    with torch.no_grad():
+        assert torch.allclose(flipped.forward_all(sym_x, sym_lab).log_probs, plain.forward_all(sym_x, sym_lab).log_probs,
+                              atol=1e-5)

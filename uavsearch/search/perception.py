@@ -654,6 +654,12 @@ class PooledPerception(nn.Module):
             lab = lab.unsqueeze(0)
         if lab.shape[0] != x.shape[0] or lab.shape[1:] != x.shape[2:]:
             raise UavsearchError(f"label images {tuple(lab.shape)} do not match images {tuple(x.shape)}")
+        if hasattr(self, "test_time_flips") and not self.training and geometry is None:
+            return self._flip_averaged(x, lab, altitude_m, cells)
+        return self._forward(x, lab, geometry, altitude_m, cells, pooling)
+
+    def _forward(self, x, lab, geometry, altitude_m, cells, pooling) -> ViewOutputs:
+        dev = self.device
         deep, fmap, person = self.backbone.features(x)
         pooling = cell_pooling(lab, self.cfg.stride, self.cfg.num_cells) if pooling is None else pooling
         if geometry is not None:
@@ -667,6 +673,18 @@ class PooledPerception(nn.Module):
             log_probs = torch.full((*f.shape[:2], 2), float(np.log(0.5)), dtype=f.dtype, device=dev)
             log_probs[cells] = self.classify(f[cells])
         return ViewOutputs(log_probs, f, self.global_feature(deep), pooling.pixels, person)
+
+    def _flip_averaged(self, x, lab, altitude_m, cells) -> ViewOutputs:
+        """forward_all of the view and its three mirror images (image and cell label image mirrored together, so
+        each is a view of a mirrored world the net could have been shown): per cell the mean probability and the
+        mean features. Four backbone passes per view. The person map is the plain view's: a strided backbone's
+        maps of a mirror image, mirrored back, sit a pixel off."""
+        outs = [self._forward(x.flip(dims) if dims else x, lab.flip(label_dims) if dims else lab, None, altitude_m,
+                              cells, None) for dims, label_dims in FLIPS]
+        p = torch.stack([o.log_probs.exp() for o in outs]).mean(0)
+        return ViewOutputs(p.clamp_min(1e-12).log(), torch.stack([o.cell_features for o in outs]).mean(0),
+                           torch.stack([o.global_feature for o in outs]).mean(0), outs[0].cell_pixels,
+                           outs[0].person_logits)
 
     def forward(self, images, labels, altitude_m=None) -> torch.Tensor:
         """(B, num_cells, 2) log-probabilities; cells with no pixels get meaningless values (mask them)."""
@@ -757,6 +775,13 @@ def perceive(perception: Perception, views) -> Perceived:
 
 
 # --------------------------------------------------------------------------------------------------
+# Test-time flips
+
+FLIPS_PREFIX = "flips:"  # `flips:PATH`: the checkpoint at PATH, each view seen four ways (PooledPerception)
+FLIPS = (((), ()), ((3,), (2,)), ((2,), (1,)), ((2, 3), (1, 2)))  # (image dims, label image dims) of each mirror
+
+
+# --------------------------------------------------------------------------------------------------
 # Checkpoints
 
 
@@ -777,6 +802,13 @@ def load_perception(path, map_location: str = "cpu") -> tuple[Perception, dict]:
     own instead (search/detector.py)."""
     if str(path).startswith("detector:"):
         return perception_kind("detector").from_spec(str(path)).eval().to(map_location), {}
+    if str(path).startswith(FLIPS_PREFIX):
+        net, extra = load_perception(str(path)[len(FLIPS_PREFIX):], map_location)
+        if not isinstance(net, PooledPerception):
+            raise UavsearchError(f"{FLIPS_PREFIX} takes a pooled perception checkpoint (cnn, resnet), not {path}")
+        # a buffer, so perception_tag's hash (the caches' key) tells the flipped perception from the plain one
+        net.register_buffer("test_time_flips", torch.tensor([len(FLIPS)], device=map_location))
+        return net, {**extra, "test_time_flips": len(FLIPS)}
     path = Path(path)
     if not path.is_file():
         raise UavsearchError(f"perception checkpoint {path} not found (train one: uavsearch train perception)")
