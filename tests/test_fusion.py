@@ -293,3 +293,22 @@ def test_the_numpy_kernels_equal_the_torch_ones_to_float32():
     for f in methods:
         want = f.fuse(FusionViews(*(None if x is None else torch.as_tensor(x) for x in views))).numpy()
         np.testing.assert_array_equal(f.fuse_host(views).astype(np.float32), want.astype(np.float32), err_msg=f.name)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_log_odds_are_torch_logits_bits(dtype, threads):
+    """The fusions' log-odds (outside torch's logit kernel, which stalls beside a busy process) are torch.logit's
+    values to the bit, at one thread and at two, over the shapes the envs and the evaluation fuse."""
+    from uavsearch.search.fusion import EPS, _logit
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        gen = torch.Generator().manual_seed(0)
+        for shape in [(1, 1, 900), (1, 14, 900), (3, 8, 900), (256, 8, 100), (64, 30, 1600)]:
+            p = torch.rand(shape, generator=gen, dtype=dtype)
+            p[..., :5] = torch.tensor([0.0, 1.0, EPS / 2, 1 - EPS / 2, 0.5], dtype=dtype)
+            assert torch.equal(_logit(p), torch.logit(p.clamp(EPS, 1.0 - EPS)))
+    finally:
+        torch.set_num_threads(before)

@@ -5,7 +5,8 @@
 Rows: the single env with images rendered live and from the caches, with "cells" observations; the native vector
 env at 1 / 16 / 256 episodes; and `run_search` on `CachedViews` (256 episodes of random moves, no grad), the rate
 the project's own trainer rolls out at. With the wide family's caches (``--team-scenes N``, 0: skip): the single wide env
-and the PettingZoo team env (3 vehicles, 80 s), whose row counts vehicle-steps (one vehicle decides a step). Every env row steps uniformly random actions and resets ended episodes
+and the PettingZoo team env (3 vehicles, 80 s), whose row counts vehicle-steps (one vehicle decides a step), each also beside
+one busy neighbour (a spinning process). Every env row steps uniformly random actions and resets ended episodes
 (the vector env autoresets). The load average is printed at the start and the end: run it on a quiet machine.
 
 A second table runs the 256-env vector env as a user does: at torch's default thread count on its own, beside one
@@ -128,8 +129,10 @@ def main(argv=None) -> int:
 
         wide = WideSearchEnv(limit=a.team_scenes, progress=False)
         rows.append(("single wide env, cells (steps/s)", bench_single(wide, a.seconds)))
+        rows.append(("single wide env, cells, one busy neighbour", beside_busy(lambda: bench_single(wide, a.seconds))))
         team = team_parallel_env(limit=a.team_scenes, progress=False)
         rows.append(("team env (PettingZoo, 3 vehicles, 80 s), vehicle-steps/s", bench_team(team, a.seconds)))
+        rows.append(("team env, vehicle-steps/s, one busy neighbour", beside_busy(lambda: bench_team(team, a.seconds))))
     limit = rows[0][1][0]
     print(f"\nsetting {setting}, {fusion.name} fusion, {threads} torch thread(s); load average (1/5/15 min) "
           f"{start_load} at the start, {_load()} at the end, {os.cpu_count()} CPUs\n")
@@ -151,30 +154,29 @@ def main(argv=None) -> int:
     return 0
 
 
+def beside_busy(run):
+    """run() while one other process spins a core (a user's learner, a browser, another seed)."""
+    spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        return run()
+    finally:
+        spin.kill()
+        spin.wait()
+
+
 def bench_threads(env_id: str, seconds: float, threads: int, **kw) -> dict[str, tuple[float, float]]:
     """The 256-env vector env at `threads` on its own and beside one spinning process, then at one thread:
     {row: (steps/s, 1-min load at its end)}."""
-    out = {}
-    for busy in (False, True):
-        spin = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
-        try:
-            rate = bench_vector(env_id, 256, seconds, **kw)[0]
-            name = f"{threads} torch threads, " + ("one busy neighbour" if busy else "on its own")
-            out[name] = (rate, os.getloadavg()[0])
-        finally:
-            if spin is not None:
-                spin.kill()
-                spin.wait()
+
+    def rate() -> tuple[float, float]:
+        return bench_vector(env_id, 256, seconds, **kw)[0], os.getloadavg()[0]
+
+    out = {f"{threads} torch threads, on its own": rate(),
+           f"{threads} torch threads, one busy neighbour": beside_busy(rate)}
     torch.set_num_threads(1)  # the reference rows; this script's own process
     try:
-        out["1 torch thread"] = (bench_vector(env_id, 256, seconds, **kw)[0], os.getloadavg()[0])
-        spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-        try:
-            out["1 torch thread, one busy neighbour"] = (bench_vector(env_id, 256, seconds, **kw)[0],
-                                                         os.getloadavg()[0])
-        finally:
-            spin.kill()
-            spin.wait()
+        out["1 torch thread"] = rate()
+        out["1 torch thread, one busy neighbour"] = beside_busy(rate)
     finally:
         torch.set_num_threads(threads)
     return out
