@@ -85,10 +85,10 @@ QUOTES = [
              "Wall time per flown mission: {} s"))
       for k, cells in ((1, 2), (2, 5), (3, 10))],
     # ... and tools/bench_fly.py
-    Quote("docs/flying-measurements.md", "took {}-{} s wall, mean {} s (imports {} s, agent {} s, take-off {} s, "
-          "search {} s, landing {} s)", "results/flight/fly_timing.md",
-          ("whole mission {}-{} s wall, mean {} s", "imports {} s, agent {} s", "take-off {} s, search {} s, "
-           "landing {} s")),
+    Quote("docs/flying-measurements.md", "took {}-{} s wall, mean {} s (imports {} s, scene {} s, vehicle {} s, arm {} s, "
+          "models {} s, take-off {} s, search {} s, landing {} s, exit {} s)", "results/flight/fly_timing.md",
+          ("whole mission {}-{} s wall, mean {} s", "imports {} s, scene {} s, vehicle {} s, arm {} s, models {} s, "
+           "take-off {} s, search {} s, landing {} s, exit {} s")),
     Quote("docs/flying-measurements.md", "takes {}-{} s of simulated time", "results/flight/fly_timing.md",
           "each move after the first view {}-{} s"),
     Quote("docs/flying-measurements.md", "it is the flight's own ({} s for the default mission",
