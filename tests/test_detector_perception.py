@@ -98,3 +98,14 @@ def test_ground_truth_boxes_land_in_occupied_cells():
     xy = np.array([[spec.people[i].x_m, spec.people[i].y_m] for i in ids])
     visible = set(config.grid.cell_of_points(xy[:, 0], xy[:, 1]).tolist()) - {-1}
     assert len(ids) > 0 and seen <= occupied and seen == visible
+
+
+def test_a_detector_loaded_for_a_search_reads_its_grid():
+    """A detector knows no grid until told: the agent a mission or the team controller loads reads the wide
+    family's 900 cells (a flight once stopped at its first view with an index error)."""
+    from uavsearch.search.agents import build_agent
+    from uavsearch.search.config import setting_config
+
+    config = setting_config("wide")
+    loaded = build_agent("bayes", "random", config, perception=f"detector:{__file__}:centre_box")
+    assert loaded.perception.num_cells == config.grid.num_cells == 900

@@ -181,7 +181,7 @@ def teleport_rows(mission, spec, labels) -> dict:
         else:
             method = mission.team_method(config)
             fusion, budget_s, n = method.fusion, float(config.budget_s), mission.vehicles
-            net, _ = load_perception(mission.perception_path)
+            net = load_perception(mission.perception_path)[0].for_grid(config.grid.num_cells)
             max_views = mission.team.max_views if mission.team is not None else None
             src = lambda: _SceneViews(vehicle, net, labels, seen)  # noqa: E731
             if n == 1:  # Table III's rows

@@ -133,7 +133,7 @@ class TeamSearch:
         most = f", at most {self.max_views} views" if self.max_views else ""
         progress(f"models    {mission.perception_path.name}, {self.method.description}, mission time "
                  f"{self.config.budget_s:g} s{most}")
-        self.perception, _ = load_perception(mission.perception_path)
+        self.perception = load_perception(mission.perception_path)[0].for_grid(self.config.grid.num_cells)
 
     def header(self) -> dict:
         from ..search.fusion import fusion_name

@@ -211,6 +211,7 @@ def build_agent(fusion: str, policy: str, config: SearchConfig, *, checkpoint=No
     net = None
     if perception is not None and not isinstance(perception, nn.Module):
         perception, _ = load_perception(perception, device)
+        perception = perception.for_grid(config.grid.num_cells)  # a detector knows no grid until told
     trained: Fusion | None = None  # a fusion with weights, from a checkpoint
     kind = POLICIES[policy]
     if kind.build is None:

@@ -386,8 +386,9 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
             lines += table_lines(fam, name, cond, r)
             print(f"uavsearch: {fam}, {name}: done ({time.perf_counter() - t0:.0f} s)", flush=True)
     net_path = perception_of(args, families[0])
-    altitudes = ("trained across altitudes" if load_perception(net_path)[0].reads_altitude
-                 else "trained at 70 m only")
+    net = load_perception(net_path)[0]
+    altitudes = ("trained across altitudes" if net.reads_altitude else "a detector: boxes, no altitude input"
+                 if getattr(net, "kind", "") == "detector" else "trained at 70 m only")
     meta = {"altitudes": altitudes, "fusion": "chosen on validation per family and budget" if auto
             else args.wide_fusion, "perception": display_path(perception_of(args, families[0])), "tag": tag,
             "episodes": args.episodes, "seeds": args.seeds, "seconds": time.perf_counter() - t0}
