@@ -68,9 +68,9 @@ def main() -> int:
     for budget in ("8", "240"):
         base, v0 = rule_af1(plain, args.family, budget)
         flip, v1 = rule_af1(flipped, args.family, budget)
-        lo, mid, hi = bootstrap_ci(flip - base)
+        mean, lo, hi = bootstrap_ci(flip - base)
         rows.append(f"| {'T = 8' if budget == '8' else '240 s'} ({FUSION[budget]}) | {base.mean():.3f} ({v0}) | "
-                    f"{flip.mean():.3f} ({v1}) | {flip.mean() - base.mean():+.3f} [{lo:+.3f}, {hi:+.3f}] |")
+                    f"{flip.mean():.3f} ({v1}) | {mean:+.3f} [{lo:+.3f}, {hi:+.3f}] |")
     cmd = "python tools/wide_perception_flips.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     lines = [f"# Test-time flips of the {args.family} perception, validation only (`{cmd}`)", "",
              f"The rule on the {args.family} family's 50 validation scenes (one episode each: the rule is "
