@@ -245,14 +245,13 @@ class SceneComparison:
 
     def finish(self, result, progress=None) -> str:
         """Wait for the rows (saying so if they are not done), write comparison.json, return the table's text."""
+        from ..world.render import foreground_workers
+
+        foreground_workers()  # the flight is over: the rows' renderer is no longer background work
         if self._thread is None:  # no scene was handed over (e.g. a vehicle someone else started): compute it now
             return compare_flight(self.mission, result, progress)
-        if self._thread.is_alive():
-            from ..world.render import foreground_workers
-
-            foreground_workers()  # the flight is over: its renderer is no longer background work
-            if progress is not None:
-                progress(COMPARING)
+        if self._thread.is_alive() and progress is not None:
+            progress(COMPARING)
         self._thread.join()
         if self._error is not None:
             raise self._error

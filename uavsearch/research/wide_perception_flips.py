@@ -31,8 +31,8 @@ from ..search.wide_policies import choose_rule, rule_policy
 from .wide_policy_probes import FUSION, probe_parser, write_markdown
 
 
-def rule_af1(net, family: str, budget: str) -> tuple[np.ndarray, str, float]:
-    """(per validation scene final F1 of the rule, its variant, perception CPU seconds per view when built here)."""
+def rule_af1(net, family: str, budget: str) -> tuple[np.ndarray, str]:
+    """(the rule's final F1 per validation scene, its variant chosen on validation) with perception `net`."""
     train = get_view_cache(net, family, "large", "train", features=False, limit=20)
     val = get_view_cache(net, family, "large", "val", features=False)
     config = budget_config(val.config, budget)

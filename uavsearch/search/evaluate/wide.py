@@ -390,7 +390,7 @@ def eval_wide(args, families: list[str], caches: dict | None = None) -> dict:
     altitudes = ("trained across altitudes" if net.reads_altitude else "a detector: boxes, no altitude input"
                  if getattr(net, "kind", "") == "detector" else "trained at 70 m only")
     meta = {"altitudes": altitudes, "fusion": "chosen on validation per family and budget" if auto
-            else args.wide_fusion, "perception": display_path(perception_of(args, families[0])), "tag": tag,
+            else args.wide_fusion, "perception": display_path(net_path), "tag": tag,
             "episodes": args.episodes, "seeds": args.seeds, "seconds": time.perf_counter() - t0}
     md = write_table3(Path(args.out), rows, paired, lines, meta)
     fig = fig6(conds, Path(args.out))
