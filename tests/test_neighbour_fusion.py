@@ -64,3 +64,51 @@ def test_errors(tmp_path):
         fusion().fuse_host(v)
     with pytest.raises(UavsearchError, match="viewpoint"):
         fusion().fuse(v._replace(viewpoints=None))
+
+
+def test_train_fusion_fits_logs_and_saves_a_fusion_a_spec_names_and_a_resumed_run_is_the_same_fit(tmp_path):
+    """`uavsearch train fusion` on synthetic wide caches: the loss falls, validation is logged beside the rule on
+    the base fusion, model.pt is a neighbour fusion `neighbour:PATH` loads (the rule flies with it), the same
+    seed gives the same weights, and a run stopped after two epochs and resumed is the uninterrupted run."""
+    import csv
+    import json
+
+    import numpy as np
+    from test_wide_search import wide_cache
+    from uavsearch.search.config import wide_budgets
+    from uavsearch.search.metrics import map_f1
+    from uavsearch.search.search_loop import Agent, CachedViews, run_search
+    from uavsearch.search.train.fusion import Args, train, weights_sha
+    from uavsearch.search.wide_policies import rule_policy
+
+    caches = wide_cache(6, seed=1), wide_cache(3, seed=2)
+    kw = dict(family="wide", budget="8", fusion="calibrated:0.25", calibration_scenes=4, rollouts=3, epochs=4,
+              batch_size=4, hidden=8, eval_every=2, runs_dir=str(tmp_path), progress=False, seed=5)
+    res = train(Args(**kw), caches=caches)
+    rows = list(csv.DictReader((res.run_dir / "metrics.csv").open()))
+    assert [int(r["epoch"]) for r in rows] == [1, 2, 3, 4]
+    assert float(rows[-1]["losses/train"]) < float(rows[0]["losses/train"])
+    assert [r["eval/val_af1"] != "" for r in rows] == [False, True, False, True]
+    summary = json.loads((res.run_dir / "summary.json").read_text())
+    scenes = summary["scenes"]
+    assert (scenes["train"], scenes["val"]) == (6, 3) and 6 * 3 <= scenes["maps"] <= 6 * 3 * 3
+    assert summary["validation"][1]["af1"] == pytest.approx(np.mean(summary["per_scene_f1"]["neighbour"]))
+    assert float(rows[-1]["eval/val_af1"]) == pytest.approx(summary["validation"][1]["af1"])
+    assert (res.run_dir / "learning_curve.png").stat().st_size > 0
+    fusion = make_fusion(f"neighbour:{res.checkpoint}")
+    assert isinstance(fusion, NeighbourFusion) and weights_sha(fusion.net) == summary["weights_sha256"]
+    config = wide_budgets(caches[1].config)["T = 8 views"]
+    ep = run_search(CachedViews(caches[1], np.arange(3), config), Agent(fusion, rule_policy(config, summary["rule"])))
+    assert ep.maps.shape[1] == 8 and np.mean(map_f1(ep.maps[:, -1].numpy(), caches[1].occupancy.numpy())) \
+        == pytest.approx(summary["validation"][1]["af1"])
+    again = train(Args(**kw), caches=caches)
+    assert json.loads((again.run_dir / "summary.json").read_text())["weights_sha256"] == summary["weights_sha256"]
+    stopped = train(Args(**{**kw, "epochs": 2}), caches=caches)
+    resumed = train(Args(**{**kw, "resume": str(stopped.run_dir)}), caches=caches)
+    assert resumed.run_dir == stopped.run_dir
+    assert [int(r["epoch"]) for r in csv.DictReader((resumed.run_dir / "metrics.csv").open())] == [1, 2, 3, 4]
+    assert json.loads((resumed.run_dir / "summary.json").read_text())["weights_sha256"] == summary["weights_sha256"]
+    with pytest.raises(UavsearchError, match="no train_state.pt"):
+        train(Args(**{**kw, "resume": str(tmp_path / "nowhere")}), caches=caches)
+    with pytest.raises(UavsearchError, match="calibrated"):
+        train(Args(**{**kw, "fusion": "average"}), caches=caches)

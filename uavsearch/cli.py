@@ -270,13 +270,15 @@ def _add_train_parser(sub) -> None:
     from .search.train.policy import add_train_policy_parser
     from .search.train.map_policy import add_train_map_parser
     from .search.train.reactive import add_train_reactive_parser
+    from .search.train.fusion import add_train_fusion_parser
 
     train = sub.add_parser("train", help=TRAIN_HELP)
-    tsub = train.add_subparsers(dest="train_cmd", required=True, metavar="{perception,policy,reactive,map}")
+    tsub = train.add_subparsers(dest="train_cmd", required=True, metavar="{perception,policy,reactive,map,fusion}")
     add_train_perception_parser(tsub)
     add_train_policy_parser(tsub)
     add_train_reactive_parser(tsub)
     add_train_map_parser(tsub)
+    add_train_fusion_parser(tsub)
 
 
 def _add_eval_parser(sub) -> None:

@@ -40,7 +40,7 @@ from ..search.agents import budget_text, load_wide_agent
 from ..search.evaluate.bounds import bootstrap_ci
 from ..search.map_policy import wide_checkpoint
 from ..search.metrics import map_f1
-from ..search.neighbour_fusion import CorrectionNet, NeighbourFusion, save_neighbour, view_planes
+from ..search.neighbour_fusion import CorrectionNet, NeighbourFusion, episode_planes, save_neighbour
 from ..search.search_loop import Agent, CachedViews, run_search
 from ..search.symmetry import square_symmetry
 from ..search.wide_policies import lowest_layer
@@ -50,14 +50,7 @@ SHIFTS = np.arange(-2.0, 2.01, 0.25)  # decision thresholds tried, as log-odds s
 
 
 def cell_planes(cache, rows, episode, fusion, config, step: int = -1) -> torch.Tensor:
-    """view_planes of an episode's map after view `step` (the last by default) and the views up to it."""
-    r = torch.as_tensor(rows)[:, None]
-    t = episode.lattice_idx.shape[1]
-    idx = episode.lattice_idx[:, :step % t + 1]
-    taken = episode.taken if episode.taken is not None else torch.ones_like(episode.lattice_idx, dtype=torch.bool)
-    v = cache.valid[r, idx] & taken[:, :idx.shape[1], None]
-    return view_planes(episode.maps[:, step], cache.log_probs[r, idx, :, 1].exp().float(), v,
-                       cache.cell_area_px[r, idx].float(), idx, fusion.coef, lowest_layer(config), config.grid.n)
+    return episode_planes(cache, rows, episode, fusion.coef, lowest_layer(config), config.grid.n, step)
 
 
 def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) -> CorrectionNet:

@@ -50,7 +50,7 @@ from ..search.search_loop import Agent, CachedViews, run_search
 from ..search.train.map_policy import LabelLookahead, budget_config, repeat_state
 from ..search.train.runs import fit_minibatches
 from ..search.wide_policies import (RULE_OVERHEAD_S, RULE_VARIANTS, SURVEY_OUTER_M,
-                                            DescendRule, argmax_allowed, candidates, choose_rule, footprints,
+                                            DescendRule, NoisyRule, argmax_allowed, candidates, choose_rule, footprints,
                                             lowest_layer, route_views, rule_policy)
 
 FUSION = {"8": "calibrated:0.25", "240": "calibrated:0.75"}  # the learned policy's (docs/learning.md)
@@ -214,22 +214,6 @@ def map_planes(config):
     """inp -> the map policy's planes (B, MAP_PLANES, n, n) of a state."""
     net = MapPolicyNet(MapPolicyConfig(config_to_dict(config)))
     return lambda inp: net.state(inp)[0]
-
-
-class NoisyRule:
-    """The rule, with a share of its moves replaced by random allowed ones (varied states to fit on)."""
-
-    def __init__(self, rule, eps: float, gen: torch.Generator):
-        self.rule, self.eps, self.gen = rule, eps, gen
-
-    def act(self, inp, generator=None):
-        a = self.rule.act(inp)[0]
-        if not self.eps:
-            return a, None, None
-        w = candidates(inp).float()
-        w[w.sum(1) == 0] = 1
-        rnd = torch.multinomial(w, 1, generator=self.gen)[:, 0]
-        return torch.where(torch.rand(len(a), generator=self.gen) < self.eps, rnd, a), None, None
 
 
 def collect(train, fusion, config, rule, state, episodes: int, seed: int):

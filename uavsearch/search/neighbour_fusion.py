@@ -45,6 +45,18 @@ def view_planes(fused, p, v, area, idx, coef, lowest, n: int) -> torch.Tensor:
     return torch.stack(planes, 1).view(len(idx), len(planes), n, n)
 
 
+def episode_planes(cache, rows, episode, coef, lowest, n: int, step: int = -1) -> torch.Tensor:
+    """view_planes of a cached episode's map after view `step` (the last by default) and its views up to it:
+    `cache` a ViewCache, `rows` the episode's scenes in it, `episode` run_search's result on them."""
+    r = torch.as_tensor(rows)[:, None]
+    t = episode.lattice_idx.shape[1]
+    idx = episode.lattice_idx[:, :step % t + 1]
+    taken = episode.taken if episode.taken is not None else torch.ones_like(episode.lattice_idx, dtype=torch.bool)
+    v = cache.valid[r, idx] & taken[:, :idx.shape[1], None]
+    return view_planes(episode.maps[:, step], cache.log_probs[r, idx, :, 1].exp().float(), v,
+                       cache.cell_area_px[r, idx].float(), idx, coef, lowest, n)
+
+
 class CorrectionNet(nn.Module):
     """A correction to the calibrated log-odds (plane 0), from each cell's planes (kernel 1) or its neighbours'."""
 

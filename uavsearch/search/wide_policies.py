@@ -114,6 +114,23 @@ class MaskedRandom:
         return torch.multinomial(w, 1, generator=generator).squeeze(-1), None, None
 
 
+class NoisyRule:
+    """A policy with a share `eps` of its moves replaced by random allowed ones, drawn from `gen`: varied states
+    around the policy's own to fit on (the neighbour fusion's and the probes' training rollouts)."""
+
+    def __init__(self, rule, eps: float, gen: torch.Generator):
+        self.rule, self.eps, self.gen = rule, eps, gen
+
+    def act(self, inp: PolicyInput, generator=None):
+        a = self.rule.act(inp)[0]
+        if not self.eps:
+            return a, None, None
+        w = candidates(inp).float()
+        w[w.sum(1) == 0] = 1
+        rnd = torch.multinomial(w, 1, generator=self.gen)[:, 0]
+        return torch.where(torch.rand(len(a), generator=self.gen) < self.eps, rnd, a), None, None
+
+
 def argmax_allowed(score: torch.Tensor, allowed: torch.Tensor) -> torch.Tensor:
     """The allowed index of the highest score, ties to the lowest index."""
     return torch.where(allowed, score, torch.full_like(score, -np.inf)).argmax(1)
