@@ -43,10 +43,10 @@ from ..search.metrics import map_f1
 from ..search.neighbour_fusion import CorrectionNet, NeighbourFusion, episode_planes, save_neighbour
 from ..search.search_loop import Agent, CachedViews, run_search
 from ..search.symmetry import square_symmetry
+from ..search.train.fusion import best_shift
 from ..search.wide_policies import lowest_layer
 from .wide_policy_probes import FUSION, NoisyRule, fit_adam, probe_parser, probe_setting, write_markdown
 
-SHIFTS = np.arange(-2.0, 2.01, 0.25)  # decision thresholds tried, as log-odds shifts
 
 
 def cell_planes(cache, rows, episode, fusion, config, step: int = -1) -> torch.Tensor:
@@ -64,10 +64,6 @@ def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) 
         return nn.functional.binary_cross_entropy_with_logits(net(square_symmetry(X[b], k)), square_symmetry(Y[b], k))
 
     return fit_adam(net, len(X), loss, seed, epochs, lr=3e-3, weight_decay=1e-4)
-
-
-def best_shift(logits: np.ndarray, labels: np.ndarray) -> float:
-    return float(max(SHIFTS, key=lambda s: map_f1(1 / (1 + np.exp(-(logits + s))), labels).mean()))
 
 
 def main() -> None:
