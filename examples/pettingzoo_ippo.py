@@ -33,7 +33,7 @@ from uavsearch.cli_args import add_dataclass_args, dataclass_from_args, opt
 from uavsearch.envs import team_parallel_env
 from uavsearch.paths import RUNS_DIR
 from uavsearch.search.agents import PLANNERS
-from uavsearch.search.evaluate.bounds import RESAMPLES, bootstrap_ci
+from uavsearch.search.metrics import RESAMPLES, bootstrap_ci
 from uavsearch.search.evaluate.team import VARIANTS, team_scores
 from uavsearch.search.train.runs import MetricsCsv, seed_everything, start_run
 from uavsearch.search.wide_policies import binary_entropy, footprints

@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import cleanrl_ppo  # noqa: E402
 
 from uavsearch.search.envs.search_env import TABLE3, LoopPolicyPlayer, WideSearchEnv, play_scenes  # noqa: E402
-from uavsearch.search.evaluate.bounds import bootstrap_ci  # noqa: E402
+from uavsearch.search.metrics import bootstrap_ci  # noqa: E402
 from uavsearch.search.evaluate.wide import LABELS, fixed_agents  # noqa: E402
 from uavsearch.search.policy import load_search_model  # noqa: E402
 

@@ -63,9 +63,9 @@ class _SceneViews:
 
 def table3_choice(family: str, budget: str) -> dict:
     """Table III's best fixed route and rule variant for a family and budget ("240 s", "T = 8 views"), from the
-    committed table (evaluate/table3_choices.py); a view set searched on training scenes gives way to the best
+    committed table (search/table3_choices.py); a view set searched on training scenes gives way to the best
     hand-made route by the table's validation AF1, which needs no training views."""
-    from ..search.evaluate.table3_choices import table3_choice as read_choice
+    from ..search.table3_choices import table3_choice as read_choice
     from ..search.wide_policies import RULE_VARIANTS
 
     choice = {"best_fixed": "survey_outer", "rule_variant": None, "source": None, "note": ""}

@@ -25,7 +25,7 @@ from ..fly.mission_controller import fly
 from ..fly.missions import load_mission
 from ..logs.flight_log import read_flight_log
 from ..paths import MISSIONS_DIR, display_path
-from ..search.evaluate.bounds import bootstrap_ci
+from ..search.metrics import bootstrap_ci
 from ..search.data.view_cache import get_view_cache
 from ..search.metrics import map_f1
 from ..search.perception import load_perception

@@ -22,7 +22,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ..search.data.view_cache import get_view_cache
-from ..search.evaluate.bounds import bootstrap_ci, scene_af1
+from ..search.evaluate.bounds import scene_af1
+from ..search.metrics import bootstrap_ci
 from ..search.config import wide_budgets
 from ..search.evaluate.wide import FIXED, FUSION_CANDIDATES, LABELS, RULE, fixed_agents, rule_agent, run_rows
 from ..search.fusion import fusion_name

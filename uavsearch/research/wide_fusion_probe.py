@@ -37,7 +37,7 @@ from tqdm import tqdm
 
 from ..paths import display_path
 from ..search.agents import budget_text, load_wide_agent
-from ..search.evaluate.bounds import bootstrap_ci
+from ..search.metrics import bootstrap_ci
 from ..search.map_policy import wide_checkpoint
 from ..search.metrics import map_f1
 from ..search.neighbour_fusion import CorrectionNet, NeighbourFusion, episode_planes, save_neighbour

@@ -24,7 +24,7 @@ import torch
 
 from ..paths import RUNS_DIR, display_path
 from ..search.agents import load_wide_agent
-from ..search.evaluate.bounds import bootstrap_ci
+from ..search.metrics import bootstrap_ci
 from ..search.map_policy import wide_checkpoint
 from ..search.metrics import map_f1
 from ..search.neighbour_fusion import load_neighbour

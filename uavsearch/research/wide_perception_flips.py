@@ -22,7 +22,7 @@ import torch
 
 from ..search.agents import make_fusion
 from ..search.data.view_cache import get_view_cache
-from ..search.evaluate.bounds import bootstrap_ci
+from ..search.metrics import bootstrap_ci
 from ..search.perception import FLIPS_PREFIX, load_perception, shipped_perception
 from ..search.scoring import evaluate_agent
 from ..search.search_loop import Agent

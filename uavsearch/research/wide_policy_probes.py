@@ -39,7 +39,7 @@ from tqdm import tqdm
 from ..paths import display_path
 from ..search.agents import budget_text
 from ..search.data.view_cache import get_view_cache
-from ..search.evaluate.bounds import bootstrap_ci
+from ..search.metrics import bootstrap_ci
 from ..search.agents import make_fusion
 from ..search.fusion import SAME_SCALE, calibrated_logit
 from ..search.map_policy import MAP_PLANES, MapPolicyConfig, MapPolicyNet

@@ -28,7 +28,7 @@ from ..paths import display_path
 from ..search.agents import load_wide_agent
 from ..search.config import wide_budgets
 from ..search.data.view_cache import get_view_cache
-from ..search.evaluate.bounds import bootstrap_ci
+from ..search.metrics import bootstrap_ci
 from ..search.evaluate.wide import flight_seconds
 from ..search.map_policy import BUDGETS, wide_checkpoint
 from ..search.metrics import map_f1

@@ -18,6 +18,9 @@ import numpy as np
 
 from uavsearch.errors import UavsearchError
 
+RESAMPLES = 10_000  # bootstrap resamples over scenes
+LEVEL = 0.95  # the intervals' coverage
+
 F1_WHEN_EMPTY = 1.0
 
 
@@ -121,3 +124,18 @@ def rate_by_bin(x, ok, edges) -> tuple[np.ndarray, np.ndarray]:
         rates.append(float(ok[m].mean()) if m.any() else np.nan)
     return np.array(rates), np.array(counts)
 
+
+def bootstrap_ci(diff, resamples: int = RESAMPLES, seed: int = 0, level: float = LEVEL) -> tuple[float, float, float]:
+    """(mean, low, high): the mean of per-scene values and its percentile bootstrap interval over scenes.
+
+    The same (seed, number of scenes) draws the same resamples, so every row of a setting is resampled
+    alike (common random numbers) and a rerun gives the same interval."""
+    d = np.asarray(diff, dtype=np.float64)
+    if d.ndim != 1 or len(d) == 0:
+        raise UavsearchError(f"bootstrap needs a non-empty vector of per-scene values, got shape {d.shape}")
+    if resamples < 1 or not 0.0 < level < 1.0:
+        raise UavsearchError("bootstrap needs at least one resample and a level in (0, 1)")
+    idx = np.random.default_rng(seed).integers(0, len(d), (int(resamples), len(d)))
+    means = d[idx].mean(1)
+    lo, hi = np.quantile(means, [(1.0 - level) / 2.0, (1.0 + level) / 2.0])
+    return float(d.mean()), float(lo), float(hi)

@@ -31,7 +31,7 @@ from ...world.scene import SceneSpec, scene_from_json, scene_to_json
 from ..cells import REWARD_MODES, SearchBatch, TableSource, cell_tables, observation_keys
 from ..config import SearchConfig, setting_config
 from ..episode import Observation, PolicyInput
-from ..evaluate.table3_choices import BUDGET_HEADS, Table3Choice, table3_choice
+from ..table3_choices import BUDGET_HEADS, Table3Choice, table3_choice
 from ..agents import make_fusion
 from ..fusion import CalibratedFusion, Fusion, calibrated_gamma
 from ..perception import perceive

@@ -28,13 +28,11 @@ from uavsearch.errors import UavsearchError
 
 from ..config import SearchConfig
 from ..fusion import Fusion
-from ..metrics import map_f1
+from ..metrics import RESAMPLES, bootstrap_ci, map_f1
 from ..policy import coverage_route
 from ..reactive import LabelGreedyTeacher
 from ..search_loop import Agent, CachedViews, run_search
 
-RESAMPLES = 10_000
-LEVEL = 0.95
 TIE = 1e-12  # per-scene AF1 differences smaller than this count as ties
 
 
@@ -46,22 +44,6 @@ def scene_af1(res: dict) -> np.ndarray:
     if f1.shape[1] % S:
         raise UavsearchError(f"{f1.shape[1]} episodes do not split evenly over {S} scenes")
     return f1.reshape(f1.shape[0], S, -1).mean((0, 2))
-
-
-def bootstrap_ci(diff, resamples: int = RESAMPLES, seed: int = 0, level: float = LEVEL) -> tuple[float, float, float]:
-    """(mean, low, high): the mean of per-scene values and its percentile bootstrap interval over scenes.
-
-    The same (seed, number of scenes) draws the same resamples, so every row of a setting is resampled
-    alike (common random numbers) and a rerun gives the same interval."""
-    d = np.asarray(diff, dtype=np.float64)
-    if d.ndim != 1 or len(d) == 0:
-        raise UavsearchError(f"bootstrap needs a non-empty vector of per-scene values, got shape {d.shape}")
-    if resamples < 1 or not 0.0 < level < 1.0:
-        raise UavsearchError("bootstrap needs at least one resample and a level in (0, 1)")
-    idx = np.random.default_rng(seed).integers(0, len(d), (int(resamples), len(d)))
-    means = d[idx].mean(1)
-    lo, hi = np.quantile(means, [(1.0 - level) / 2.0, (1.0 + level) / 2.0])
-    return float(d.mean()), float(lo), float(hi)
 
 
 def paired_differences(res: dict[str, dict], references: tuple[str, ...], labels: dict[str, str],
@@ -183,5 +165,5 @@ def hidden_shares(cache, config: SearchConfig | None = None) -> tuple[float, flo
     return float((start & occ).sum() / n), float(((px.max(1) == 0) & occ).sum() / n)
 
 
-__all__ = ["FixedRoutes", "RouteBounds", "all_routes", "bootstrap_ci", "hidden_shares", "label_greedy_af1",
+__all__ = ["FixedRoutes", "RouteBounds", "all_routes", "hidden_shares", "label_greedy_af1",
            "paired_differences", "route_af1", "route_bounds", "route_index", "scene_af1"]

@@ -64,7 +64,8 @@ from ..perception import load_perception, shipped_perception
 from ..policy import load_search_model
 from ..scoring import evaluate_agent
 from ..search_loop import Agent
-from .bounds import RESAMPLES, bootstrap_ci, hidden_shares, label_greedy_af1, paired_differences, route_bounds
+from ..metrics import RESAMPLES, bootstrap_ci
+from .bounds import hidden_shares, label_greedy_af1, paired_differences, route_bounds
 from .tables import write_csv
 
 # (key, Table II label, fusion, policy): names from the agent registry (agents.py). The single-view row is

@@ -31,7 +31,7 @@ from ..data.view_cache import ViewCache
 from ..metrics import map_f1
 from ..search_loop import CachedViews
 from ..team import run_team
-from .bounds import RESAMPLES, bootstrap_ci
+from ..metrics import RESAMPLES, bootstrap_ci
 from .tables import write_csv
 from .wide import FUSION_CANDIDATES, family_caches
 

@@ -22,7 +22,7 @@ CALIBRATED_GAMMAS) with the best mean validation AF1 over the hand-made fixed ro
                        labels is expected to reach them
 
 Every row is paired per test scene against the best fixed route and against the rule (final AF1; mean over
-scenes with a 95% scene-bootstrap interval, bounds.bootstrap_ci / paired_differences).
+scenes with a 95% scene-bootstrap interval, metrics.bootstrap_ci, bounds.paired_differences).
 """
 
 from __future__ import annotations

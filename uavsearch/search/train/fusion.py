@@ -44,13 +44,12 @@ from uavsearch.paths import display_path
 from uavsearch.viz import pyplot
 
 from ..agents import make_fusion
-from ..evaluate.bounds import bootstrap_ci
-from ..evaluate.table3_choices import table3_choice
 from ..map_policy import BUDGETS
-from ..metrics import map_f1
+from ..metrics import bootstrap_ci, map_f1
 from ..neighbour_fusion import CorrectionNet, NeighbourFusion, episode_planes, save_neighbour
 from ..search_loop import Agent, CachedViews, run_search
 from ..symmetry import square_symmetry
+from ..table3_choices import table3_choice
 from ..wide_policies import NoisyRule, choose_rule, lowest_layer, rule_policy
 from .map_policy import _caches, budget_config
 from .runs import MetricsCsv, RunArgs, copy_checkpoint, finish_curves, start_run, start_training

@@ -13,8 +13,8 @@ import re
 from pathlib import Path
 from typing import NamedTuple
 
-from ...errors import UavsearchError
-from ...paths import REPO_ROOT
+from ..errors import UavsearchError
+from ..paths import REPO_ROOT
 
 RESULTS_DIR = REPO_ROOT / "results"
 BUDGET_HEADS = {"8": "T = 8 views", "240": "240 s"}  # the env's budget keys -> the table's budget names
