@@ -103,7 +103,10 @@ def test_train_fusion_fits_logs_and_saves_a_fusion_a_spec_names_and_a_resumed_ru
         == pytest.approx(summary["validation"][1]["af1"])
     again = train(Args(**kw), caches=caches)
     assert json.loads((again.run_dir / "summary.json").read_text())["weights_sha256"] == summary["weights_sha256"]
-    stopped = train(Args(**{**kw, "epochs": 2}), caches=caches)
+    stopped = train(Args(**{**kw, "stop_after": 2}), caches=caches)
+    assert stopped.table == [] and not (stopped.run_dir / "model.pt").exists()
+    with pytest.raises(UavsearchError, match="started for 4 epochs"):
+        train(Args(**{**kw, "epochs": 6, "resume": str(stopped.run_dir)}), caches=caches)
     resumed = train(Args(**{**kw, "resume": str(stopped.run_dir)}), caches=caches)
     assert resumed.run_dir == stopped.run_dir
     assert [int(r["epoch"]) for r in csv.DictReader((resumed.run_dir / "metrics.csv").open())] == [1, 2, 3, 4]
@@ -112,3 +115,32 @@ def test_train_fusion_fits_logs_and_saves_a_fusion_a_spec_names_and_a_resumed_ru
         train(Args(**{**kw, "resume": str(tmp_path / "nowhere")}), caches=caches)
     with pytest.raises(UavsearchError, match="calibrated"):
         train(Args(**{**kw, "fusion": "average"}), caches=caches)
+
+
+def test_the_map_policy_trains_on_a_fitted_neighbour_fusion_and_carries_it(tmp_path):
+    """The learned policy is trained on the learned aggregation: the label teacher re-fuses every candidate view
+    (route views with their viewpoints, the fusion's state repeated per candidate), and the policy's checkpoint
+    carries the neighbour fusion, which gives the same maps as the file it was fitted into."""
+    from test_wide_search import wide_cache
+    from uavsearch.search.policy import load_search_model
+    from uavsearch.search.train import fusion as fusion_train
+    from uavsearch.search.train import map_policy
+
+    caches = wide_cache(6, seed=1), wide_cache(3, seed=2)
+    fitted = fusion_train.train(fusion_train.Args(family="wide", budget="8", fusion="calibrated:0.25",
+                                                  calibration_scenes=4, rollouts=2, epochs=1, batch_size=4, hidden=8,
+                                                  runs_dir=str(tmp_path), progress=False, plot=False, seed=5),
+                                caches=caches)
+    spec = f"neighbour:{fitted.checkpoint}"
+    res = map_policy.train(map_policy.Args(family="wide", budget="8", fusion=spec, teacher="labels",
+                                           calibration_scenes=4, train_eval_scenes=2, dagger_iterations=1,
+                                           dagger_episodes=6, dagger_epochs=1, batch_size=16, pg_iterations=1,
+                                           scenes_per_batch=2, episodes_per_scene=2, eval_every=1, channels=8,
+                                           conv_layers=2, hidden=16, runs_dir=str(tmp_path), progress=False,
+                                           plot=False, seed=0), caches=caches)
+    carried, net, _ = load_search_model(res.checkpoint)
+    assert isinstance(carried, NeighbourFusion) and net.KIND == "map"
+    v = views()._replace(viewpoints=torch.randint(72, (B, T), generator=torch.Generator().manual_seed(1)))
+    v = v._replace(p=torch.rand(B, T, 900), valid=torch.ones(B, T, 900, dtype=torch.bool),
+                   area_px=torch.full((B, T, 900), 200.0))
+    assert torch.allclose(carried.fuse(v), make_fusion(spec).fuse(v), atol=2e-3)  # the checkpoint keeps half floats

@@ -247,7 +247,7 @@ def route_views(cache, rows: torch.Tensor, positions: torch.Tensor) -> FusionVie
     """FusionViews of views at `positions` (M, t) of scenes `rows` (M,)."""
     r = rows[:, None].expand_as(positions)
     return FusionViews(cache.log_probs[r, positions][..., 1].exp(), cache.valid[r, positions],
-                       cache.cell_area_px[r, positions], labels=cache.occupancy[rows])
+                       cache.cell_area_px[r, positions], viewpoints=positions, labels=cache.occupancy[rows])
 
 
 def _check_fusion(fusion: Fusion) -> None:

@@ -147,13 +147,14 @@ def check_args(args: Args) -> None:
 
 
 def repeat_state(x, k: int):
-    """A fusion state (tensors, NamedTuples of them, None) with each batch row repeated k times."""
+    """A fusion state (tensors, tuples or NamedTuples of them, None) with each batch row repeated k times."""
     if x is None:
         return None
     if isinstance(x, torch.Tensor):
         return x.repeat_interleave(k, 0)
     if isinstance(x, tuple):
-        return type(x)(*(repeat_state(f, k) for f in x))
+        parts = (repeat_state(f, k) for f in x)
+        return type(x)(*parts) if hasattr(x, "_fields") else tuple(parts)
     return x
 
 
