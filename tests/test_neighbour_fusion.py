@@ -1,5 +1,6 @@
 """The neighbour fusion: view by view equals the whole history, saves and loads to the same maps, a spec names it,
-and what it cannot do is a one-line error (small synthetic views, no caches)."""
+what it cannot do is a one-line error; `uavsearch train fusion` fits it, the map policy trains on it and the env
+fuses with it (small synthetic views and synthetic wide caches)."""
 
 import pytest
 import torch
@@ -60,8 +61,6 @@ def test_errors(tmp_path):
     with pytest.raises(UavsearchError, match="not a neighbour fusion"):
         load_neighbour(bad)
     v = views()
-    with pytest.raises(UavsearchError, match="buffered"):
-        fusion().fuse_host(v)
     with pytest.raises(UavsearchError, match="viewpoint"):
         fusion().fuse(v._replace(viewpoints=None))
 
@@ -144,3 +143,36 @@ def test_the_map_policy_trains_on_a_fitted_neighbour_fusion_and_carries_it(tmp_p
     v = v._replace(p=torch.rand(B, T, 900), valid=torch.ones(B, T, 900, dtype=torch.bool),
                    area_px=torch.full((B, T, 900), 200.0))
     assert torch.allclose(carried.fuse(v), make_fusion(spec).fuse(v), atol=2e-3)  # the checkpoint keeps half floats
+
+
+def test_numpy_views_fuse_as_tensors_do_and_the_env_flies_the_rule_on_it(tmp_path):
+    """The envs' buffered episodes keep each view's viewpoint, so WideSearch-v0 fuses with a neighbour fusion:
+    the rule played through the env flies the evaluation's routes and scores its AF1."""
+    import numpy as np
+
+    from uavsearch.search.config import setting_config
+    from uavsearch.search.envs.search_env import LoopPolicyPlayer, WideSearchEnv, play_scenes
+    from uavsearch.search.scoring import score_episode
+    from uavsearch.search.search_loop import Agent, CachedViews, run_search
+    from uavsearch.search.wide_policies import rule_policy
+    from uavsearch.testing.synthetic_views import synthetic_cache
+
+    f, v = fusion(), views()
+    host = FusionViews(v.p.double().numpy(), v.valid.numpy(), v.area_px.double().numpy(),
+                       viewpoints=v.viewpoints.numpy())
+    np.testing.assert_allclose(f.fuse_host(host), f.fuse(v).numpy(), atol=1e-5)
+
+    cache = synthetic_cache(4, k=10, seed=2, config=setting_config("wide"))
+    torch.manual_seed(1)
+    env = WideSearchEnv(cache=cache, budget="8", progress=False)
+    wide = NeighbourFusion.around(CalibratedFusion((1.1, -0.05, -0.3, 0.02), 0.08, 0.25), CorrectionNet(kernel=5),
+                                  0.5, env.config)
+    path = save_neighbour(wide, tmp_path / "n.pt")
+    env = WideSearchEnv(cache=cache, budget="8", fusion=f"neighbour:{path}", progress=False)
+    assert isinstance(env.fusion, NeighbourFusion)
+    rule = rule_policy(env.config, "4 covering, resurvey below p 0.4")
+    f1, routes = play_scenes(env, LoopPolicyPlayer(rule, env.config).act, cache.scene_seed)
+    with torch.no_grad():
+        ep = run_search(CachedViews(cache, np.arange(cache.num_scenes), env.config), Agent(env.fusion, rule))
+    assert [ep.lattice_idx[i, :len(r)].tolist() for i, r in enumerate(routes)] == routes
+    np.testing.assert_allclose(f1, score_episode(ep).f1[:, -1], atol=1e-6)

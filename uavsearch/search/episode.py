@@ -184,6 +184,7 @@ class SearchState:
         self.hist_valid = np.zeros((B, T, N), dtype=bool)
         self.hist_area = np.zeros((B, T, N), dtype=np.float64)
         self.hist_scores = np.zeros((B, T, N), dtype=np.float64)
+        self.hist_viewpoint = np.zeros((B, T), dtype=np.int64)  # where each view was taken (a fusion may read it)
 
     # -- the clocks --------------------------------------------------------------------------------
 
@@ -237,13 +238,13 @@ class SearchState:
         o = observe(idx) if observe is not None else host_observation(source.observe(torch.as_tensor(idx)))
         revisit = (self.visits[self._ar, idx] > 0) & m
         envs = np.flatnonzero(m)
-        self._buffer(envs, o)
+        self._buffer(envs, o, idx)
         self.visits[envs, idx[envs]] += 1
         self.views += m
         self.last = o
         return o, revisit
 
-    def _buffer(self, envs: np.ndarray, o: Observation) -> None:
+    def _buffer(self, envs: np.ndarray, o: Observation, idx: np.ndarray) -> None:
         """Episodes `envs` write their view into the buffers at their own index and re-fuse their views (only
         the slots up to the latest view: a later one holds no view, and fusing it changes no bit)."""
         if not len(envs):
@@ -251,12 +252,13 @@ class SearchState:
         t = self.views[envs]
         self.hist_p[envs, t], self.hist_valid[envs, t] = o.p[envs], o.valid[envs]
         self.hist_area[envs, t] = o.cell_area_px[envs]
+        self.hist_viewpoint[envs, t] = idx[envs]
         if o.scores is not None:
             self.hist_scores[envs, t] = o.scores[envs]
         k, sel = int(t.max()) + 1, slice(None) if len(envs) == self.B else envs
         views = FusionViews(self.hist_p[sel, :k], self.hist_valid[sel, :k], self.hist_area[sel, :k],
                             scores=self.hist_scores[sel, :k] if o.scores is not None else None,
-                            labels=self.labels[sel])
+                            viewpoints=self.hist_viewpoint[sel, :k], labels=self.labels[sel])
         self.fused[envs] = self.fusion.fuse_host(views)
 
     def view_scores(self) -> torch.Tensor | None:
@@ -332,7 +334,7 @@ class SearchState:
         self.capture[envs] = False
         self.capture[envs, 0] = True
         self.views[envs] = 0
-        for buf in (self.visits, self.hist_p, self.hist_valid, self.hist_area, self.hist_scores):
+        for buf in (self.visits, self.hist_p, self.hist_valid, self.hist_area, self.hist_scores, self.hist_viewpoint):
             buf[envs] = 0
         self.labels[envs] = labels
 

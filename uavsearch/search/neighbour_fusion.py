@@ -117,8 +117,12 @@ class NeighbourFusion(nn.Module, Fusion):
         return (base_state, idx), self._correct(fused, base_state.views, idx)
 
     def fuse_host(self, views: FusionViews) -> np.ndarray:
-        raise UavsearchError("the neighbour fusion reads each view's viewpoint, which the envs' buffered episodes "
-                             "do not keep; use it through run_search (uavsearch eval search, missions)")
+        """The envs' buffered episodes fuse numpy views: the same net, on tensors (it has no numpy kernel)."""
+        def t(x):
+            return None if x is None else torch.as_tensor(x)
+
+        return self.fuse(FusionViews(t(views.p), t(views.valid), t(views.area_px),
+                                     viewpoints=t(views.viewpoints))).double().numpy()
 
     def view_scores(self, state):
         return None
