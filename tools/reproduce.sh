@@ -67,6 +67,13 @@
 #                     results/map_policy/fusion_probe_T8.md and fusion_probe_240s.md; and without the
 #                     square's symmetries on 100 scenes -> fusion_probe_T8_100_no_symmetries.md. measured: about
 #                     8 min each on the 2-core machine, after the 300 scenes' perception cache (5 min).
+#     perception_flips the rule with the wide perception seeing each view four ways (test-time flips) against the
+#                     shipped net on the 50 wide validation scenes, T = 8 and 240 s ->
+#                     results/wide_study/perception_flips.md. measured: 22 s after the caches it builds.
+#     fusion_seeds    the learned neighbour fusion (`uavsearch train fusion`) over seeds 0-2, the rule and the
+#                     shipped map policy on it against the rule on the calibrated fusion, 50 wide validation
+#                     scenes -> results/wide_study/fusion_seeds_T8.md and fusion_seeds_240s.md. measured: 622 s
+#                     (T = 8) and 1826 s (240 s, beside a map-policy training) after the 300 scenes' caches.
 #     perception_wide the wide net's targets per altitude on the 100 wide test scenes
 #                     (results/perception_wide/), against the paper's net on the same views.
 #     wide            Table III: wide on 100 test scenes (results/search_wide/), wide-uniform on 50
@@ -169,6 +176,10 @@ add map_probes full "other ways of choosing the rule's descents, shorter surveys
   "$PY tools/wide_policy_probes.py --budget 8 --out results/map_policy/probes_T8.md && $PY tools/wide_policy_probes.py --budget 240 --out results/map_policy/probes_240s.md"
 add fusion_probe full "learned fusions over each cell's views and its neighbours against the calibrated one (rule episodes, 50 wide validation scenes, T = 8 and 240 s) -> results/map_policy/fusion_probe_*.md" \
   "$PY tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --out results/map_policy/fusion_probe_T8.md && $PY tools/wide_fusion_probe.py --budget 240 --train-scenes 300 --out results/map_policy/fusion_probe_240s.md && $PY tools/wide_fusion_probe.py --budget 8 --train-scenes 100 --epochs 60 --no-symmetries --out results/map_policy/fusion_probe_T8_100_no_symmetries.md"
+add perception_flips full "test-time flips of the wide perception against the shipped net (the rule, 50 wide validation scenes, T = 8 and 240 s) -> results/wide_study/perception_flips.md" \
+  "$PY tools/wide_perception_compare.py --out results/wide_study/perception_flips.md"
+add fusion_seeds full "the learned neighbour fusion over seeds 0-2 against the calibrated one (the rule and the shipped map policy, 50 wide validation scenes, T = 8 and 240 s) -> results/wide_study/fusion_seeds_*.md" \
+  "$PY tools/wide_fusion_seeds.py --budget 8 --seeds 0 1 2 --out results/wide_study/fusion_seeds_T8.md && $PY tools/wide_fusion_seeds.py --budget 240 --seeds 0 1 2 --out results/wide_study/fusion_seeds_240s.md"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE, $RUN/seed0/search_s*_*.pt and $RUN/search_wide_*_map.pt into models/" \
   "cp $NEWPERC models/perception.pt && cp $NEWPERC_WIDE models/perception_wide.pt && cp $RUN/seed0/search_s*_*.pt $RUN/search_wide_*_map.pt models/"
 add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \

@@ -1,14 +1,17 @@
-"""Does seeing each view four ways (test-time flips) make the wide family's perception find more people?
+"""Does another perception make the rule find more people in the wide family? A candidate against the shipped net.
 
-A nadir view has no preferred side: the image and its mirror images (left-right, up-down, both), each with its
-cell label image mirrored along, are views the shipped perception could have been shown. `flips:PATH`
-(search/perception.py) averages the per-cell probabilities and features of the four. This probe builds the
-validation caches (and the first 20 training scenes', which the calibrated fusion is fitted on) with the flipped
-perception from the same renders, lets the rule (its variant chosen on validation, per perception) search both,
-and pairs the final AF1 per validation scene (95% bootstrap interval over scenes), at T = 8 views and at 240 s.
-It also times perception per view, plain and flipped, on this machine.
+The candidate (`--candidate SPEC`) is any perception spec: a retrained checkpoint (say, the shipped net fine-tuned
+on more training scenes), or `flips` (the default), the shipped net seeing each view four ways: a nadir view has
+no preferred side, so the image and its mirror images (left-right, up-down, both), each with its cell label image
+mirrored along, are views the net could have been shown, and `flips:PATH` (search/perception.py) averages the
+per-cell probabilities and features of the four. The probe builds the validation caches (and the first 20
+training scenes', which the calibrated fusion is fitted on) with each perception from the same renders, lets the
+rule (its variant chosen on validation, per perception) search both, and pairs the final AF1 per validation scene
+(95% bootstrap interval over scenes), at T = 8 views and at 240 s. It also times both perceptions per view on
+this machine.
 
-    python tools/wide_perception_flips.py --out results/wide_study/perception_flips.md
+    python tools/wide_perception_compare.py --out results/wide_study/perception_flips.md
+    python tools/wide_perception_compare.py --candidate runs/perception_wide_500.pt --out runs/perception_500.md
 """
 
 from __future__ import annotations
@@ -56,31 +59,36 @@ def time_per_view(net, views: int = 64) -> float:
 
 def main() -> int:
     ap = probe_parser(__doc__)
+    ap.add_argument("--candidate", default="flips",
+                    help="the perception to compare: a checkpoint or spec, or flips (the shipped net, flipped x4)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     path = str(shipped_perception(args.family))
     plain, _ = load_perception(path)
-    flipped, _ = load_perception(FLIPS_PREFIX + path)
+    flips = args.candidate == "flips"
+    other, _ = load_perception(FLIPS_PREFIX + path if flips else args.candidate)
+    name = "flipped x4" if flips else args.candidate
     t0 = time.perf_counter()
-    ms = {"plain": time_per_view(plain), "flips": time_per_view(flipped)}
+    ms = {"plain": time_per_view(plain), "other": time_per_view(other)}
     rows = []
     for budget in ("8", "240"):
         base, v0 = rule_af1(plain, args.family, budget)
-        flip, v1 = rule_af1(flipped, args.family, budget)
-        mean, lo, hi = bootstrap_ci(flip - base)
+        cand, v1 = rule_af1(other, args.family, budget)
+        mean, lo, hi = bootstrap_ci(cand - base)
         rows.append(f"| {'T = 8' if budget == '8' else '240 s'} ({FUSION[budget]}) | {base.mean():.3f} ({v0}) | "
-                    f"{flip.mean():.3f} ({v1}) | {mean:+.3f} [{lo:+.3f}, {hi:+.3f}] |")
-    cmd = "python tools/wide_perception_flips.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    lines = [f"# Test-time flips of the {args.family} perception, validation only (`{cmd}`)", "",
+                    f"{cand.mean():.3f} ({v1}) | {mean:+.3f} [{lo:+.3f}, {hi:+.3f}] |")
+    cmd = "python tools/wide_perception_compare.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    title = "Test-time flips of" if flips else f"{name} against"
+    lines = [f"# {title} the {args.family} perception, validation only (`{cmd}`)", "",
              f"The rule on the {args.family} family's 50 validation scenes (one episode each: the rule is "
              "deterministic), its variant chosen on validation for each perception, the calibrated fusion fitted on "
              "the first 20 training scenes of each perception's caches. Paired difference, 95% bootstrap interval "
              "over the 50 scenes.", "",
-             "| budget (fusion) | shipped perception AF1 (rule variant) | flipped x4 AF1 (rule variant) | "
-             "flipped - shipped |", "|---|---|---|---|", *rows, "",
+             f"| budget (fusion) | shipped perception AF1 (rule variant) | {name} AF1 (rule variant) | "
+             f"{'flipped' if flips else 'candidate'} - shipped |", "|---|---|---|---|", *rows, "",
              f"Perception per 224 px view on this machine ({args.threads} threads, batches of 16): shipped "
-             f"{ms['plain']:.1f} ms, flipped x4 {ms['flips']:.1f} ms.", "",
+             f"{ms['plain']:.1f} ms, {name} {ms['other']:.1f} ms.", "",
              f"{time.perf_counter() - t0:.0f} s, caches built where missing."]
     write_markdown(args.out, lines)
     return 0
