@@ -8,8 +8,8 @@ import torch
 from uavsearch.errors import UavsearchError
 from uavsearch.search.agents import make_fusion
 from uavsearch.search.fusion import FUSIONS, CalibratedFusion, FusionViews
-from uavsearch.search.neighbour_fusion import (CorrectionNet, NeighbourFusion, load_neighbour, save_neighbour,
-                                               view_planes)
+from uavsearch.search.neighbour_fusion import (CorrectionNet, NeighbourEnsemble, NeighbourFusion, load_neighbour,
+                                               save_neighbour, view_planes)
 
 B, T, N, P, n = 3, 4, 36, 10, 6
 
@@ -23,11 +23,11 @@ def views():
     return FusionViews(p, valid, area, viewpoints=idx)
 
 
-def fusion():
-    torch.manual_seed(0)
+def fusion(seed: int = 0, shift: float = 0.75, gamma: float = 0.25):
+    torch.manual_seed(seed)
     lowest = torch.arange(P) >= 6
-    return NeighbourFusion(CalibratedFusion((1.1, -0.05, -0.3, 0.02), 0.08, 0.25), CorrectionNet(kernel=5).eval(),
-                           0.75, lowest, n)
+    return NeighbourFusion(CalibratedFusion((1.1, -0.05, -0.3, 0.02), 0.08, gamma), CorrectionNet(kernel=5).eval(),
+                           shift, lowest, n)
 
 
 def test_registered_and_view_by_view_equals_the_history():
@@ -49,6 +49,22 @@ def test_save_load_round_trip_and_spec(tmp_path):
     g = load_neighbour(path)
     assert torch.equal(g.fuse(v), f.fuse(v))
     assert torch.equal(make_fusion(f"neighbour:{path}").fuse(v), f.fuse(v))
+
+
+def test_an_ensemble_averages_its_members_shifted_log_odds_and_round_trips(tmp_path):
+    members, v = [fusion(0, 0.75), fusion(1, 1.0), fusion(2, 0.5)], views()
+    paths = [save_neighbour(m, tmp_path / f"m{k}.pt") for k, m in enumerate(members)]
+    ens = make_fusion("neighbour:" + ",".join(str(p) for p in paths))
+    assert isinstance(ens, NeighbourEnsemble) and ens.spec.endswith("x 3")
+    logit = torch.stack([torch.logit(m.fuse(v).double()) for m in members]).mean(0)
+    whole = ens.fuse(v)
+    assert torch.allclose(whole.double(), torch.sigmoid(logit), atol=1e-5)
+    assert not torch.allclose(whole, members[0].fuse(v), atol=1e-3)  # the others count
+    assert torch.allclose(ens.prefixes(v)[:, -1], whole, atol=1e-6)  # view by view, as the search runs it
+    back = load_neighbour(save_neighbour(ens, tmp_path / "ens.pt"))  # one checkpoint holds the whole ensemble
+    assert isinstance(back, NeighbourEnsemble) and torch.equal(back.fuse(v), whole)
+    with pytest.raises(UavsearchError, match="share their base fusion"):
+        NeighbourEnsemble.of([members[0], fusion(3, gamma=0.75)])
 
 
 def test_errors(tmp_path):

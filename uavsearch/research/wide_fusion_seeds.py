@@ -6,7 +6,8 @@ stopped mid-way is resumed (train_state.pt), so a rerun of this study continues.
 (where nothing here is chosen: each fusion is its last epoch) the rule (Table III's variant, chosen on validation
 with the base fusion) and the shipped learned map policy fly with each seed's fusion; each is paired per scene
 against the rule on the base fusion (95% bootstrap interval over scenes), and the mean over seeds of each scene's
-F1 gives the ensemble-free "any fit" row. Also timed: the fusion's update per view during a flight (one episode,
+F1 gives the ensemble-free "any fit" row; the ensemble of the seeds' fits (their shifted log-odds averaged,
+`neighbour:A.pt,B.pt,...`) is flown too. Also timed: the fusion's update per view during a flight (one episode,
 the process's threads), base against learned.
 
     python tools/wide_fusion_seeds.py --budget 8 --seeds 0 1 2 --out results/wide_study/fusion_seeds_T8.md
@@ -24,10 +25,9 @@ import torch
 
 from ..paths import RUNS_DIR, display_path
 from ..search.agents import load_wide_agent
-from ..search.metrics import bootstrap_ci
 from ..search.map_policy import wide_checkpoint
-from ..search.metrics import map_f1
-from ..search.neighbour_fusion import load_neighbour
+from ..search.metrics import bootstrap_ci, map_f1
+from ..search.neighbour_fusion import NeighbourEnsemble, load_neighbour
 from ..search.search_loop import Agent, CachedViews, run_search
 from ..search.train.fusion import Args, train
 from ..search.train.map_policy import _caches
@@ -108,8 +108,13 @@ def main() -> int:
         rows += [(f"the rule, neighbour fusion seed {s}", a), (f"the shipped map policy, neighbour fusion seed {s}", b)]
     rows += [("the rule, neighbour fusion, mean over seeds", np.mean(rule_seeds, 0)),
              ("the shipped map policy, neighbour fusion, mean over seeds", np.mean(ours_seeds, 0))]
+    ensemble = NeighbourEnsemble.of(fusions) if len(fusions) > 1 else None
+    if ensemble is not None:
+        rows += [("the rule, ensemble of the seeds' fusions", f1(Agent(ensemble, rule))),
+                 ("the shipped map policy, ensemble of the seeds' fusions", f1(Agent(ensemble, ours.policy)))]
     steps = min(int(config.budget_T), 20)
     ms_base, ms_nb = update_ms(base, val, config, steps), update_ms(fusions[0], val, config, steps)
+    ms_ens = f", the ensemble {update_ms(ensemble, val, config, steps):.2f} ms" if ensemble is not None else ""
     shas = {s: m["weights_sha256"][:16] for s, m in zip(args.seeds, summaries)}
     lines = [f"# The learned neighbour fusion over seeds: {args.family}, budget {args.budget}", "",
              f"`uavsearch train fusion --budget {args.budget} --train-scenes {args.train_scenes} --epochs "
@@ -127,7 +132,7 @@ def main() -> int:
     lines += [f"| {s} | {m['seconds']:.0f} | {m['scenes']['maps']} | {m['shift']:+.2f} | {shas[s]} |"
               for s, m in zip(args.seeds, summaries)]
     lines += ["", f"Cost in flight: the fusion's update per view over one {steps}-view episode, {args.threads} "
-              f"threads: base {ms_base:.2f} ms, neighbour {ms_nb:.2f} ms.", "",
+              f"threads: base {ms_base:.2f} ms, neighbour {ms_nb:.2f} ms{ms_ens}.", "",
               f"Runs: {', '.join(display_path(r) for r in runs)}. {time.perf_counter() - t0:.0f} s."]
     write_markdown(args.out, lines)
     return 0
