@@ -18,7 +18,13 @@ their final ones, corrects the map after every view, so the policy reads the cor
 the shipped learned policy (trained on the calibrated fusion's maps) fly with it, each paired against the rule
 with the calibrated fusion, and against each other with the correction.
 
+With `--features`, per-view cell **features** join the scores: per altitude layer the mean of perception's cell
+features (104 per cell: what its classifier reads) over the cell's views, reduced by a learned 1 x 1 convolution
+to 8 channels before the same net with neighbours (fitted end to end, the same seeds and maps): does aggregating
+what perception saw, not only what it concluded, tell people from clutter better?
+
     python tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --out results/map_policy/fusion_probe_T8.md
+    python tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --features --out results/wide_study/features_T8.md
 
 `--save runs/neighbour_T8.pt` also writes the in-search net as the product's neighbour fusion
 (search/neighbour_fusion.py), which `uavsearch eval search --wide-fusion neighbour:runs/neighbour_T8.pt` names.
@@ -37,10 +43,9 @@ from tqdm import tqdm
 
 from ..paths import display_path
 from ..search.agents import budget_text, load_wide_agent
-from ..search.metrics import bootstrap_ci
 from ..search.map_policy import wide_checkpoint
-from ..search.metrics import map_f1
-from ..search.neighbour_fusion import CorrectionNet, NeighbourFusion, episode_planes, save_neighbour
+from ..search.metrics import bootstrap_ci, map_f1
+from ..search.neighbour_fusion import PLANES, CorrectionNet, NeighbourFusion, episode_planes, save_neighbour
 from ..search.search_loop import Agent, CachedViews, run_search
 from ..search.symmetry import square_symmetry
 from ..search.train.fusion import best_shift
@@ -53,11 +58,47 @@ def cell_planes(cache, rows, episode, fusion, config, step: int = -1) -> torch.T
     return episode_planes(cache, rows, episode, fusion.coef, lowest_layer(config), config.grid.n, step)
 
 
-def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) -> CorrectionNet:
+def feature_planes(cache, rows, episode, lowest, n: int, chunk: int = 25) -> torch.Tensor:
+    """(B, 2D, n, n) float16: per altitude layer (`lowest` first) the mean cell features of the cell's views in each
+    episode's final map (zero where the layer has none), read from the cache's feature store `chunk` scenes at
+    a time."""
+    idx = episode.lattice_idx
+    taken = episode.taken if episode.taken is not None else torch.ones_like(idx, dtype=torch.bool)
+    out = []
+    for a in range(0, len(rows), chunk):
+        r = torch.as_tensor(rows[a:a + chunk])[:, None]
+        i, t = idx[a:a + chunk], taken[a:a + chunk]
+        f = cache.features_at(r, i).float()  # (b, T, N, D)
+        v = (cache.valid[r, i] & t[..., None]).float()
+        planes = []
+        for layer in (lowest, ~lowest):
+            m = v * layer[i][..., None].float()
+            planes.append((f * m[..., None]).sum(1) / m.sum(1).clamp(min=1)[..., None])  # (b, N, D)
+        x = torch.cat(planes, -1).permute(0, 2, 1)  # (b, 2D, N)
+        out.append(x.reshape(len(x), -1, n, n).half())
+    return torch.cat(out)
+
+
+class FeatureCorrectionNet(nn.Module):
+    """The neighbour net over the score planes plus the layers' mean cell features reduced to `reduce` channels."""
+
+    def __init__(self, features: int, kernel: int = 5, reduce: int = 8):
+        super().__init__()
+        self.reduce = nn.Conv2d(features, reduce, 1)
+        self.net = CorrectionNet(PLANES + reduce, kernel)
+
+    def forward(self, x):
+        x = x.float()
+        return self.net(torch.cat([x[:, :PLANES], torch.relu(self.reduce(x[:, PLANES:]))], 1))
+
+
+def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) -> nn.Module:
     """Cross-entropy fit, each batch under a random symmetry of the square (the maps of 100 scenes are few
-    enough for a net that sees a neighbourhood to learn where each scene's clutter lies)."""
+    enough for a net that sees a neighbourhood to learn where each scene's clutter lies). Planes beyond the score
+    planes are mean cell features (FeatureCorrectionNet)."""
     torch.manual_seed(seed)
-    net = CorrectionNet(X.shape[1], kernel)
+    net = CorrectionNet(X.shape[1], kernel) if X.shape[1] == PLANES else FeatureCorrectionNet(X.shape[1] - PLANES,
+                                                                                              kernel)
 
     def loss(b, gen):
         k = int(torch.randint(8, (), generator=gen)) if symmetries else 0
@@ -75,6 +116,8 @@ def main() -> None:
                     help="fit without the square's symmetries (the net with neighbours then memorises scenes)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1], help="seeds of the learned fusions")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--features", action="store_true",
+                    help="also fit the net with neighbours on the views' mean cell features (the feature store)")
     ap.add_argument("--save", help="write the in-search neighbour fusion (the rule's) to this checkpoint "
                                    "(a spec then names it: neighbour:PATH)")
     args = ap.parse_args()
@@ -89,14 +132,19 @@ def main() -> None:
 
     rows_tr = np.arange(train.num_scenes)
     fits = [(f"{'per cell' if k == 1 else 'with neighbours'}, seed {s}", k, s) for k in (1, 5) for s in args.seeds]
+    if args.features:
+        fits += [(f"with neighbours and cell features, seed {s}", "features", s) for s in args.seeds]
+    lowest, n = lowest_layer(config), config.grid.n
     bar = tqdm(total=args.rollouts + len(fits) + 6, desc="fusion probe", unit="step")
-    X, XS = [], []  # final maps; maps after a few steps of each rollout (for the in-search net)
+    X, XS, XF = [], [], []  # final maps; maps after a few steps of each rollout (for the in-search net); features
     for k in range(args.rollouts):
         gen = torch.Generator().manual_seed(k)
         ep = rollout(train, Agent(fusion, NoisyRule(rule, 0.0 if k == 0 else 0.3, gen)))
         last = ep.lattice_idx.shape[1] - 1
         steps = {last} | set(torch.randint(last + 1, (2,), generator=gen).tolist())
         X.append(cell_planes(train, rows_tr, ep, fusion, config))
+        if args.features:
+            XF.append(feature_planes(train, rows_tr, ep, lowest, n))
         XS += [cell_planes(train, rows_tr, ep, fusion, config, t) for t in sorted(steps)]
         bar.update()
     grid = (config.grid.n, config.grid.n)
@@ -105,6 +153,9 @@ def main() -> None:
     YS = train.occupancy.float().view(-1, *grid).repeat(len(XS) // train.num_scenes, 1, 1)
     rule_ep = rollout(val, Agent(fusion, rule))
     Xv = cell_planes(val, np.arange(val.num_scenes), rule_ep, fusion, config)
+    if args.features:  # score planes in float16 beside the features: 3,000 maps x 219 planes stay near 1 GB
+        XF = torch.cat([X.half(), torch.cat(XF)], 1)
+        XFv = torch.cat([Xv.half(), feature_planes(val, np.arange(val.num_scenes), rule_ep, lowest, n)], 1)
     bar.update()
     flat = lambda t: t.reshape(len(t), -1).numpy()  # noqa: E731
     yt, yv = flat(Y), val.occupancy.numpy()
@@ -119,9 +170,11 @@ def main() -> None:
 
     row("the calibrated fusion, threshold refitted", flat(X[:, 0]), flat(Xv[:, 0]))
     for name, kernel, seed in fits:
-        net = fit_net(X, Y, kernel, seed, args.epochs, args.symmetries)
+        xt, xv = (XF, XFv) if kernel == "features" else (X, Xv)
+        net = fit_net(xt, Y, 5 if kernel == "features" else kernel, seed, args.epochs, args.symmetries)
         with torch.no_grad():
-            row(f"learned correction, {name}", flat(net(X)), flat(net(Xv)))
+            chunks = [flat(net(xt[j:j + 500])) for j in range(0, len(xt), 500)]
+            row(f"learned correction, {name}", np.concatenate(chunks), flat(net(xv)))
         bar.update()
 
     # during the search: a net with neighbours fitted on maps after every few views corrects each map the
