@@ -70,10 +70,18 @@
 #     perception_flips the rule with the wide perception seeing each view four ways (test-time flips) against the
 #                     shipped net on the 50 wide validation scenes, T = 8 and 240 s ->
 #                     results/wide_study/perception_flips.md. measured: 22 s after the caches it builds.
-#     fusion_seeds    the learned neighbour fusion (`uavsearch train fusion`) over seeds 0-2, the rule and the
-#                     shipped map policy on it against the rule on the calibrated fusion, 50 wide validation
-#                     scenes -> results/wide_study/fusion_seeds_T8.md and fusion_seeds_240s.md. measured: 622 s
-#                     (T = 8) and 1826 s (240 s, beside a map-policy training) after the 300 scenes' caches.
+#     perception_500  the wide net fine-tuned once more, on all 500 training scenes (seed 1, 2000 steps, lr 2e-4),
+#                     against the shipped one under the rule on the 50 wide validation scenes ->
+#                     results/wide_study/perception_500.md. measured: 659 s of training (16 GB of memory), 54 s
+#                     of comparison after the renders of the 500 training scenes.
+#     fusion_seeds    the learned neighbour fusion (`uavsearch train fusion`) over seeds 0-2 and their ensemble,
+#                     the rule and the shipped map policy on them against the rule on the calibrated fusion, 50
+#                     wide validation scenes -> results/wide_study/fusion_seeds_T8.md and fusion_seeds_240s.md.
+#                     measured: 2019 s (T = 8, beside a perception training) and 1197 s (240 s) after the 300
+#                     scenes' caches.
+#     fusion_features the neighbour fusion reading the views' cell features beside their scores (the fusion
+#                     probe with --features, T = 8, 300 training scenes, seeds 0 and 1) ->
+#                     results/wide_study/features_T8.md. measured: 568 s after the caches (their feature store on disk).
 #     perception_wide the wide net's targets per altitude on the 100 wide test scenes
 #                     (results/perception_wide/), against the paper's net on the same views.
 #     wide            Table III: wide on 100 test scenes (results/search_wide/), wide-uniform on 50
@@ -178,6 +186,10 @@ add fusion_probe full "learned fusions over each cell's views and its neighbours
   "$PY tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --out results/map_policy/fusion_probe_T8.md && $PY tools/wide_fusion_probe.py --budget 240 --train-scenes 300 --out results/map_policy/fusion_probe_240s.md && $PY tools/wide_fusion_probe.py --budget 8 --train-scenes 100 --epochs 60 --no-symmetries --out results/map_policy/fusion_probe_T8_100_no_symmetries.md"
 add perception_flips full "test-time flips of the wide perception against the shipped net (the rule, 50 wide validation scenes, T = 8 and 240 s) -> results/wide_study/perception_flips.md" \
   "$PY tools/wide_perception_compare.py --out results/wide_study/perception_flips.md"
+add perception_500 full "the wide net fine-tuned on all 500 training scenes against the shipped one (the rule, 50 wide validation scenes) -> results/wide_study/perception_500.md" \
+  "$PY tools/render_wide.py --families wide --parts train --scenes 500 --workers 2 && $UAV train perception --settings wide --train-scenes 500 --val-scenes 10 --altitude-feature --init models/perception_wide.pt --lr 2e-4 --steps 2000 --eval-every 250 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 1 --runs-dir $RUN --out $RUN/perception_wide_500.pt --no-progress && $PY tools/wide_perception_compare.py --candidate $RUN/perception_wide_500.pt --out results/wide_study/perception_500.md"
+add fusion_features full "the neighbour fusion on per-view cell features beside the scores (final maps of the rule, 50 wide validation scenes, T = 8) -> results/wide_study/features_T8.md" \
+  "$PY tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --features --out results/wide_study/features_T8.md"
 add fusion_seeds full "the learned neighbour fusion over seeds 0-2 against the calibrated one (the rule and the shipped map policy, 50 wide validation scenes, T = 8 and 240 s) -> results/wide_study/fusion_seeds_*.md" \
   "$PY tools/wide_fusion_seeds.py --budget 8 --seeds 0 1 2 --out results/wide_study/fusion_seeds_T8.md && $PY tools/wide_fusion_seeds.py --budget 240 --seeds 0 1 2 --out results/wide_study/fusion_seeds_240s.md"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE, $RUN/seed0/search_s*_*.pt and $RUN/search_wide_*_map.pt into models/" \
