@@ -131,9 +131,10 @@ def main() -> None:
                               generator=torch.Generator().manual_seed(0))
 
     rows_tr = np.arange(train.num_scenes)
-    fits = [(f"{'per cell' if k == 1 else 'with neighbours'}, seed {s}", k, s) for k in (1, 5) for s in args.seeds]
+    fits = [(f"{'per cell' if k == 1 else 'with neighbours'}, seed {s}", k, s, False) for k in (1, 5)
+            for s in args.seeds]
     if args.features:
-        fits += [(f"with neighbours and cell features, seed {s}", "features", s) for s in args.seeds]
+        fits += [(f"with neighbours and cell features, seed {s}", 5, s, True) for s in args.seeds]
     lowest, n = lowest_layer(config), config.grid.n
     bar = tqdm(total=args.rollouts + len(fits) + 6, desc="fusion probe", unit="step")
     X, XS, XF = [], [], []  # final maps; maps after a few steps of each rollout (for the in-search net); features
@@ -169,9 +170,9 @@ def main() -> None:
         rows.append((name, s, float(train_f1), float(f1.mean()), *bootstrap_ci(f1 - base)))
 
     row("the calibrated fusion, threshold refitted", flat(X[:, 0]), flat(Xv[:, 0]))
-    for name, kernel, seed in fits:
-        xt, xv = (XF, XFv) if kernel == "features" else (X, Xv)
-        net = fit_net(xt, Y, 5 if kernel == "features" else kernel, seed, args.epochs, args.symmetries)
+    for name, kernel, seed, features in fits:
+        xt, xv = (XF, XFv) if features else (X, Xv)
+        net = fit_net(xt, Y, kernel, seed, args.epochs, args.symmetries)
         with torch.no_grad():
             chunks = [flat(net(xt[j:j + 500])) for j in range(0, len(xt), 500)]
             row(f"learned correction, {name}", np.concatenate(chunks), flat(net(xv)))
