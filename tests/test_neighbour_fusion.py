@@ -192,3 +192,89 @@ def test_numpy_views_fuse_as_tensors_do_and_the_env_flies_the_rule_on_it(tmp_pat
         ep = run_search(CachedViews(cache, np.arange(cache.num_scenes), env.config), Agent(env.fusion, rule))
     assert [ep.lattice_idx[i, :len(r)].tolist() for i, r in enumerate(routes)] == routes
     np.testing.assert_allclose(f1, score_episode(ep).f1[:, -1], atol=1e-6)
+
+
+D = 5
+
+
+def feature_fusion(seed: int = 0, shift: float = 0.5):
+    from uavsearch.search.neighbour_fusion import FeatureCorrectionNet
+
+    torch.manual_seed(seed)
+    return NeighbourFusion(CalibratedFusion((1.1, -0.05, -0.3, 0.02), 0.08, 0.25),
+                           FeatureCorrectionNet(2 * D, kernel=3, reduce=4, hidden=8).eval(), shift,
+                           torch.arange(P) >= 6, n)
+
+
+def feature_views():
+    f = torch.randn(B, T, N, D, generator=torch.Generator().manual_seed(3))
+    return views()._replace(cell_features=f)
+
+
+def test_a_fusion_reading_cell_features_is_the_layer_means_written_out_view_by_view_and_round_trips(tmp_path):
+    """The features' planes are, per altitude layer, the mean of the features of the views that measured the
+    cell (zero where none did); the running sums give the whole history's map; the checkpoint rebuilds it; a
+    source without features, or an ensemble mixing inputs, is a one-line error."""
+    f, v = feature_fusion(), feature_views()
+    assert "cell_features" in f.needs and "cell_features" not in NeighbourFusion.needs and f.spec.startswith(
+        "neighbour+features")
+    whole = f.fuse(v)
+    low = f.lowest[v.viewpoints]  # (B, T)
+    means = []
+    for layer in (low, ~low):
+        m = (v.valid & layer[..., None]).float()[..., None]  # (B, T, N, 1)
+        means.append((v.cell_features * m).sum(1) / m.sum(1).clamp(min=1))  # (B, N, D)
+    feats = torch.cat(means, -1).permute(0, 2, 1).reshape(B, 2 * D, n, n)
+    planes = view_planes(f.base.fuse(v), v.p, v.valid, v.area_px, v.viewpoints, f.base.coef, f.lowest, n)
+    with torch.no_grad():
+        want = torch.sigmoid(f.net(torch.cat([planes, feats], 1)).flatten(1) + 0.5)
+    assert torch.allclose(whole, want, atol=1e-6)
+    assert torch.allclose(f.prefixes(v)[:, -1], whole, atol=1e-6)
+    moved = v._replace(cell_features=v.cell_features + 1.0)  # the features count
+    assert not torch.allclose(f.fuse(moved), whole, atol=1e-3)
+    rows = torch.arange(B * T).view(B, T)  # a cache batch's (U, N, D) features indexed per view
+    assert torch.allclose(f.fuse(v._replace(cell_features=v.cell_features.reshape(B * T, N, D), feature_rows=rows)),
+                          whole, atol=1e-6)
+    back = make_fusion(f"neighbour:{save_neighbour(f, tmp_path / 'f.pt')}")
+    assert back.reads_features and torch.equal(back.fuse(v), whole)
+    ens = NeighbourEnsemble.of([f, feature_fusion(1, 1.0)])
+    assert ens.reads_features and torch.allclose(ens.prefixes(v)[:, -1], ens.fuse(v), atol=1e-6)
+    with pytest.raises(UavsearchError, match="all with cell features or all without"):
+        NeighbourEnsemble.of([f, fusion()])
+    with pytest.raises(UavsearchError, match="cell features"):
+        f.fuse(v._replace(cell_features=None))
+    with pytest.raises(UavsearchError, match="cell features"):
+        f.fuse(v._replace(cell_features=v.cell_features[..., :0]))
+
+
+def test_train_fusion_with_features_fits_a_fusion_the_rule_flies_with(tmp_path):
+    """`uavsearch train fusion --features` on synthetic wide caches (their features in memory): the checkpoint
+    reads the cell features, and the rule flying with it over the cache (which then serves the features) scores
+    the summary's validation AF1; the same seed gives the same weights."""
+    import json
+
+    import numpy as np
+    from test_wide_search import wide_cache
+    from uavsearch.search.config import wide_budgets
+    from uavsearch.search.metrics import map_f1
+    from uavsearch.search.search_loop import Agent, CachedViews, run_search
+    from uavsearch.search.train.fusion import Args, train
+    from uavsearch.search.wide_policies import rule_policy
+
+    caches = wide_cache(6, seed=1), wide_cache(3, seed=2)
+    kw = dict(family="wide", budget="8", fusion="calibrated:0.25", calibration_scenes=4, rollouts=2, epochs=2,
+              batch_size=4, hidden=8, reduce=3, features=True, eval_every=1, runs_dir=str(tmp_path), progress=False,
+              plot=False, seed=5)
+    res = train(Args(**kw), caches=caches)
+    summary = json.loads((res.run_dir / "summary.json").read_text())
+    fusion = make_fusion(f"neighbour:{res.checkpoint}")
+    assert fusion.reads_features and fusion.net.features == 2 * caches[0].cell_features.shape[-1]
+    assert "cell features" in summary["validation"][1]["method"]
+    config = wide_budgets(caches[1].config)["T = 8 views"]
+    source = CachedViews(caches[1], np.arange(3), config)
+    ep = run_search(source, Agent(fusion, rule_policy(config, summary["rule"])))
+    assert source.features  # the fusion had the cache serve them
+    assert np.mean(map_f1(ep.maps[:, -1].numpy(), caches[1].occupancy.numpy())) == pytest.approx(
+        summary["validation"][1]["af1"])
+    again = json.loads((train(Args(**kw), caches=caches).run_dir / "summary.json").read_text())
+    assert again["weights_sha256"] == summary["weights_sha256"]

@@ -45,7 +45,8 @@ from ..paths import display_path
 from ..search.agents import budget_text, load_wide_agent
 from ..search.map_policy import wide_checkpoint
 from ..search.metrics import bootstrap_ci, map_f1
-from ..search.neighbour_fusion import PLANES, CorrectionNet, NeighbourFusion, episode_planes, save_neighbour
+from ..search.neighbour_fusion import (PLANES, CorrectionNet, FeatureCorrectionNet, NeighbourFusion, episode_planes,
+                                       feature_planes, save_neighbour)
 from ..search.search_loop import Agent, CachedViews, run_search
 from ..search.symmetry import square_symmetry
 from ..search.train.fusion import best_shift
@@ -53,43 +54,8 @@ from ..search.wide_policies import lowest_layer
 from .wide_policy_probes import FUSION, NoisyRule, fit_adam, probe_parser, probe_setting, write_markdown
 
 
-
 def cell_planes(cache, rows, episode, fusion, config, step: int = -1) -> torch.Tensor:
     return episode_planes(cache, rows, episode, fusion.coef, lowest_layer(config), config.grid.n, step)
-
-
-def feature_planes(cache, rows, episode, lowest, n: int, chunk: int = 25) -> torch.Tensor:
-    """(B, 2D, n, n) float16: per altitude layer (`lowest` first) the mean cell features of the cell's views in each
-    episode's final map (zero where the layer has none), read from the cache's feature store `chunk` scenes at
-    a time."""
-    idx = episode.lattice_idx
-    taken = episode.taken if episode.taken is not None else torch.ones_like(idx, dtype=torch.bool)
-    out = []
-    for a in range(0, len(rows), chunk):
-        r = torch.as_tensor(rows[a:a + chunk])[:, None]
-        i, t = idx[a:a + chunk], taken[a:a + chunk]
-        f = cache.features_at(r, i).float()  # (b, T, N, D)
-        v = (cache.valid[r, i] & t[..., None]).float()
-        planes = []
-        for layer in (lowest, ~lowest):
-            m = v * layer[i][..., None].float()
-            planes.append((f * m[..., None]).sum(1) / m.sum(1).clamp(min=1)[..., None])  # (b, N, D)
-        x = torch.cat(planes, -1).permute(0, 2, 1)  # (b, 2D, N)
-        out.append(x.reshape(len(x), -1, n, n).half())
-    return torch.cat(out)
-
-
-class FeatureCorrectionNet(nn.Module):
-    """The neighbour net over the score planes plus the layers' mean cell features reduced to `reduce` channels."""
-
-    def __init__(self, features: int, kernel: int = 5, reduce: int = 8):
-        super().__init__()
-        self.reduce = nn.Conv2d(features, reduce, 1)
-        self.net = CorrectionNet(PLANES + reduce, kernel)
-
-    def forward(self, x):
-        x = x.float()
-        return self.net(torch.cat([x[:, :PLANES], torch.relu(self.reduce(x[:, PLANES:]))], 1))
 
 
 def fit_net(X, Y, kernel: int, seed: int, epochs: int, symmetries: bool = True) -> nn.Module:

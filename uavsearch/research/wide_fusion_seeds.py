@@ -11,6 +11,8 @@ F1 gives the ensemble-free "any fit" row; the ensemble of the seeds' fits (their
 the process's threads), base against learned.
 
     python tools/wide_fusion_seeds.py --budget 8 --seeds 0 1 2 --out results/wide_study/fusion_seeds_T8.md
+
+With `--features` the fusions read the views' cell features too (`uavsearch train fusion --features`).
 """
 
 from __future__ import annotations
@@ -53,7 +55,8 @@ def update_ms(fusion, cache, config, views: int) -> float:
     rows = torch.arange(1)
     idx = torch.arange(views)[None] % config.lattice.num_positions
     p = cache.log_probs[rows[:, None], idx, :, 1].exp().float()
-    fv = FusionViews(p, cache.valid[rows[:, None], idx], cache.cell_area_px[rows[:, None], idx].float(),
+    f = cache.features_at(rows[:, None], idx).float() if "cell_features" in fusion.needs else None
+    fv = FusionViews(p, cache.valid[rows[:, None], idx], cache.cell_area_px[rows[:, None], idx].float(), f,
                      viewpoints=idx)
     with torch.no_grad():
         for _ in range(2):  # warm up, then time
@@ -61,6 +64,7 @@ def update_ms(fusion, cache, config, views: int) -> float:
             for t in range(views):
                 state, _ = fusion.update(state, fv._replace(p=fv.p[:, t:t + 1], valid=fv.valid[:, t:t + 1],
                                                             area_px=fv.area_px[:, t:t + 1],
+                                                            cell_features=None if f is None else f[:, t:t + 1],
                                                             viewpoints=idx[:, t:t + 1]))
     return 1000 * (time.perf_counter() - t0) / views
 
@@ -72,12 +76,14 @@ def main() -> int:
     ap.add_argument("--epochs", type=int, default=20)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--runs-dir", default=str(RUNS_DIR))
+    ap.add_argument("--features", action="store_true", help="fusions that read the views' cell features too")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
-    name = f"fusion_study_{args.family}_{args.budget}"
+    name = f"fusion_study_{args.family}_{args.budget}{'_features' if args.features else ''}"
     runs = [seed_run(Args(family=args.family, budget=args.budget, train_scenes=args.train_scenes,
-                          epochs=args.epochs, threads=args.threads, runs_dir=args.runs_dir, name=name, seed=s),
+                          epochs=args.epochs, threads=args.threads, runs_dir=args.runs_dir, name=name, seed=s,
+                          features=args.features),
                      Path(args.runs_dir)) for s in args.seeds]
     torch.set_num_threads(args.threads)
     import json
@@ -116,9 +122,11 @@ def main() -> int:
     ms_base, ms_nb = update_ms(base, val, config, steps), update_ms(fusions[0], val, config, steps)
     ms_ens = f", the ensemble {update_ms(ensemble, val, config, steps):.2f} ms" if ensemble is not None else ""
     shas = {s: m["weights_sha256"][:16] for s, m in zip(args.seeds, summaries)}
-    lines = [f"# The learned neighbour fusion over seeds: {args.family}, budget {args.budget}", "",
+    what = " with cell features" if args.features else ""
+    lines = [f"# The learned neighbour fusion{what} over seeds: {args.family}, budget {args.budget}", "",
              f"`uavsearch train fusion --budget {args.budget} --train-scenes {args.train_scenes} --epochs "
-             f"{args.epochs} --seed S` for seeds {', '.join(map(str, args.seeds))} (base fusion "
+             f"{args.epochs}{' --features' if args.features else ''} --seed S` for seeds "
+             f"{', '.join(map(str, args.seeds))} (base fusion "
              f"{summaries[0]['base']}, the rule's variant {variant}); {val.num_scenes} validation scenes, each "
              f"fusion its last epoch (nothing chosen on these scenes). Δ: per-scene final AF1 minus the rule's on "
              f"the base fusion, mean [95% bootstrap interval over scenes]. "

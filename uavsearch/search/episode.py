@@ -209,6 +209,8 @@ class SearchState:
         if self.buffered:
             return self._take_host(source, mask)
         idx = self.pos[:, 0].clone() if vehicle is None else self.pos[self._ar, vehicle]
+        if "cell_features" in self.fusion.needs and getattr(source, "features", None) is False:
+            source.features = True  # a fusion that reads cell features has a cached source serve them
         if vehicle is not None and getattr(source, "per_vehicle", False):
             o = source.observe(idx, vehicle)
         else:

@@ -7,6 +7,14 @@ N x N map, and outputs a correction to those log-odds; a fitted log-odds shift s
 reads each view's viewpoint (its altitude layer), which the loop's views and the envs' buffered episodes carry
 (FusionViews.viewpoints; `fuse_host` runs the same net on their numpy views).
 
+With a FeatureCorrectionNet it also reads what perception saw, not only what it concluded: per altitude layer the
+mean of the cell's views' cell features (the 104 numbers perception's classifier reads), reduced by a learned
+1 x 1 convolution. A false alarm and a person can get the same score from different evidence, and the views of
+one cell, at two altitudes, carry more than their scores. The running state keeps per layer the sum of the views'
+features (B, 2, N, D), so a view costs the same however many came before it. Such a fusion needs each view's
+cell features: the loop serves them (a cached source reads them from its feature store, a live one from
+perception); the envs' buffered episodes keep only scores and say so.
+
 A checkpoint (`save_neighbour`) holds the fusion's `save_dict()`; the spec "neighbour:PATH.pt" loads it
 (`neighbour_from_spec`, what agents.make_fusion calls), "neighbour:A.pt,B.pt,C.pt" averages fits of other seeds
 (NeighbourEnsemble), and save_neighbour writes such an ensemble as one checkpoint too.
@@ -46,6 +54,39 @@ def view_planes(fused, p, v, area, idx, coef, lowest, n: int) -> torch.Tensor:
     return torch.stack(planes, 1).view(len(idx), len(planes), n, n)
 
 
+def layer_feature_sums(f, v, idx, lowest) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per altitude layer (`lowest` first) the sum of the cell features of the views that measured the cell, and
+    their number: f (B, T, N, D), v (B, T, N) bool, idx (B, T) -> (B, 2, N, D) float32, (B, 2, N)."""
+    sums, counts = [], []
+    for layer in (lowest, ~lowest):
+        m = (v & layer[idx][..., None]).float()
+        sums.append(torch.einsum("btn,btnd->bnd", m, f.float()))
+        counts.append(m.sum(1))
+    return torch.stack(sums, 1), torch.stack(counts, 1)
+
+
+def feature_mean_planes(sums, counts, n: int) -> torch.Tensor:
+    """(B, 2D, n, n): the layers' mean cell features (zero where a layer has no view), the lowest layer's D
+    channels first."""
+    mean = sums / counts.clamp(min=1)[..., None]  # (B, 2, N, D)
+    return mean.permute(0, 1, 3, 2).reshape(len(mean), -1, n, n)
+
+
+def feature_planes(cache, rows, episode, lowest, n: int, step: int = -1, chunk: int = 25) -> torch.Tensor:
+    """(B, 2D, n, n) float16 feature_mean_planes of a cached episode's views up to view `step` (the last by
+    default), read from the cache's feature store `chunk` scenes at a time (a family's features stay on disk)."""
+    t = episode.lattice_idx.shape[1]
+    idx = episode.lattice_idx[:, :step % t + 1]
+    taken = episode.taken if episode.taken is not None else torch.ones_like(episode.lattice_idx, dtype=torch.bool)
+    out = []
+    for a in range(0, len(rows), chunk):
+        r = torch.as_tensor(rows[a:a + chunk])[:, None]
+        i = idx[a:a + chunk]
+        v = cache.valid[r, i] & taken[a:a + chunk, :i.shape[1], None]
+        out.append(feature_mean_planes(*layer_feature_sums(cache.features_at(r, i), v, i, lowest), n).half())
+    return torch.cat(out)
+
+
 def episode_planes(cache, rows, episode, coef, lowest, n: int, step: int = -1) -> torch.Tensor:
     """view_planes of a cached episode's map after view `step` (the last by default) and its views up to it:
     `cache` a ViewCache, `rows` the episode's scenes in it, `episode` run_search's result on them."""
@@ -73,18 +114,48 @@ class CorrectionNet(nn.Module):
         return self.net(x)[:, 0] + x[:, 0]
 
 
+class FeatureCorrectionNet(nn.Module):
+    """CorrectionNet over the score planes and the layers' mean cell features (planes PLANES on: `features` = two
+    layers x D) reduced by a 1 x 1 convolution to `reduce` channels (inputs may come in float16: training keeps
+    its maps that way)."""
+
+    def __init__(self, features: int, kernel: int = 5, reduce: int = 8, hidden: int = 24):
+        super().__init__()
+        self.features, self.reduce_to = int(features), int(reduce)
+        self.reduce = nn.Conv2d(features, reduce, 1)
+        self.net = CorrectionNet(PLANES + reduce, kernel, hidden)
+        self.kernel, self.hidden, self.planes = kernel, hidden, PLANES + features
+
+    def forward(self, x):
+        x = x.float()
+        return self.net(torch.cat([x[:, :PLANES], torch.relu(self.reduce(x[:, PLANES:]))], 1))
+
+
+def correction_net(config: dict) -> CorrectionNet | FeatureCorrectionNet:
+    """The net a fusion's config describes (one with "features" reads cell features)."""
+    c = config
+    if c.get("features"):
+        return FeatureCorrectionNet(int(c["features"]), int(c["kernel"]), int(c["reduce"]), int(c["hidden"]))
+    return CorrectionNet(int(c["planes"]), int(c["kernel"]), int(c["hidden"]))
+
+
 class NeighbourFusion(nn.Module, Fusion):
     """The calibrated fusion (`base`) with its map corrected by a CorrectionNet after every view, then shifted by
     `shift` log-odds, so that the policy reads the corrected map too. `lowest`: (P,) bool, the lattice's lowest
-    layer (wide_policies.lowest_layer); `n`: the grid's side."""
+    layer (wide_policies.lowest_layer); `n`: the grid's side. With a FeatureCorrectionNet it reads the views' cell
+    features too (`reads_features`; its `needs` then name them)."""
 
     name, needs, trainable = "neighbour", ("area_px", "viewpoints"), True
 
-    def __init__(self, base: CalibratedFusion, net: CorrectionNet, shift: float, lowest, n: int):
+    def __init__(self, base: CalibratedFusion, net: CorrectionNet | FeatureCorrectionNet, shift: float, lowest,
+                 n: int):
         nn.Module.__init__(self)
         Fusion.__init__(self, base.prior)
         self.base, self.net, self.shift, self.n = base, net, float(shift), int(n)
         self.register_buffer("lowest", torch.as_tensor(lowest, dtype=torch.bool))
+        self.reads_features = isinstance(net, FeatureCorrectionNet)
+        if self.reads_features:
+            self.needs = type(self).needs + ("cell_features",)
 
     @classmethod
     def around(cls, base: CalibratedFusion, net: CorrectionNet, shift: float, config) -> "NeighbourFusion":
@@ -93,14 +164,32 @@ class NeighbourFusion(nn.Module, Fusion):
 
         return cls(base, net, shift, lowest_layer(config), config.grid.n)
 
-    def _correct(self, fused, views: FusionViews, idx) -> torch.Tensor:
+    def _correct(self, fused, views: FusionViews, idx, feature_sums=None) -> torch.Tensor:
         if idx.numel() and int(idx.max()) >= len(self.lowest) or fused.shape[-1] != self.n * self.n:
             raise UavsearchError(f"the neighbour fusion was fitted for {len(self.lowest)} viewpoints and "
                                  f"{self.n} x {self.n} cells, not this search's")
         with torch.no_grad():
             planes = view_planes(fused, views.p.float(), views.valid, views.area_px.float(), idx, self.base.coef,
                                  self.lowest.to(idx.device), self.n)
+            if self.reads_features:
+                sums = feature_sums if feature_sums is not None else self._feature_sums(views, idx)
+                planes = torch.cat([planes, feature_mean_planes(*sums, self.n)], 1)
             return torch.sigmoid(self._logits(planes))
+
+    def _view_features(self, views: FusionViews) -> torch.Tensor:
+        """(B, T, N, D) the views' cell features; their absence is a one-line error."""
+        f = views.cell_features
+        if f is not None and views.feature_rows is not None:
+            f = f[views.feature_rows]
+        if f is None or 2 * f.shape[-1] != self.net.features:  # the net reads two layers' means
+            raise UavsearchError(f"this neighbour fusion reads each view's {self.net.features // 2} cell features, "
+                                 "which this view source does not keep (the gymnasium envs' buffered episodes "
+                                 "keep scores only)")
+        return f
+
+    def _feature_sums(self, views: FusionViews, idx):
+        return layer_feature_sums(self._view_features(views), torch.as_tensor(views.valid).bool(), idx,
+                                  self.lowest.to(idx.device))
 
     def _logits(self, planes) -> torch.Tensor:
         return self.net.to(planes.device)(planes).flatten(1) + self.shift
@@ -115,37 +204,40 @@ class NeighbourFusion(nn.Module, Fusion):
         """The calibrated fusion's state keeps the views so far; only their viewpoints are kept beside it."""
         if view.viewpoints is None:
             raise UavsearchError("the neighbour fusion needs each view's viewpoint")
-        base_state, idx = state if state is not None else (None, None)
+        base_state, idx, sums = state if state is not None else (None, None, None)
+        if self.reads_features:  # the layers' feature sums grow by this view's
+            new = self._feature_sums(view, view.viewpoints)
+            sums = new if sums is None else (sums[0] + new[0], sums[1] + new[1])
         base_state, fused = self.base.update(base_state, view)
         idx = view.viewpoints if idx is None else torch.cat([idx, view.viewpoints], 1)
-        return (base_state, idx), self._correct(fused, base_state.views, idx)
+        return (base_state, idx, sums), self._correct(fused, base_state.views, idx, sums)
 
     def fuse_host(self, views: FusionViews) -> np.ndarray:
         """The envs' buffered episodes fuse numpy views: the same net, on tensors (it has no numpy kernel)."""
         def t(x):
             return None if x is None else torch.as_tensor(x)
 
-        return self.fuse(FusionViews(t(views.p), t(views.valid), t(views.area_px),
+        return self.fuse(FusionViews(t(views.p), t(views.valid), t(views.area_px), t(views.cell_features),
                                      viewpoints=t(views.viewpoints))).double().numpy()
 
     def view_scores(self, state):
         return None
 
     def config(self) -> dict:
+        features = {"features": self.net.features, "reduce": self.net.reduce_to} if self.reads_features else {}
         return {"coef": self.base.coef, "prior": self.base.prior, "gamma": self.base.gamma, "shift": self.shift,
                 "kernel": self.net.kernel, "hidden": self.net.hidden, "planes": self.net.planes,
-                "lowest": [bool(b) for b in self.lowest], "n": self.n}
+                "lowest": [bool(b) for b in self.lowest], "n": self.n, **features}
 
     @classmethod
     def from_config(cls, config: dict) -> "NeighbourFusion":
         c = config
-        return cls(CalibratedFusion(c["coef"], c["prior"], c["gamma"]),
-                   CorrectionNet(int(c["planes"]), int(c["kernel"]), int(c["hidden"])), c["shift"], c["lowest"],
+        return cls(CalibratedFusion(c["coef"], c["prior"], c["gamma"]), correction_net(c), c["shift"], c["lowest"],
                    c["n"])
 
     @property
     def spec(self) -> str:
-        return f"neighbour(calibrated:{self.base.gamma:g})"
+        return f"neighbour{'+features' if self.reads_features else ''}(calibrated:{self.base.gamma:g})"
 
 
 class NeighbourEnsemble(NeighbourFusion):
@@ -155,7 +247,8 @@ class NeighbourEnsemble(NeighbourFusion):
 
     name = "neighbour-ensemble"
 
-    def __init__(self, base: CalibratedFusion, nets: list[CorrectionNet], shifts: list[float], lowest, n: int):
+    def __init__(self, base: CalibratedFusion, nets: list[CorrectionNet | FeatureCorrectionNet], shifts: list[float],
+                 lowest, n: int):
         super().__init__(base, nets[0], shifts[0], lowest, n)
         self.others = nn.ModuleList(nets[1:])
         self.shifts = [float(x) for x in shifts]
@@ -164,11 +257,15 @@ class NeighbourEnsemble(NeighbourFusion):
     def of(cls, members: list[NeighbourFusion]) -> "NeighbourEnsemble":
         """The ensemble of fitted fusions; members of another calibration or lattice are a one-line error."""
         first = members[0]
+
+        def key(m):
+            return m.base.coef, m.base.prior, m.base.gamma, m.n, m.reads_features, m.net.planes
+
         for m in members[1:]:
-            if (m.base.coef, m.base.prior, m.base.gamma, m.n) != (first.base.coef, first.base.prior, first.base.gamma,
-                                                                  first.n) or not torch.equal(m.lowest, first.lowest):
-                raise UavsearchError("the neighbour fusions of an ensemble must share their base fusion and lattice "
-                                     "(fitted for the same family, budget and perception)")
+            if key(m) != key(first) or not torch.equal(m.lowest, first.lowest):
+                raise UavsearchError("the neighbour fusions of an ensemble must share their base fusion, lattice "
+                                     "and inputs (fitted for the same family, budget and perception, all with "
+                                     "cell features or all without)")
         return cls(first.base, [m.net for m in members], [m.shift for m in members], first.lowest, first.n)
 
     def _logits(self, planes) -> torch.Tensor:
@@ -181,7 +278,7 @@ class NeighbourEnsemble(NeighbourFusion):
     @classmethod
     def from_config(cls, config: dict) -> "NeighbourEnsemble":
         c = config
-        nets = [CorrectionNet(int(c["planes"]), int(c["kernel"]), int(c["hidden"])) for _ in c["shifts"]]
+        nets = [correction_net(c) for _ in c["shifts"]]
         return cls(CalibratedFusion(c["coef"], c["prior"], c["gamma"]), nets, c["shifts"], c["lowest"], c["n"])
 
     @property

@@ -9,7 +9,9 @@ scenes).
    scenes): the first as the rule flies, the others with `noise` of their moves random (seeded by the rollout's
    index), so the net sees maps the rule alone would not reach. Of each episode the map after its last view and
    after two views drawn at random (the fusion corrects the map after every view) are kept as
-   neighbour_fusion.view_planes, with the occupancy as the target.
+   neighbour_fusion.view_planes, with the occupancy as the target. With `--features` each map also carries the
+   views' mean cell features per altitude layer (neighbour_fusion.feature_planes, read from the caches' feature
+   stores; float16, about 0.4 MB a map) and the net reduces them (FeatureCorrectionNet).
 2. Fit: cross-entropy of the corrected log-odds against the occupancy, Adam with its rate annealed to zero
    (cosine: with a constant rate the last epoch landed wherever the rate left it, 0.06 AF1 off its neighbours),
    every minibatch under a random symmetry of the square (without them a net that sees a neighbourhood memorises
@@ -48,7 +50,8 @@ from uavsearch.viz import pyplot
 from ..agents import make_fusion
 from ..map_policy import BUDGETS
 from ..metrics import bootstrap_ci, map_f1
-from ..neighbour_fusion import CorrectionNet, NeighbourFusion, episode_planes, save_neighbour
+from ..neighbour_fusion import (PLANES, CorrectionNet, FeatureCorrectionNet, NeighbourFusion, episode_planes,
+                                feature_planes, save_neighbour)
 from ..search_loop import Agent, CachedViews, run_search
 from ..symmetry import square_symmetry
 from ..table3_choices import table3_choice
@@ -78,6 +81,9 @@ class Args(RunArgs):
                              "the checkpoint, is a settled one rather than wherever a constant rate left it")
     weight_decay: float = opt(1e-4, "Adam L2")
     kernel: int = opt(5, "the net's conv kernel: 5 sees each cell's 5 x 5 neighbourhood twice over, 1 the cell alone")
+    features: bool = opt(False, "also read the views' cell features (per altitude layer their mean, reduced by a "
+                                "learned 1 x 1 convolution): what perception saw, not only its scores")
+    reduce: int = opt(8, "channels the cell features are reduced to (with --features)")
     hidden: int = opt(24, "conv channels")
     symmetries: bool = opt(True, "fit every minibatch under a random symmetry of the square")
     eval_every: int = opt(5, "epochs between validations")
@@ -97,7 +103,7 @@ class TrainResult(NamedTuple):
 
 def check_args(args: Args) -> None:
     for name in ("train_scenes", "val_scenes", "calibration_scenes", "rollouts", "epochs", "batch_size",
-                 "hidden", "eval_every"):
+                 "hidden", "eval_every", "reduce"):
         if getattr(args, name) < 1:
             raise UavsearchError(f"--{name.replace('_', '-')} must be at least 1")
     if args.kernel < 1 or args.kernel % 2 == 0:
@@ -117,24 +123,41 @@ def weights_sha(net: nn.Module) -> str:
     return h.hexdigest()
 
 
-def rollout_planes(cache, fusion, config, rule, rollouts: int, noise: float):
-    """(final, every) view_planes of the rollouts on every scene of `cache` (final: after each episode's last view;
-    every: after its last and two random views) and their (S*rollouts, n, n) occupancy targets."""
+class RolloutMaps(NamedTuple):
+    """The training maps: `planes` (M, C, n, n) after the last and two random views of every rollout, `targets`
+    (M, n, n) their occupancy, `final` (M,) bool the maps after an episode's last view (in rollout order)."""
+
+    planes: torch.Tensor
+    targets: torch.Tensor
+    final: torch.Tensor
+
+
+def rollout_planes(cache, fusion, config, rule, rollouts: int, noise: float, features: bool = False) -> RolloutMaps:
+    """view_planes (with `features` also feature_planes, all float16) of the rollouts on every scene of `cache`,
+    after each episode's last view and two random ones."""
     rows = np.arange(cache.num_scenes)
     lowest, n = lowest_layer(config), config.grid.n
-    final, every = [], []
+    every, final = [], []
     for k in range(rollouts):
         gen = torch.Generator().manual_seed(k)
         with torch.no_grad():
             ep = run_search(CachedViews(cache, rows, config), Agent(fusion, NoisyRule(rule, noise if k else 0.0, gen)),
                             generator=torch.Generator().manual_seed(0))
         last = ep.lattice_idx.shape[1] - 1
-        steps = sorted({last} | set(torch.randint(last + 1, (2,), generator=gen).tolist()))
-        final.append(episode_planes(cache, rows, ep, fusion.coef, lowest, n))
-        every += [episode_planes(cache, rows, ep, fusion.coef, lowest, n, t) for t in steps]
+        for t in sorted({last} | set(torch.randint(last + 1, (2,), generator=gen).tolist())):
+            x = episode_planes(cache, rows, ep, fusion.coef, lowest, n, t)
+            if features:
+                x = torch.cat([x.half(), feature_planes(cache, rows, ep, lowest, n, t)], 1)
+            every.append(x)
+            final.append(torch.full((len(rows),), t == last))
     occupancy = cache.occupancy.float().view(-1, n, n)
-    final, every = torch.cat(final), torch.cat(every)
-    return final, occupancy.repeat(rollouts, 1, 1), every, occupancy.repeat(len(every) // len(occupancy), 1, 1)
+    return RolloutMaps(torch.cat(every), occupancy.repeat(len(every), 1, 1), torch.cat(final))
+
+
+def net_logits(net: nn.Module, planes: torch.Tensor, chunk: int = 500) -> np.ndarray:
+    """(M, n*n) the net's log-odds of the maps, `chunk` maps at a time (float16 maps become float32 only there)."""
+    with torch.no_grad():
+        return np.concatenate([_flat(net(planes[j:j + chunk])) for j in range(0, len(planes), chunk)])
 
 
 def best_shift(logits: np.ndarray, labels: np.ndarray) -> float:
@@ -182,9 +205,11 @@ def train(args: Args, caches=None) -> TrainResult:
     else:
         run_dir = start_run(args, args.name or f"fusion_{args.family}_{args.budget}", args.seed)
 
-    X, Y, XS, YS = rollout_planes(train_cache, base, config, rule, args.rollouts, args.noise)
+    maps = rollout_planes(train_cache, base, config, rule, args.rollouts, args.noise, args.features)
+    XS, YS = maps.planes, maps.targets
     torch.manual_seed(args.seed)
-    net = CorrectionNet(XS.shape[1], args.kernel, args.hidden)
+    net = FeatureCorrectionNet(XS.shape[1] - PLANES, args.kernel, args.reduce, args.hidden) if args.features else \
+        CorrectionNet(XS.shape[1], args.kernel, args.hidden)
     opt_ = torch.optim.Adam(net.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     steps = args.epochs * -(-len(XS) // args.batch_size)
     sched = torch.optim.lr_scheduler.LambdaLR(
@@ -209,13 +234,11 @@ def train(args: Args, caches=None) -> TrainResult:
         return map_f1(ep.maps[:, -1].numpy(), val_cache.occupancy.numpy())
 
     base_f1 = val_f1(base)
-    yt = _flat(Y)
+    X, yt = XS[maps.final], _flat(YS[maps.final])
 
     def fitted() -> NeighbourFusion:
         net.eval()
-        with torch.no_grad():
-            shift = best_shift(_flat(net(X)), yt)
-        return NeighbourFusion.around(base, net, shift, config)
+        return NeighbourFusion.around(base, net, best_shift(net_logits(net, X), yt), config)
 
     from tqdm import tqdm
 
@@ -271,7 +294,8 @@ def train(args: Args, caches=None) -> TrainResult:
     d, lo, hi = bootstrap_ci(f1 - base_f1)
     table = [{"method": f"the rule ({variant}), {base_spec}", "af1": float(base_f1.mean()), "vs_base": 0.0,
               "ci": (0.0, 0.0)},
-             {"method": f"the rule ({variant}), neighbour fusion", "af1": float(f1.mean()), "vs_base": d,
+             {"method": f"the rule ({variant}), neighbour fusion{' with cell features' if args.features else ''}",
+              "af1": float(f1.mean()), "vs_base": d,
               "ci": (lo, hi)}]
     summary = {"validation": table, "rule": variant, "base": base_spec, "seconds": seconds,
                "checkpoint": display_path(out or ckpt),
