@@ -15,9 +15,10 @@ from uavsearch.search.config import SearchConfig, config_from_dict, config_to_di
 from uavsearch.search.data.view_cache import CacheKey
 from uavsearch.search.evaluate.wide import eval_wide, oracle_perception
 from uavsearch.search.fusion import FUSIONS
+from uavsearch.search.metrics import map_f1
 from uavsearch.search.search_loop import Agent, CachedViews, PolicyInput, run_search
 from uavsearch.search.wide_policies import (RULE_VARIANTS, SURVEY_OUTER_M, DescendRule, EntropyPerSecond, RoutePolicy,
-                                            footprints, greedy_view_set, label_routes, lawnmower,
+                                            footprints, greedy_view_set, label_routes, lawnmower, rule_policy,
                                             survey_then_lawnmower, viewpoints_at)
 from uavsearch.testing.synthetic_views import synthetic_cache, synthetic_wide_cache
 
@@ -211,6 +212,54 @@ def test_table3_on_a_tiny_synthetic_family(tmp_path):
     hs = next(r for r in views if r["key"] == "hindsight")
     lg = next(r for r in views if r["key"] == "label_greedy")
     assert hs["af1"] >= lg["af1"] - 1e-9
+
+
+def test_table3_names_the_two_stacks_when_the_learned_policy_carries_a_learned_aggregation(tmp_path):
+    """A learned policy whose checkpoint carries the neighbour fusion: Table III then has the hand-made stack (the
+    rule on the hand-made fusion), the learned stack, the rule on the learned aggregation (its variant chosen on
+    validation with it), and every row paired against the learned stack too."""
+    from uavsearch.search.fusion import CalibratedFusion
+    from uavsearch.search.map_policy import MapPolicyConfig, MapPolicyNet, wide_checkpoint
+    from uavsearch.search.neighbour_fusion import CorrectionNet, NeighbourFusion
+    from uavsearch.search.policy import save_search_model
+
+    caches = {"wide": {"test": wide_cache(3, 1), "val": wide_cache(2, 2), "train": wide_cache(2, 3)}}
+    cfg = wide_budgets(WIDE)["T = 8 views"]
+    torch.manual_seed(0)
+    learned = NeighbourFusion.around(CalibratedFusion((1.1, -0.05, -0.3, 0.02), 0.08, 0.25), CorrectionNet(kernel=3),
+                                     0.25, cfg)
+    save_search_model(wide_checkpoint("8", tmp_path / "models"), learned,
+                      MapPolicyNet(MapPolicyConfig(config_to_dict(cfg))), {"args": {"family": "wide"}})
+    args = SimpleNamespace(out=str(tmp_path), wide_fusion="average", episodes=2, seeds=1, bootstrap=200,
+                           bootstrap_seed=0, perception="models/perception.pt", progress=False,
+                           wide_policy_dir=str(tmp_path / "models"))
+    res = eval_wide(args, ["wide"], caches)
+    rows = [r for r in res["rows"] if r["budget"] == "T = 8 views"]
+    keys = [r["key"] for r in rows]
+    assert keys[keys.index("descend_rule"):keys.index("descend_rule") + 3] == ["descend_rule", "map_policy",
+                                                                             "rule_learned"]
+    by = {r["key"]: r for r in rows}
+    assert by["descend_rule"]["method"].startswith("the hand-made stack")
+    assert by["map_policy"]["method"].startswith("the learned stack")
+    assert np.isfinite(by["rule_learned"]["vs_learned"]) and np.isfinite(by["descend_rule"]["vs_learned"])
+    assert not np.isfinite(by["map_policy"]["vs_learned"])  # the reference itself
+    # the rule on the learned aggregation is the rule flying the learned fusion, with its own variant
+    cond = res["conditions"][("wide", "T = 8 views")]
+    variant = cond["rule_learned_variant"]
+    assert variant in cond["rule_learned_variant_af1"]
+    ep = run_search(CachedViews(caches["wide"]["test"], np.arange(3), cfg), Agent(learned.eval(),
+                                                                                  rule_policy(cfg, variant)))
+    assert by["rule_learned"]["af1"] == pytest.approx(map_f1(ep.maps[:, -1].numpy(),
+                                                             caches["wide"]["test"].occupancy.numpy()).mean(), abs=1e-6)
+    text = (tmp_path / "table3.md").read_text()
+    section = text.split("### wide, T = 8 views")[1].split("###")[0]
+    assert "Δ AF1 vs the learned policy" in section and f"with that fusion, {variant} (" in section
+    import re
+
+    # the choices' parser (table3_choices) reads the hand-made stack's variant: the first bold one
+    assert re.search(r"chosen on the validation scenes: \*\*([^*]+)\*\*", section).group(1) == cond["rule_variant"]
+    other = text.split("### wide, 240 s")[1]
+    assert "Δ AF1 vs the learned policy" not in other  # no learned policy for that budget here
 
 
 def test_family_perception_report_judges_each_altitude_on_its_own_views(tmp_path):

@@ -14,6 +14,9 @@ CALIBRATED_GAMMAS) with the best mean validation AF1 over the hand-made fixed ro
                        survey (RULE_SURVEYS: 4 covering views, or those and 4 inner ones), the fused p below
                        which it keeps surveying instead (RULE_RESURVEY_BELOW, 0: never) and whether it weighs
                        a descent per second of flight, chosen on validation (RULE_VARIANTS)
+    the learned stack  the learned wide-area policy with the fusion its checkpoint carries (the learned
+                       aggregation, search/neighbour_fusion.py, where it was trained on one), and the rule on that
+                       same fusion (its variant chosen on validation with it): what the learned selection adds
     entropy per second greedy expected information per second of flight
     random             uniform over the allowed viewpoints (`episodes` per scene x `seeds`)
     bounds             the rule with oracle perception (a view detects an occupied cell iff its person shows a
@@ -21,8 +24,9 @@ CALIBRATED_GAMMAS) with the best mean validation AF1 over the hand-made fixed ro
                        by the AF1 the labels give, the better of the two per scene): no policy that reads no
                        labels is expected to reach them
 
-Every row is paired per test scene against the best fixed route and against the rule (final AF1; mean over
-scenes with a 95% scene-bootstrap interval, metrics.bootstrap_ci, bounds.paired_differences).
+Every row is paired per test scene against the best fixed route, the rule (the hand-made stack: hand-made fusion,
+hand-made selection) and the learned stack (final AF1; mean over scenes with a 95% scene-bootstrap interval,
+metrics.bootstrap_ci, bounds.paired_differences).
 """
 
 from __future__ import annotations
@@ -62,6 +66,7 @@ LABELS = {
     "viewset_per_s": "view set optimised on training scenes (AF1 gain per second)",
     "descend_rule": "the rule: survey at 70 m, then descend over the highest fused p",
     "map_policy": "ours: learned wide-area policy (its own fusion)",
+    "rule_learned": "the rule on the learned aggregation",
     "entropy_per_s": "greedy expected information per second",
     "random": "random viewpoints",
     "rule_oracle": "the rule, oracle perception (bound)",
@@ -198,8 +203,12 @@ def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusio
               RULE: (rule_agent(fusion, config, variant), 1),
               "entropy_per_s": (_agent(fusion, "entropy_per_s", config), 1),
               "random": (_agent(fusion, "random", config), episodes)}
+    rule_learned = None
     if learned is not None:
         agents[LEARNED] = (learned, 1)
+        if learned.fusion.trainable:  # the learned aggregation: the rule on it too, its variant chosen on val
+            rule_learned = choose_rule(caches["val"], config, learned.fusion)
+            agents[RULE_LEARNED] = (rule_agent(learned.fusion, config, rule_learned[0]), 1)
     res = run_rows(test, config, agents, seeds)
     res.update({"rule_oracle": run_rows(oracle_perception(test), config,
                                         {"rule_oracle": (rule_agent(OracleFusion(), config, variant), 1)})["rule_oracle"]})
@@ -212,17 +221,31 @@ def evaluate_condition(caches: dict[str, ViewCache], config: SearchConfig, fusio
     pad = lambda r: torch.nn.functional.pad(r, (0, L - r.shape[1]), value=-1)  # noqa: E731
     res["hindsight"] = run_rows(test, config, {"h": (_route_agent(fusion, torch.where(
         pick[:, None], pad(beam), pad(greedy))), 1)})["h"]
-    paired = paired_differences(res, (best, RULE), LABELS, resamples, bootstrap_seed)
+    paired = paired_differences(res, (best, RULE, LEARNED), labels_of(res), resamples, bootstrap_seed)
     return {"results": res, "paired": paired, "best_fixed": best, "val_af1": val_af1, "routes": routes,
-            "rule_variant": variant, "rule_variant_af1": variant_af1, "scenes": {k: c.num_scenes for k, c in caches.items()}}
+            "rule_variant": variant, "rule_variant_af1": variant_af1,
+            "rule_learned_variant": rule_learned[0] if rule_learned else None,
+            "rule_learned_variant_af1": rule_learned[1] if rule_learned else None,
+            "scenes": {k: c.num_scenes for k, c in caches.items()}}
 
 
 LEARNED = "map_policy"
+RULE_LEARNED = "rule_learned"
+STACK_LABELS = {RULE: "the hand-made stack: the rule (survey at 70 m, then descend over the highest fused p) on the "
+                      "hand-made fusion",
+                LEARNED: "the learned stack: learned wide-area policy on its learned aggregation"}
+
+
+def labels_of(results: dict) -> dict[str, str]:
+    """The rows' names: where the learned policy carries a learned aggregation (the rule on it is then a row),
+    the rule's and the learned policy's rows are the two stacks."""
+    return {**LABELS, **(STACK_LABELS if RULE_LEARNED in results else {})}
 
 
 def row_order(results: dict | None = None) -> list[str]:
-    """Table III's rows in order (the learned policy's where `results` has it)."""
-    learned = [LEARNED] if results is None or LEARNED in results else []
+    """Table III's rows in order (the learned policy's, and the rule on its learned aggregation, where `results`
+    has them)."""
+    learned = [k for k in (LEARNED, RULE_LEARNED) if results is None or k in results]
     return [*FIXED, RULE, *learned, "entropy_per_s", "random", *BOUNDS]
 
 
@@ -236,13 +259,14 @@ def table_rows(family: str, name: str, cond: dict) -> list[dict]:
     """table3.csv rows of one family and budget."""
     out = []
     res, best = cond["results"], cond["best_fixed"]
+    labels = labels_of(res)
     for key in row_order(res):
         r = res[key]
-        row = {"setting": family, "budget": name, "fusion": cond.get("fusion", ""), "key": key, "method": LABELS[key],
+        row = {"setting": family, "budget": name, "fusion": cond.get("fusion", ""), "key": key, "method": labels[key],
                "aacc": float(r["acc"][:, :, -1].mean() * 100), "af1": float(r["f1"][:, :, -1].mean()),
                "views": float(r["views"].mean()), "flight_s": float(r["flight_s"].mean()),
                "scenes": int(r["scenes"]), "best_fixed": key == best, "val_af1": cond["val_af1"].get(key, float("nan"))}
-        for ref, tag in ((best, "vs_best_fixed"), (RULE, "vs_rule")):
+        for ref, tag in ((best, "vs_best_fixed"), (RULE, "vs_rule"), (LEARNED, "vs_learned")):
             q = next((p for p in cond["paired"] if p["key"] == key and p["reference"] == ref), None)
             nan = float("nan")
             row.update({f"{tag}": q["diff"] if q else nan, f"{tag}_low": q["ci_low"] if q else nan,
@@ -272,15 +296,22 @@ def table_lines(family: str, name: str, cond: dict, rows: list[dict]) -> list[st
                    + ", ".join(f"{k} {v:.3f}" for k, v in cond["rule_variant_af1"].items()) + ").")
     if cond.get("learned"):
         chosen += f" The learned policy: {cond['learned']}, trained on {cond.get('learned_on') or 'its'} training scenes."
+    if cond.get("rule_learned_variant"):
+        chosen += (f" The rule on the learned aggregation flies its variant chosen on the validation scenes with that "
+                   f"fusion, {cond['rule_learned_variant']} ("
+                   + ", ".join(f"{k} {v:.3f}" for k, v in cond["rule_learned_variant_af1"].items()) + ").")
+    learned = LEARNED in cond["results"]
     lines = [f"### {family}, {name}", "",
              f"{sc['test']} test scenes; fixed view sets searched on {sc['train']} training scenes, the best fixed route "
              f"chosen on {sc['val']} validation scenes: **{LABELS[cond['best_fixed']]}**.{chosen}", "",
-             "| method | Aacc (%) | AF1 | views | flight (s) | Δ AF1 vs best fixed [95% CI] | Δ AF1 vs the rule [95% CI] |",
-             "|---|---|---|---|---|---|---|"]
+             "| method | Aacc (%) | AF1 | views | flight (s) | Δ AF1 vs best fixed [95% CI] | Δ AF1 vs the rule [95% CI] |"
+             + (" Δ AF1 vs the learned policy [95% CI] |" if learned else ""),
+             "|---|---|---|---|---|---|---|" + ("---|" if learned else "")]
     for r in rows:
         name_ = r["method"] + (" (best fixed)" if r["best_fixed"] else "")
         lines.append(f"| {name_} | {r['aacc']:.2f} | {r['af1']:.3f} | {r['views']:.1f} | {r['flight_s']:.0f} | "
-                     f"{_ci(r, 'vs_best_fixed')} | {_ci(r, 'vs_rule')} |")
+                     f"{_ci(r, 'vs_best_fixed')} | {_ci(r, 'vs_rule')} |" + (f" {_ci(r, 'vs_learned')} |" if learned
+                                                                            else ""))
     return lines + [""]
 
 
@@ -303,9 +334,9 @@ def write_table3(out: Path, rows: list[dict], paired: list[dict], lines: list[st
     return md
 
 
-FIG6_ROWS = ("best_fixed", RULE, LEARNED, "entropy_per_s", "random", "hindsight")
-FIG6_SHORT = {RULE: "the rule", LEARNED: "ours (learned)", "entropy_per_s": "entropy per second",
-              "random": "random", "hindsight": "hindsight-best (bound)"}
+FIG6_ROWS = ("best_fixed", RULE, LEARNED, RULE_LEARNED, "entropy_per_s", "random", "hindsight")
+FIG6_SHORT = {RULE: "the rule", LEARNED: "ours (learned)", RULE_LEARNED: "the rule, learned aggregation",
+              "entropy_per_s": "entropy per second", "random": "random", "hindsight": "hindsight-best (bound)"}
 
 
 def fig6(conds: dict, out: Path) -> Path:
@@ -314,7 +345,8 @@ def fig6(conds: dict, out: Path) -> Path:
     plt = pyplot()
     fams = list(dict.fromkeys(f for f, _ in conds))
     fig, axes = plt.subplots(len(fams), 2, figsize=(11, 4.2 * len(fams)), squeeze=False, layout="constrained")
-    colours = dict(zip(FIG6_ROWS, ("tab:gray", "tab:blue", "tab:red", "tab:green", "tab:olive", "black")))
+    colours = dict(zip(FIG6_ROWS, ("tab:gray", "tab:blue", "tab:red", "tab:purple", "tab:green", "tab:olive",
+                                   "black")))
     for i, fam in enumerate(fams):
         for j, (name, cond) in enumerate((n, c) for (f, n), c in conds.items() if f == fam):
             ax, res = axes[i, j], cond["results"]
