@@ -278,3 +278,25 @@ def test_train_fusion_with_features_fits_a_fusion_the_rule_flies_with(tmp_path):
         summary["validation"][1]["af1"])
     again = json.loads((train(Args(**kw), caches=caches).run_dir / "summary.json").read_text())
     assert again["weights_sha256"] == summary["weights_sha256"]
+
+
+def test_replay_refuses_a_flight_with_its_neighbour_fusion_and_replays_a_feature_fusions_own_maps():
+    """Replay re-fuses a log's views with the checkpoint's neighbour fusion (the log keeps each view's viewpoint);
+    a fusion reading cell features, which no log holds, replays the maps the flight fused, and naming one for
+    a re-fusion is a one-line error."""
+    import numpy as np
+
+    from uavsearch.errors import LogError
+    from uavsearch.replay.replay import _fuse_all
+
+    f, v = fusion(), views()
+    got = _fuse_all(f, v.p[0].numpy(), v.valid[0].numpy(), v.area_px[0].numpy(), viewpoints=v.viewpoints[0].tolist())
+    np.testing.assert_allclose(got, f.prefixes(v)[0].numpy(), atol=1e-6)
+    with pytest.raises(LogError, match="viewpoint"):
+        _fuse_all(f, v.p[0].numpy(), v.valid[0].numpy(), v.area_px[0].numpy())
+    logged = np.random.default_rng(0).random((T, N))
+    ff = feature_fusion()
+    assert np.array_equal(_fuse_all(ff, v.p[0].numpy(), v.valid[0].numpy(), v.area_px[0].numpy(),
+                                    viewpoints=v.viewpoints[0].tolist(), logged=logged), logged)
+    with pytest.raises(LogError, match="cell features"):
+        _fuse_all(ff, v.p[0].numpy(), v.valid[0].numpy(), v.area_px[0].numpy(), viewpoints=v.viewpoints[0].tolist())

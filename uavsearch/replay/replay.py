@@ -190,9 +190,11 @@ class ReplayData:
         return np.logical_or.accumulate(np.asarray(self.valid, dtype=bool), axis=0)
 
 
-def _fuse_all(method, p, valid, area=None, scores=None, labels=None) -> np.ndarray:
+def _fuse_all(method, p, valid, area=None, scores=None, labels=None, viewpoints=None, logged=None) -> np.ndarray:
     """The fused map after each view, with the inputs the log holds (the method takes what it needs); `method`
-    is a name, a spec, or a Fusion object (one fitted on training scenes, loaded from a checkpoint)."""
+    is a name, a spec, or a Fusion object (one fitted on training scenes, loaded from a checkpoint).
+    `viewpoints` (T,): each view's lattice index (a neighbour fusion reads its altitude layer); `logged` (T, N):
+    the maps the flight fused, what a fusion reading cell features (which no log holds) replays."""
     if isinstance(method, Fusion):
         fusion, method = method, fusion_name(method)
     elif ":" in method:  # a spec with its prior (a wide-area mission's fusion, e.g. bayes:0.5)
@@ -203,10 +205,20 @@ def _fuse_all(method, p, valid, area=None, scores=None, labels=None) -> np.ndarr
     if "scores" in fusion.needs and scores is None:
         raise LogError(f"{method} fusion needs confidence scores, which this log does not hold "
                        "(it was flown without a learned confidence network)")
-    def t(x):
-        return None if x is None else torch.as_tensor(np.asarray(x))
-    views = FusionViews(t(np.asarray(p, float)), t(np.asarray(valid, bool)), t(area), scores=t(scores), labels=labels)
-    return np.asarray(fusion.prefixes(views), dtype=float)
+    if "cell_features" in fusion.needs:
+        if logged is None:
+            raise LogError(f"{fusion_name(fusion)} reads each view's cell features, which a flight log does not "
+                           "hold: replay the flight's own maps (without --fusion) or name another fusion")
+        return np.asarray(logged, dtype=float)
+    if "viewpoints" in fusion.needs and viewpoints is None:
+        raise LogError(f"{fusion_name(fusion)} reads each view's viewpoint, which this log does not hold")
+
+    def t(x):  # one episode: a batch of one
+        return None if x is None else torch.as_tensor(np.asarray(x))[None]
+    views = FusionViews(t(np.asarray(p, float)), t(np.asarray(valid, bool)), t(area), scores=t(scores),
+                        labels=t(labels), viewpoints=None if viewpoints is None else t(np.asarray(viewpoints, np.int64)))
+    with torch.no_grad():
+        return np.asarray(fusion.prefixes(views)[0], dtype=float)
 
 
 def _checkpoint_fusion(header: dict) -> Fusion | None:
@@ -253,7 +265,10 @@ def replay_run_dir(run_dir, fusion: str | None = None) -> ReplayData:
     method = fusion or h["fusion"]
     p, valid, area = log.array("p_occ"), log.array("valid") > 0.5, log.array("cell_area_px")
     scores = None if any(s.scores is None for s in log.steps) else log.array("scores")
-    maps = _fuse_all(fusion or _checkpoint_fusion(h) or method, p, valid, area, scores, labels)
+    idx = None if any(s.lattice_idx is None for s in log.steps) else [s.lattice_idx for s in log.steps]
+    own = None if fusion else _checkpoint_fusion(h)
+    maps = _fuse_all(fusion or own or method, p, valid, area, scores, labels, idx,
+                     log.array("fused") if own is not None else None)
     images, poses = [], []
     for s in log.steps:
         img = cv2.imread(str(run_dir / s.image), cv2.IMREAD_COLOR)
