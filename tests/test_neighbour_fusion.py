@@ -300,3 +300,41 @@ def test_replay_refuses_a_flight_with_its_neighbour_fusion_and_replays_a_feature
                                     viewpoints=v.viewpoints[0].tolist(), logged=logged), logged)
     with pytest.raises(LogError, match="cell features"):
         _fuse_all(ff, v.p[0].numpy(), v.valid[0].numpy(), v.area_px[0].numpy(), viewpoints=v.viewpoints[0].tolist())
+
+
+def test_a_map_policy_fine_tunes_from_a_checkpoint_on_a_fusion_reading_features(tmp_path):
+    """`uavsearch train map --init CKPT --fusion neighbour:FEATURES.pt`: the start is validated before any step
+    (iteration 0), the label teacher re-fuses candidates with their cell features, and the checkpoint carries
+    the feature fusion; a net made for another budget is a one-line error."""
+    import csv
+
+    from test_wide_search import wide_cache
+    from uavsearch.search.policy import load_search_model
+    from uavsearch.search.train import fusion as fusion_train
+    from uavsearch.search.train import map_policy
+
+    caches = wide_cache(6, seed=1), wide_cache(3, seed=2)
+    fitted = fusion_train.train(fusion_train.Args(family="wide", budget="8", fusion="calibrated:0.25",
+                                                  calibration_scenes=4, rollouts=2, epochs=1, batch_size=4, hidden=8,
+                                                  reduce=3, features=True, runs_dir=str(tmp_path), progress=False,
+                                                  plot=False, seed=5), caches=caches)
+    kw = dict(family="wide", budget="8", calibration_scenes=4, train_eval_scenes=2, dagger_episodes=6,
+              dagger_epochs=1, batch_size=16, scenes_per_batch=2, episodes_per_scene=2, eval_every=1, channels=8,
+              conv_layers=2, hidden=16, runs_dir=str(tmp_path), progress=False, plot=False, seed=0)
+    start = map_policy.train(map_policy.Args(fusion="calibrated:0.25", dagger_iterations=1, pg_iterations=0, **kw),
+                             caches=caches)
+    spec = f"neighbour:{fitted.checkpoint}"
+    res = map_policy.train(map_policy.Args(fusion=spec, teacher="labels", init=str(start.checkpoint),
+                                           dagger_iterations=0, pg_iterations=2, **kw), caches=caches)
+    rows = list(csv.DictReader((res.run_dir / "metrics.csv").open()))
+    assert [r["phase"] for r in rows] == ["init", "pg", "pg"] and rows[0]["eval/val_af1"] != ""
+    carried, net, extra = load_search_model(res.checkpoint)
+    assert isinstance(carried, NeighbourFusion) and carried.reads_features
+    if extra["best"]["iteration"] == 0:  # no step beat the start: its weights, now carrying the feature fusion
+        first = load_search_model(start.checkpoint)[1]
+        assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), first.state_dict().values()))
+    other = map_policy.train(map_policy.Args(fusion="calibrated:0.25", dagger_iterations=1, pg_iterations=0,
+                                             **{**kw, "budget": "240"}), caches=caches)
+    with pytest.raises(UavsearchError, match="another search"):
+        map_policy.train(map_policy.Args(fusion=spec, init=str(other.checkpoint), dagger_iterations=0,
+                                         pg_iterations=1, **kw), caches=caches)

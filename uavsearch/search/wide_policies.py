@@ -243,11 +243,13 @@ class EntropyPerSecond:
 # Routes searched offline over a view cache: fixed view sets (training scenes) and hindsight bounds (labels)
 
 
-def route_views(cache, rows: torch.Tensor, positions: torch.Tensor) -> FusionViews:
-    """FusionViews of views at `positions` (M, t) of scenes `rows` (M,)."""
+def route_views(cache, rows: torch.Tensor, positions: torch.Tensor, features: bool = False) -> FusionViews:
+    """FusionViews of views at `positions` (M, t) of scenes `rows` (M,); with `features` their cell features too
+    (for a fusion that reads them)."""
     r = rows[:, None].expand_as(positions)
     return FusionViews(cache.log_probs[r, positions][..., 1].exp(), cache.valid[r, positions],
-                       cache.cell_area_px[r, positions], viewpoints=positions, labels=cache.occupancy[rows])
+                       cache.cell_area_px[r, positions], cache.features_at(r, positions).float() if features else None,
+                       viewpoints=positions, labels=cache.occupancy[rows])
 
 
 def _check_fusion(fusion: Fusion) -> None:

@@ -60,7 +60,7 @@ from ..fusion import Fusion
 from ..checkpoints import shipped_perception, wide_checkpoint
 from ..map_policy import BUDGETS, MASKED, MapPolicyConfig, MapPolicyNet
 from ..perception import load_perception
-from ..policy import ArgmaxPolicy, save_search_model
+from ..policy import ArgmaxPolicy, load_search_model, save_search_model
 from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward
 from ..scoring import evaluate_agent
 from ..wide_policies import argmax_allowed, candidates, choose_rule, route_views, rule_policy
@@ -88,6 +88,9 @@ class Args(RunArgs):
     train_eval_scenes: int = opt(50, "training scenes the training margin is measured on")
     out: str | None = opt(None, "also copy the best checkpoint here (it always stays in the run directory)")
     ship: bool = opt(False, "copy the best checkpoint over the shipped models/search_wide_<budget>_map.pt")
+    init: str | None = opt(None, "start from this map policy checkpoint's net (its architecture too) instead of a fresh "
+                                 "one, validated before any step, so a fine-tune on another fusion keeps the start "
+                                 "where no step beats it")
     name: str | None = opt(None, "run name (default map_<family>_<budget>)")
     seed: int = opt(0, "seeds random, numpy, torch and the episode sampling")
     # 1. DAgger
@@ -172,6 +175,7 @@ class LabelLookahead:
         self.cost = config.lattice.flight_time_t.float().to(dev)
         self.timed = config.budget_s is not None
         self.state, self.fused, self.seen = None, None, 0
+        self.features = "cell_features" in fusion.needs  # a fusion that reads them gets the views' cell features
 
     def _follow(self, inp: PolicyInput) -> None:
         """Bring the kept fusion state up to the episode's views so far."""
@@ -179,8 +183,8 @@ class LabelLookahead:
         if t < self.seen:
             raise UavsearchError("the teacher follows one batch of episodes forward; build a new one per batch")
         for j in range(self.seen, t):
-            self.state, self.fused = self.fusion.update(self.state, route_views(self.cache, self.rows,
-                                                                                inp.view_positions[:, j:j + 1]))
+            self.state, self.fused = self.fusion.update(self.state, route_views(
+                self.cache, self.rows, inp.view_positions[:, j:j + 1], self.features))
         self.seen = t
 
     @torch.no_grad()
@@ -199,7 +203,8 @@ class LabelLookahead:
             k = len(cs)
             pos = torch.tensor(cs, device=occ.device).repeat(B)  # (B*k,) episode-major
             rows = self.rows.repeat_interleave(k)
-            _, fused = self.fusion.update(repeat_state(self.state, k), route_views(self.cache, rows, pos[:, None]))
+            _, fused = self.fusion.update(repeat_state(self.state, k), route_views(self.cache, rows, pos[:, None],
+                                                                                   self.features))
             lab = self.labels.repeat_interleave(k, 0)
             after = classification_reward(fused, lab).float() + 0.1 * (fused * lab.float()).sum(-1)
             out[:, cs] = after.reshape(B, k) - now[:, None]
@@ -298,6 +303,16 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
     finish_curves(fig, ax, title, path)
 
 
+def _init_net(path, config: SearchConfig) -> MapPolicyNet:
+    """The net of a map policy checkpoint made for `config`'s budget (else a one-line error)."""
+    net = load_search_model(path)[1]
+    if getattr(net, "KIND", None) != "map":
+        raise UavsearchError(f"--init {path}: not a map policy checkpoint")
+    if net.cfg.search_config() != config:
+        raise UavsearchError(f"--init {path}: that policy was made for another search (budget or lattice)")
+    return net
+
+
 def train(args: Args, caches=None) -> TrainResult:
     """Train the map policy; `caches` = (train, val) ViewCaches skips loading perception (tests)."""
     check_args(args)
@@ -313,7 +328,8 @@ def train(args: Args, caches=None) -> TrainResult:
     name = args.name or f"map_{args.family}_{args.budget}"
     run_dir = start_run(args, name, args.seed)
     net = MapPolicyNet(MapPolicyConfig(config_to_dict(config), channels=args.channels, conv_layers=args.conv_layers,
-                                       hidden=args.hidden)).to(device)
+                                       hidden=args.hidden)).to(device) if args.init is None else \
+        _init_net(args.init, config).to(device).train()
     train_eval = train_cache.subset(np.arange(min(args.train_eval_scenes, S)))
     variant, _ = choose_rule(val_cache, config, fusion)
     rule = Agent(fusion, rule_policy(config, variant))
@@ -373,6 +389,9 @@ def train(args: Args, caches=None) -> TrainResult:
     def teacher(rows_b):
         return LabelLookahead(train_cache, rows_b, fusion, config) if args.teacher == "labels" else rule.policy
 
+    if args.init is not None:  # the start is a candidate too
+        validate(row := blank(0, "init"), 0)
+        metrics.log(row)
     dagger_reinforce(DaggerPolicy(
         net, fusion, views=lambda rows_b: CachedViews(train_cache, rows_b, config), teacher=teacher,
         imitation_loss=lambda batch, g: imitation_loss(net, *batch, gain_scale), reinforce_loss=reinforce_loss,
