@@ -338,3 +338,17 @@ def test_a_map_policy_fine_tunes_from_a_checkpoint_on_a_fusion_reading_features(
     with pytest.raises(UavsearchError, match="another search"):
         map_policy.train(map_policy.Args(fusion=spec, init=str(other.checkpoint), dagger_iterations=0,
                                          pg_iterations=1, **kw), caches=caches)
+
+
+def test_the_envs_refuse_a_fusion_reading_cell_features_in_one_line(tmp_path):
+    from uavsearch.search.config import setting_config
+    from uavsearch.search.envs.search_env import WideSearchEnv
+    from uavsearch.search.envs.team_env import TeamSearchEnv
+    from uavsearch.testing.synthetic_views import synthetic_cache
+
+    cache = synthetic_cache(2, k=10, seed=2, config=setting_config("wide"))
+    path = save_neighbour(feature_fusion(), tmp_path / "f.pt")
+    with pytest.raises(UavsearchError, match="buffered episodes do not keep"):
+        WideSearchEnv(cache=cache, budget="8", fusion=f"neighbour:{path}", progress=False)
+    with pytest.raises(UavsearchError, match="buffered episodes do not keep"):
+        TeamSearchEnv(cache=cache, fusion=f"neighbour:{path}", progress=False)

@@ -74,6 +74,15 @@ WIDE_SCENE_S = 4.6
 WIDE_SCENE_MB = 19.0
 
 
+def check_buffered_fusion(fusion: Fusion) -> None:
+    """The envs' buffered episodes keep each view's p, pixel areas, scores and viewpoint, not its cell features:
+    a fusion that reads them is a one-line error here rather than at the first step."""
+    if "cell_features" in fusion.needs:
+        raise UavsearchError(f"{getattr(fusion, 'spec', fusion.name)} reads each view's cell features, which the "
+                             "envs' buffered episodes do not keep: give the env a fusion over scores (e.g. a "
+                             "neighbour fusion fitted without --features, or Table III's)")
+
+
 class SceneViews:
     """Where an env's scenes come from: the view cache of one (setting, split, part) under a config, loaded on
     first use (built then if missing, with progress bars), plus the scene seeds it holds.
@@ -127,6 +136,7 @@ class SceneViews:
             self.fusion = make_fusion(spec)
         else:
             self.fusion = make_fusion(spec, setting=self.setting, models_dir=models_dir, device=self.device)
+        check_buffered_fusion(self.fusion)
         return self.fusion
 
     def _calibration(self) -> tuple[list[float], float]:
@@ -148,6 +158,7 @@ class SceneViews:
             if not path.is_file():
                 continue
             fusion, _, extra = load_search_model(path, "cpu")
+            fusion = getattr(fusion, "base", fusion)  # a learned aggregation keeps Table III's calibration beneath
             args = extra.get("args", {}) if isinstance(extra, dict) else {}
             if (isinstance(fusion, CalibratedFusion) and extra.get("perception_tag") == tag
                     and args.get("family") == self.setting and args.get("calibration_scenes") == CALIBRATION_SCENES):

@@ -45,7 +45,7 @@ from ..config import SearchConfig, setting_config
 from ..episode import PolicyInput, SearchState
 from ..metrics import map_accuracy, map_f1
 from ..search_loop import R_FP, R_TP, step_rewards
-from .search_env import SceneViews, cells_space
+from .search_env import SceneViews, cells_space, check_buffered_fusion
 
 # The team task `uavsearch eval team` reports and missions/wide_team.yaml flies: three vehicles for 80 s of
 # flight on the wide family, Bayes fusion with prior 0.5 (chosen on validation for 3 vehicles at 80 s).
@@ -139,6 +139,7 @@ class TeamSearchEnv(ParallelEnv):
         self.render_mode = render_mode
         self.device = resolve_device(device)
         self.fusion = make_fusion(fusion)
+        check_buffered_fusion(self.fusion)
         split = split or settings.setting_params(setting).split
         settings.scene_seeds(setting, split, part)  # a bad split / part is a one-line error now
         self.scenes = SceneViews(setting, split, part, self.config, self.fusion, perception, limit, cache_dir, cache,
