@@ -51,7 +51,11 @@
 #                     wide training scenes (seed 1, 1500 steps), then on the 21,900 of 300 (2000 steps, lower
 #                     learning rate). measured: see docs/results.md.
 #     train_map_wide  the wide family's learned policy (uavsearch train map), T = 8 and 240 s, seed 0, on the
-#                     first 300 training scenes. measured: see docs/learning.md.
+#                     first 300 training scenes, on the calibrated fusion. measured: see docs/learning.md.
+#     train_stack_wide the learned stack: the neighbour fusion reading cell features (uavsearch train fusion
+#                     --features, seeds 0 and 1, per budget), then the policy of train_map_wide fine-tuned on
+#                     their ensemble (uavsearch train map --init, REINFORCE only, the best on validation kept,
+#                     the start included) -> $RUN/search_wide_*_map.pt. measured: see docs/learning.md.
 #     map_gains       the wide policy fitted to the label teacher's gains of every viewpoint (T = 8, 100 and 200
 #                     training scenes, 5 DAgger iterations, seed 0) -> results/map_policy/gains_T8/ and
 #                     gains_T8_200/ (curves, metrics). measured: 653 s (beside a benchmark) and 669 s
@@ -79,6 +83,10 @@
 #                     wide validation scenes -> results/wide_study/fusion_seeds_T8.md and fusion_seeds_240s.md.
 #                     measured: 2019 s (T = 8, beside a perception training) and 1197 s (240 s) after the 300
 #                     scenes' caches.
+#     fusion_features_seeds  the neighbour fusion reading cell features (`uavsearch train fusion --features`),
+#                     seeds 0 and 1, their ensemble, the rule and the shipped map policy on them ->
+#                     results/wide_study/fusion_features_seeds_T8.md and _240s.md. measured: 1182-1723 s per fit
+#                     (one thread, beside the other budget's fits and other jobs), 25-69 s to evaluate.
 #     fusion_features the neighbour fusion reading the views' cell features beside their scores (the fusion
 #                     probe with --features, T = 8, 300 training scenes, seeds 0 and 1) ->
 #                     results/wide_study/features_T8.md. measured: 568 s after the caches (their feature store on disk).
@@ -177,7 +185,9 @@ add wide_renders full "every viewpoint of the wide families' scenes (wide: 50 va
 add train_perception_wide full "stage 1 across altitudes in two fine-tunings (seed 1): the paper's net on every viewpoint of 100 wide training scenes (1500 steps, lr 1e-3), then that net on 300 (2000 steps, lr 3e-4) -> $NEWPERC_WIDE" \
   "$UAV train perception --settings wide --train-scenes 100 --val-scenes 4 --altitude-feature --init models/perception.pt --lr 1e-3 --steps 1500 --eval-every 300 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 2 --runs-dir $RUN --out $RUN/perception_wide_100.pt --no-progress && $UAV train perception --settings wide --train-scenes 300 --val-scenes 10 --altitude-feature --init $RUN/perception_wide_100.pt --lr 3e-4 --steps 2000 --eval-every 250 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 1 --runs-dir $RUN --out $NEWPERC_WIDE --no-progress"
 add train_map_wide full "the wide family's learned policy, one per budget (DAgger from the rule + REINFORCE, seed 0, 300 training scenes) on $NEWPERC_WIDE -> $RUN/search_wide_*_map.pt" \
-  "$UAV train map --budget 8 --fusion calibrated:0.25 --pg-iterations 300 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_T8_map.pt && $UAV train map --budget 240 --fusion calibrated:0.75 --pg-iterations 100 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_240s_map.pt"
+  "$UAV train map --budget 8 --fusion calibrated:0.25 --pg-iterations 300 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/map_wide_T8_calibrated.pt && $UAV train map --budget 240 --fusion calibrated:0.75 --pg-iterations 100 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/map_wide_240s_calibrated.pt"
+add train_stack_wide full "the learned stack per budget: the feature-reading neighbour fusion (seeds 0 and 1) and the policy of train_map_wide fine-tuned on their ensemble, on $NEWPERC_WIDE -> $RUN/search_wide_*_map.pt" \
+  "for b in 8 240; do t=\$( [ \$b = 8 ] && echo T8 || echo 240s ); for s in 0 1; do $UAV train fusion --budget \$b --features --train-scenes 300 --threads 1 --seed \$s --perception $NEWPERC_WIDE --runs-dir $RUN --no-progress --out $RUN/fusion_features_\${t}_s\$s.pt || exit 1; done; done && $UAV train map --budget 8 --fusion neighbour:$RUN/fusion_features_T8_s0.pt,$RUN/fusion_features_T8_s1.pt --init $RUN/map_wide_T8_calibrated.pt --dagger-iterations 0 --pg-iterations 60 --eval-every 15 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_T8_map.pt && $UAV train map --budget 240 --fusion neighbour:$RUN/fusion_features_240s_s0.pt,$RUN/fusion_features_240s_s1.pt --init $RUN/map_wide_240s_calibrated.pt --dagger-iterations 0 --pg-iterations 30 --eval-every 10 $MAP_TRAIN --perception $NEWPERC_WIDE --runs-dir $RUN --out $RUN/search_wide_240s_map.pt"
 add map_gains full "the wide policy fitted to the label teacher's gains (T = 8, 100 and 200 training scenes, seed 0) on $NEWPERC_WIDE -> results/map_policy/gains_T8*/" \
   "for n in 100 200; do sfx=\$( [ \$n = 100 ] || echo _\$n ); thr=\$( [ \$n = 100 ] && echo 1 || echo 2 ); rm -rf $RUN/map_gains_\$n && $UAV train map --budget 8 --fusion calibrated:0.25 --train-scenes \$n --teacher labels --imitate gains --dagger-iterations 5 --pg-iterations 0 --threads \$thr --seed 0 --name gainsT8\$sfx --perception $NEWPERC_WIDE --runs-dir $RUN/map_gains_\$n --no-progress && mkdir -p results/map_policy/gains_T8\$sfx && cp $RUN/map_gains_\$n/*/metrics.csv $RUN/map_gains_\$n/*/learning_curve.png $RUN/map_gains_\$n/*/summary.json results/map_policy/gains_T8\$sfx/ || exit 1; done"
 add map_probes full "other ways of choosing the rule's descents, shorter surveys and label bounds against the rule (50 wide validation scenes, T = 8 and 240 s) -> results/map_policy/probes_*.md" \
@@ -190,6 +200,8 @@ add perception_500 full "the wide net fine-tuned on all 500 training scenes agai
   "$PY tools/render_wide.py --families wide --parts train --scenes 500 --workers 2 && $UAV train perception --settings wide --train-scenes 500 --val-scenes 10 --altitude-feature --init models/perception_wide.pt --lr 2e-4 --steps 2000 --eval-every 250 --pos-weight 4 --positive-share 0.5 --seed 1 --threads 1 --runs-dir $RUN --out $RUN/perception_wide_500.pt --no-progress && $PY tools/wide_perception_compare.py --candidate $RUN/perception_wide_500.pt --out results/wide_study/perception_500.md"
 add fusion_features full "the neighbour fusion on per-view cell features beside the scores (final maps of the rule, 50 wide validation scenes, T = 8) -> results/wide_study/features_T8.md" \
   "$PY tools/wide_fusion_probe.py --budget 8 --train-scenes 300 --features --out results/wide_study/features_T8.md"
+add fusion_features_seeds full "the neighbour fusion reading cell features over seeds 0 and 1 and their ensemble against the calibrated one (the rule and the shipped map policy, 50 wide validation scenes, T = 8 and 240 s) -> results/wide_study/fusion_features_seeds_*.md" \
+  "$PY tools/wide_fusion_seeds.py --budget 8 --seeds 0 1 --features --threads 1 --out results/wide_study/fusion_features_seeds_T8.md && $PY tools/wide_fusion_seeds.py --budget 240 --seeds 0 1 --features --threads 1 --out results/wide_study/fusion_features_seeds_240s.md"
 add fusion_seeds full "the learned neighbour fusion over seeds 0-2 against the calibrated one (the rule and the shipped map policy, 50 wide validation scenes, T = 8 and 240 s) -> results/wide_study/fusion_seeds_*.md" \
   "$PY tools/wide_fusion_seeds.py --budget 8 --seeds 0 1 2 --out results/wide_study/fusion_seeds_T8.md && $PY tools/wide_fusion_seeds.py --budget 240 --seeds 0 1 2 --out results/wide_study/fusion_seeds_240s.md"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE, $RUN/seed0/search_s*_*.pt and $RUN/search_wide_*_map.pt into models/" \

@@ -135,7 +135,8 @@ def main() -> int:
     for n, f in rows:
         d, lo, hi = bootstrap_ci(f - ref)
         lines.append(f"| {n} | {f.mean():.3f} | {d:+.3f} [{lo:+.3f}, {hi:+.3f}] |")
-    lines += ["", "| seed | fit, s wall (2 cores) | training maps | shift | weights SHA-256 (first 16) |",
+    lines += ["", f"| seed | fit, s wall ({args.threads} thread(s), on the 2-core machine) | training maps | shift | "
+              "weights SHA-256 (first 16) |",
               "|---|---|---|---|---|"]
     lines += [f"| {s} | {m['seconds']:.0f} | {m['scenes']['maps']} | {m['shift']:+.2f} | {shas[s]} |"
               for s, m in zip(args.seeds, summaries)]
