@@ -33,6 +33,7 @@ from uavsearch.errors import UavsearchError
 
 from .checkpoints import policy_net
 from .config import SearchConfig
+from . import neighbour_fusion  # noqa: F401  registers the learned aggregations a checkpoint may carry
 from .fusion import Fusion, load_fusion
 from .perception import EMBED_DIM, ImageEmbedding
 from .search_loop import PolicyInput, sample_actions
