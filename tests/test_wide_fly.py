@@ -16,6 +16,8 @@ from uavsearch.fly.missions import load_mission, mission_from_dict
 from uavsearch.logs.flight_log import read_flight_log
 from uavsearch.paths import MISSIONS_DIR, MODELS_DIR
 from uavsearch.replay.replay import replay_run_dir, trajectory_figure
+from uavsearch.search.fusion import Fusion
+from uavsearch.search.policy import load_search_model
 from uavsearch.search.search_loop import Observation
 from uavsearch.search.team import run_team
 from uavsearch.testing.clean_env import clean_env
@@ -29,6 +31,21 @@ def flown(tmp_path_factory):
     r = subprocess.run([sys.executable, "-m", "uavsearch", "fly", "--mission", str(WIDE), "--out", str(run),
                         "--gcs-port", "0"], capture_output=True, text=True, timeout=300, env=clean_env())
     return r, run
+
+
+class LoggedMaps(Fusion):
+    """The fused maps a flight logged, view by view: for a fusion that reads cell features, which a log does not
+    hold, the planner is checked on the maps the flight fused."""
+
+    name = "logged"
+
+    def __init__(self, log):
+        super().__init__()
+        self.maps = [torch.as_tensor(np.asarray(s.fused), dtype=torch.float32)[None] for s in log.steps]
+
+    def update(self, state, view):
+        k = 0 if state is None else state + 1
+        return k, self.maps[k]
 
 
 class LoggedViews:
@@ -61,7 +78,8 @@ def test_the_learned_policy_flies_its_time_and_lands(flown):
     summary = json.loads((run / "summary.json").read_text())
     assert summary["status"] == "completed" and summary["vehicles"] == 1
     log = read_flight_log(run)
-    assert log.header["fusion"].startswith("calibrated:") and log.header["policy"] == "map"
+    carried = load_search_model(load_mission(WIDE).checkpoint_path).fusion  # the fusion saved in the checkpoint
+    assert log.header["fusion"] == getattr(carried, "spec", carried.name) and log.header["policy"] == "map"
     views = [s.lattice_idx for s in log.steps]
     assert len(views) == len(set(views)) >= 10  # 240 s buys well over ten views, none twice
     mission = load_mission(WIDE)
@@ -88,7 +106,8 @@ def test_the_flown_route_is_the_policys_choice_on_what_each_view_saw(flown):
     config = mission.search_config()
     method = mission.team_method(config)
     source = LoggedViews(log, config)
-    ep = run_team(source, method.fusion, method.planner, 1, float(config.budget_s))
+    fusion = LoggedMaps(log) if "cell_features" in method.fusion.needs else method.fusion
+    ep = run_team(source, fusion, method.planner, 1, float(config.budget_s))
     assert source.asked == [s.lattice_idx for s in log.steps]
     assert np.allclose(ep.maps[0, -1].numpy(), log.steps[-1].fused, atol=1e-4)
 
@@ -97,7 +116,8 @@ def test_replay_refuses_with_the_checkpoints_fusion_and_draws_both_altitudes(flo
     r, run = flown
     assert r.returncode == 0
     d = replay_run_dir(run)
-    assert d.fusion.startswith("calibrated:")
+    carried = load_search_model(load_mission(WIDE).checkpoint_path).fusion
+    assert d.fusion == getattr(carried, "spec", carried.name)
     assert np.allclose(d.maps[-1], d.logged_maps[-1], atol=1e-5)  # re-fused from the log: the same map
     labels = [t.get_text() for t in trajectory_figure(d).legends[0].get_texts()]
     layers = {round(float(z)) for z in d.positions_enu[:, 2]}
