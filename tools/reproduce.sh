@@ -86,7 +86,9 @@
 #     fusion_features_seeds  the neighbour fusion reading cell features (`uavsearch train fusion --features`),
 #                     seeds 0 and 1, their ensemble, the rule and the shipped map policy on them ->
 #                     results/wide_study/fusion_features_seeds_T8.md and _240s.md. measured: 1182-1723 s per fit
-#                     (one thread, beside the other budget's fits and other jobs), 25-69 s to evaluate.
+#                     (one thread, beside the other budget's fits and other jobs), 25-69 s to evaluate. Its "shipped
+#                     map policy" rows were measured with the policies trained on the calibrated fusion (models/
+#                     before the learned stack shipped); a rerun now flies the learned stack's nets there.
 #     fusion_features the neighbour fusion reading the views' cell features beside their scores (the fusion
 #                     probe with --features, T = 8, 300 training scenes, seeds 0 and 1) ->
 #                     results/wide_study/features_T8.md. measured: 568 s after the caches (their feature store on disk).
