@@ -245,6 +245,9 @@ def test_a_fusion_reading_cell_features_is_the_layer_means_written_out_view_by_v
         f.fuse(v._replace(cell_features=None))
     with pytest.raises(UavsearchError, match="cell features"):
         f.fuse(v._replace(cell_features=v.cell_features[..., :0]))
+    assert f.cell_dim == D and fusion().cell_dim is None
+    with pytest.raises(UavsearchError, match=f"reads {D} cell features per view .* gives 3"):
+        f.fuse(v._replace(cell_features=v.cell_features[..., :3]))
 
 
 def test_train_fusion_with_features_fits_a_fusion_the_rule_flies_with(tmp_path):

@@ -117,9 +117,10 @@ def check_evaluation(device, q: int) -> tuple[str, float, float]:
     from uavsearch.search.wide_policies import RULE_VARIANTS, rule_policy
 
     config = wide_budgets(setting_config("wide"))["240 s"]
-    cache = to_device(synthetic_wide_cache(EVAL_SCENES[q], 4, config), device)
     agent = load_wide_agent(wide_checkpoint("240"), config, device=device) or \
         Agent(BayesFusion(), rule_policy(config, next(iter(RULE_VARIANTS))))
+    dim = getattr(agent.fusion, "cell_dim", None) or 6  # a learned aggregation reads perception's cell features
+    cache = to_device(synthetic_wide_cache(EVAL_SCENES[q], 4, config, cell_dim=dim), device)
     t0 = time.perf_counter()
     scores = evaluate_agent(cache, agent, EVAL_EPISODES[q], config=config)
     seconds = time.perf_counter() - t0

@@ -176,15 +176,24 @@ class NeighbourFusion(nn.Module, Fusion):
                 planes = torch.cat([planes, feature_mean_planes(*sums, self.n)], 1)
             return torch.sigmoid(self._logits(planes))
 
+    @property
+    def cell_dim(self) -> int | None:
+        """The cell features per view it reads (perception's), None for a fusion over scores."""
+        return self.net.features // 2 if self.reads_features else None  # the net reads two layers' means
+
     def _view_features(self, views: FusionViews) -> torch.Tensor:
-        """(B, T, N, D) the views' cell features; their absence is a one-line error."""
+        """(B, T, N, D) the views' cell features; their absence, or features of another perception, is a
+        one-line error."""
         f = views.cell_features
         if f is not None and views.feature_rows is not None:
             f = f[views.feature_rows]
-        if f is None or 2 * f.shape[-1] != self.net.features:  # the net reads two layers' means
-            raise UavsearchError(f"this neighbour fusion reads each view's {self.net.features // 2} cell features, "
-                                 "which this view source does not keep (the gymnasium envs' buffered episodes "
-                                 "keep scores only)")
+        if f is None or f.shape[-1] == 0:
+            raise UavsearchError(f"this neighbour fusion reads each view's {self.cell_dim} cell features, which "
+                                 "this view source does not keep (the gymnasium envs' buffered episodes keep "
+                                 "scores only)")
+        if f.shape[-1] != self.cell_dim:
+            raise UavsearchError(f"this neighbour fusion reads {self.cell_dim} cell features per view (its "
+                                 f"perception's), this view source gives {f.shape[-1]}")
         return f
 
     def _feature_sums(self, views: FusionViews, idx):

@@ -41,13 +41,14 @@ def synthetic_cache(num_scenes: int = 4, k: int = 5, seed: int = 0, cell_dim: in
 
 
 def synthetic_wide_cache(num_scenes: int = 4, seed: int = 0, config: SearchConfig | None = None,
-                         k: int = 10) -> ViewCache:
+                         k: int = 10, cell_dim: int = 6) -> ViewCache:
     """A synthetic cache on a wide lattice (default: the wide family's) where each view measures only its
-    footprint, with K people's pixels in the occupied cells it sees."""
+    footprint, with K people's pixels in the occupied cells it sees (`cell_dim` features per cell: a fusion that
+    reads the shipped perception's features needs its 104)."""
     from uavsearch.search.config import setting_config
     from uavsearch.search.wide_policies import footprints
 
     config = config or setting_config("wide")
-    c = synthetic_cache(num_scenes, k=k, seed=seed, config=config)
+    c = synthetic_cache(num_scenes, k=k, seed=seed, config=config, cell_dim=cell_dim)
     valid = footprints(config)[None].expand(num_scenes, -1, -1).clone()
     return c._replace(valid=valid, person_px=(c.occupancy[:, None, :] & valid).int() * 5)
