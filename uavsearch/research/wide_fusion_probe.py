@@ -49,7 +49,7 @@ from ..search.neighbour_fusion import (PLANES, CorrectionNet, FeatureCorrectionN
                                        feature_planes, save_neighbour)
 from ..search.search_loop import Agent, CachedViews, run_search
 from ..search.symmetry import square_symmetry
-from ..search.train.fusion import best_shift
+from ..search.train.fusion import best_shift, net_logits
 from ..search.wide_policies import lowest_layer
 from .wide_policy_probes import FUSION, NoisyRule, fit_adam, probe_parser, probe_setting, write_markdown
 
@@ -140,8 +140,7 @@ def main() -> None:
         xt, xv = (XF, XFv) if features else (X, Xv)
         net = fit_net(xt, Y, kernel, seed, args.epochs, args.symmetries)
         with torch.no_grad():
-            chunks = [flat(net(xt[j:j + 500])) for j in range(0, len(xt), 500)]
-            row(f"learned correction, {name}", np.concatenate(chunks), flat(net(xv)))
+            row(f"learned correction, {name}", net_logits(net, xt), flat(net(xv)))
         bar.update()
 
     # during the search: a net with neighbours fitted on maps after every few views corrects each map the

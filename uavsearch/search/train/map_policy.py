@@ -57,12 +57,12 @@ from uavsearch.viz import pyplot
 
 from ..config import SearchConfig, config_to_dict, wide_budgets
 from ..data.view_cache import ViewCache, get_view_cache
-from ..agents import make_fusion
+from ..agents import load_wide_agent, make_fusion
 from ..fusion import Fusion
 from ..checkpoints import shipped_perception, wide_checkpoint
 from ..map_policy import BUDGETS, MASKED, MapPolicyConfig, MapPolicyNet
 from ..perception import load_perception
-from ..policy import ArgmaxPolicy, load_search_model, save_search_model
+from ..policy import ArgmaxPolicy, save_search_model
 from ..search_loop import Agent, CachedViews, PolicyInput, classification_reward
 from ..scoring import evaluate_agent
 from ..wide_policies import argmax_allowed, candidates, choose_rule, route_views, rule_policy
@@ -306,13 +306,11 @@ def _plot(rows: list[dict], path: Path, title: str) -> None:
 
 
 def _init_net(path, config: SearchConfig) -> MapPolicyNet:
-    """The net of a map policy checkpoint made for `config`'s budget (else a one-line error)."""
-    net = load_search_model(path)[1]
-    if getattr(net, "KIND", None) != "map":
-        raise UavsearchError(f"--init {path}: not a map policy checkpoint")
-    if net.cfg.search_config() != config:
-        raise UavsearchError(f"--init {path}: that policy was made for another search (budget or lattice)")
-    return net
+    """The net of a map policy checkpoint made for `config`'s search (load_wide_agent's checks, one line each)."""
+    agent = load_wide_agent(path, config, where="--init, a policy for another search: ")
+    if agent is None:
+        raise UavsearchError(f"--init {path}: no such file")
+    return agent.policy.net
 
 
 def train(args: Args, caches=None) -> TrainResult:
