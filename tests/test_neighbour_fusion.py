@@ -67,6 +67,13 @@ def test_an_ensemble_averages_its_members_shifted_log_odds_and_round_trips(tmp_p
         NeighbourEnsemble.of([members[0], fusion(3, gamma=0.75)])
 
 
+def test_a_shipped_stack_names_its_learned_aggregation():
+    """neighbour:PATH of a search policy's checkpoint is the learned aggregation it carries (the shipped stack's,
+    an ensemble of feature fits)."""
+    f = make_fusion("neighbour:models/search_wide_240s_map.pt")
+    assert isinstance(f, NeighbourEnsemble) and "cell_features" in f.needs
+
+
 def test_errors(tmp_path):
     with pytest.raises(UavsearchError, match="not found"):
         make_fusion(f"neighbour:{tmp_path / 'missing.pt'}")
@@ -76,6 +83,8 @@ def test_errors(tmp_path):
     torch.save({"format": "other"}, bad)
     with pytest.raises(UavsearchError, match="not a neighbour fusion"):
         load_neighbour(bad)
+    with pytest.raises(UavsearchError, match="nor a search policy carrying one"):
+        load_neighbour("models/search_s1_bayes.pt")  # a policy checkpoint, its fusion no neighbour fusion
     v = views()
     with pytest.raises(UavsearchError, match="viewpoint"):
         fusion().fuse(v._replace(viewpoints=None))

@@ -10,11 +10,16 @@ import torch
 
 from uavsearch.errors import UavsearchError
 from uavsearch.search.config import setting_config
-from uavsearch.search.evaluate.team import TeamEvalArgs, eval_team, make_planner
-from uavsearch.search.fusion import FUSIONS
+from uavsearch.paths import display_path
+from uavsearch.search.checkpoints import wide_checkpoint
+from uavsearch.search.evaluate.team import (TeamEvalArgs, _fusion_specs, eval_team, learned_aggregations,
+                                            make_planner)
+from uavsearch.search.fusion import FUSIONS, CalibratedFusion
+from uavsearch.search.neighbour_fusion import CorrectionNet, NeighbourFusion, save_neighbour
+from uavsearch.search.policy import load_search_model
 from uavsearch.search.search_loop import Agent, CachedViews, run_search
 from uavsearch.search.team import EachVehicle, Partition, TeamEntropy, TeamRule, run_team
-from uavsearch.search.wide_policies import DescendRule, EntropyPerSecond, footprints
+from uavsearch.search.wide_policies import DescendRule, EntropyPerSecond, footprints, lowest_layer
 from uavsearch.testing.synthetic_views import synthetic_cache
 
 WIDE = dataclasses.replace(setting_config("wide"), budget_T=73)
@@ -124,3 +129,28 @@ def test_team_table_on_a_tiny_synthetic_family(tmp_path):
     assert ref["diff"] == 0.0  # the reference against itself
     with pytest.raises(UavsearchError, match="positive"):
         eval_team(dataclasses.replace(args, times="0,-1"), caches)
+
+
+def test_a_learned_aggregation_is_a_team_candidate(tmp_path):
+    """A neighbour fusion named by its checkpoint is chosen among like the hand-made ones (here an untrained one
+    on scores); the shipped stacks' aggregations are candidates only where fitted on the caches' perception."""
+    torch.manual_seed(0)
+    nf = NeighbourFusion(CalibratedFusion((1.0, 0.0, 0.0, 0.0), 0.1, 0.5), CorrectionNet().eval(), 0.0,
+                         lowest_layer(WIDE), WIDE.grid.n)
+    spec = f"neighbour:{save_neighbour(nf, tmp_path / 'nf.pt')}"
+    caches = {"test": wide_cache(2, 5), "val": wide_cache(2, 6), "train": wide_cache(1, 7)}
+    args = TeamEvalArgs(out=str(tmp_path / "t"), vehicles="1", times="40", bootstrap=100, progress=False,
+                        fusions=f"average,{spec}")
+    res = eval_team(args, caches)
+    cond = res["conditions"][(1, 40.0)]
+    assert {cond[k]["fusion"] for k in cond if k != "chosen"} <= {"average", spec}
+    assert "neighbour:" in (tmp_path / "t" / "team.md").read_text()  # the candidates are named
+    with pytest.raises(UavsearchError, match="--learned"):
+        eval_team(dataclasses.replace(args, learned="12"), caches)
+
+    assert _fusion_specs("average, neighbour:a.pt,b.pt,bayes:0.5") == ["average", "neighbour:a.pt,b.pt", "bayes:0.5"]
+    assert learned_aggregations("synthetic") == []
+    path = wide_checkpoint("240")
+    tag = load_search_model(path).extra["perception_tag"]
+    assert learned_aggregations(tag) == [f"neighbour:{display_path(path)}"]
+    assert len(learned_aggregations(tag, budgets=("8", "240"))) == 2

@@ -17,7 +17,9 @@ perception); the envs' buffered episodes keep only scores and say so.
 
 A checkpoint (`save_neighbour`) holds the fusion's `save_dict()`; the spec "neighbour:PATH.pt" loads it
 (`neighbour_from_spec`, what agents.make_fusion calls), "neighbour:A.pt,B.pt,C.pt" averages fits of other seeds
-(NeighbourEnsemble), and save_neighbour writes such an ensemble as one checkpoint too.
+(NeighbourEnsemble), and save_neighbour writes such an ensemble as one checkpoint too. PATH may also be a search
+policy's checkpoint carrying such a fusion: "neighbour:models/search_wide_240s_map.pt" is the shipped learned
+stack's aggregation (what the team table chooses among).
 """
 
 from __future__ import annotations
@@ -308,18 +310,34 @@ def save_neighbour(fusion: NeighbourFusion, path, meta: dict | None = None) -> P
 
 
 def load_neighbour(path) -> NeighbourFusion:
-    """The fusion of a checkpoint save_neighbour wrote; a missing or foreign file is a one-line error."""
+    """The fusion of a checkpoint save_neighbour wrote, or the learned aggregation a search policy's checkpoint
+    carries (a shipped stack's, e.g. models/search_wide_240s_map.pt); a missing or foreign file is a one-line
+    error."""
     from .fusion import load_fusion
 
     if not Path(path).is_file():
         raise UavsearchError(f"neighbour fusion checkpoint {path} not found")
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
-        if ck.get("format") != FORMAT:
-            raise KeyError("format")
-        return load_fusion(ck["fusion"])
-    except (OSError, KeyError, AttributeError, RuntimeError, ValueError) as e:
+        if ck.get("format") == FORMAT:
+            return load_fusion(ck["fusion"])
+    except (OSError, KeyError, AttributeError, RuntimeError, ValueError, TypeError) as e:
         raise UavsearchError(f"{path} is not a neighbour fusion checkpoint ({type(e).__name__})") from None
+    fusion = _policy_aggregation(path)
+    if fusion is None:
+        raise UavsearchError(f"{path} is not a neighbour fusion checkpoint, nor a search policy carrying one")
+    return fusion
+
+
+def _policy_aggregation(path) -> NeighbourFusion | None:
+    """The neighbour fusion a search policy checkpoint carries, None where it is no such checkpoint."""
+    from .policy import load_search_model
+
+    try:
+        fusion = load_search_model(path, "cpu")[0]
+    except UavsearchError:
+        return None
+    return fusion if isinstance(fusion, NeighbourFusion) else None
 
 
 def neighbour_from_spec(spec: str) -> NeighbourFusion | None:

@@ -36,11 +36,35 @@ from .tables import write_csv
 from .wide import FUSION_CANDIDATES, family_caches
 
 CHOSEN = tuple(PLANNERS)  # what "the team planner" is chosen among on validation
-# Table III's candidates and two higher Bayes priors: with many views per map (a team) validation's best prior
-# sat at Table III's highest, 0.5
-TEAM_FUSIONS = (*FUSION_CANDIDATES, "bayes:0.6", "bayes:0.7")
+# The hand-made candidates: Table III's and two higher Bayes priors (with many views per map validation's best
+# prior sat at Table III's highest, 0.5), less the three lowest priors, which no row chose on validation in a search
+# over all eight (100 test / 50 validation wide scenes): their runs pay for the learned candidate's
+TEAM_FUSIONS = tuple(f for f in (*FUSION_CANDIDATES, "bayes:0.6", "bayes:0.7")
+                     if f not in ("bayes:0.05", "bayes:0.1", "bayes:0.2"))
+# The shipped learned stacks whose aggregation (search/neighbour_fusion.py) is a candidate too, by budget: the
+# 240 s stack's; on the 50 validation scenes (team_entropy:1; 1 and 3 vehicles at 240 s, 2 at 80 s) it led the
+# T = 8 stack's by +0.06, +0.14, +0.03 AF1 and costs as much (`--learned 8,240` makes both candidates)
+LEARNED_BUDGETS = ("240",)
 # a planner's variants, chosen on validation with its fusion: team_entropy's discount of cells others will see
 VARIANTS = {"team_entropy": ("team_entropy:0.5", "team_entropy:0.8", "team_entropy:1")}
+
+
+def learned_aggregations(perception_tag: str, family: str = "wide", models_dir=None,
+                         budgets=LEARNED_BUDGETS) -> list[str]:
+    """Fusion specs of the shipped learned stacks' aggregations ("neighbour:PATH") fitted on the perception the
+    caches hold (another net's features and scores mean nothing to them)."""
+    from ..checkpoints import wide_checkpoint
+    from ..policy import load_search_model
+
+    specs = []
+    for budget in budgets:
+        path = wide_checkpoint(budget, models_dir, family)
+        if not path.is_file():
+            continue
+        model = load_search_model(path, "cpu")
+        if model.fusion.trainable and model.extra.get("perception_tag") == perception_tag:
+            specs.append(f"neighbour:{display_path(path)}")
+    return specs
 
 
 def team_scores(cache: ViewCache, planner: str, fusion_spec: str, vehicles: int, budget_s: float) -> dict:
@@ -91,7 +115,7 @@ def evaluate_teams(caches: dict[str, ViewCache], sizes, times, resamples: int = 
                            "fusion": cond[key]["fusion"], "af1": float(cond[key]["f1"].mean()),
                            "reference_af1": float(ref.mean()), "diff": m, "ci_low": lo, "ci_high": hi,
                            "scenes": len(d), "resamples": resamples, "bootstrap_seed": seed})
-    return {"conditions": out, "paired": paired, "reference": ref_key}
+    return {"conditions": out, "paired": paired, "reference": ref_key, "fusions": list(fusions)}
 
 
 def team_figure(res: dict, sizes, times):
@@ -122,7 +146,8 @@ def table_lines(res: dict, sizes, times, family: str, scenes: dict) -> list[str]
     conds, ref = res["conditions"], res["reference"]
     lines = [f"# Teams: AF1 against mission time ({family}, test scenes)", "",
              f"{scenes['test']} test scenes; each planner's fusion chosen on {scenes['val']} validation scenes per "
-             "team size and mission time; **bold**: the team planner (chosen on validation among "
+             f"team size and mission time among {', '.join(res.get('fusions', []))}; **bold**: the team planner "
+             "(chosen on validation among "
              f"{', '.join(CHOSEN)}). Δ: per-scene AF1 minus one vehicle's team planner at {ref[1]:g} s [95% "
              "bootstrap interval over scenes]. Regenerate: `tools/reproduce.sh --only team`.", "",
              "| vehicles | planner | " + " | ".join(f"{t:g} s" for t in times) + " |",
@@ -161,7 +186,10 @@ class TeamEvalArgs(ScaleOutArgs):
     wide_val_scenes: int | None = opt(None, "validation scenes choosing fusions and the team planner (first N; all)")
     wide_train_scenes: int = opt(1, "training scenes (unused by these planners; the cache of the first N is made)")
     fusions: str = opt(",".join(TEAM_FUSIONS), "fusions each planner's is chosen among on validation "
-                                               "(comma-separated name or name:prior)")
+                                               "(comma-separated name or name:prior, or neighbour:PATH)")
+    learned: str = opt(",".join(LEARNED_BUDGETS), "the shipped learned stacks (budgets, comma-separated: 8, 240; "
+                                                  "or none) whose aggregation is a candidate too, where fitted on "
+                                                  "the caches' perception (neighbour:models/search_wide_*_map.pt)")
     bootstrap: int = opt(RESAMPLES, "bootstrap resamples over scenes")
     bootstrap_seed: int = opt(0, "seed of the bootstrap resamples")
     progress: bool = opt(True, "progress bars")
@@ -177,16 +205,40 @@ def _numbers(text: str, flag: str, kind=float) -> list:
     return sorted(set(out))
 
 
+def _learned_budgets(text: str) -> tuple[str, ...]:
+    budgets = tuple(b.strip() for b in str(text).split(",") if b.strip() and b.strip() != "none")
+    bad = [b for b in budgets if b not in ("8", "240")]
+    if bad:
+        raise UavsearchError(f"--learned takes the budgets 8 and 240 (comma-separated) or none, not {text!r}")
+    return budgets
+
+
+def _fusion_specs(text: str) -> list[str]:
+    """The comma-separated candidates; "neighbour:A.pt,B.pt" (an ensemble) keeps its .pt paths together."""
+    out: list[str] = []
+    for part in (x.strip() for x in text.split(",")):
+        if not part:
+            continue
+        if out and out[-1].startswith("neighbour:") and ":" not in part and part.endswith(".pt"):
+            out[-1] += f",{part}"
+        else:
+            out.append(part)
+    return out
+
+
 def eval_team(args: TeamEvalArgs, caches: dict | None = None) -> dict:
     """The team table into args.out; `caches` ({part: ViewCache}) skips building the family's caches."""
     sizes = _numbers(args.vehicles, "--vehicles", int)
     times = _numbers(args.times, "--times")
     if max(sizes) > 16:
         raise UavsearchError("--vehicles: at most 16")
+    learned = _learned_budgets(args.learned)
     t0 = time.perf_counter()
     caches = caches if caches is not None else family_caches(args, args.setting)
     caches = {part: to_device(c, resolve_device(getattr(args, "device", "auto"))) for part, c in caches.items()}
-    fusions = [f.strip() for f in args.fusions.split(",") if f.strip()]
+    fusions = _fusion_specs(args.fusions)
+    fusions += [f for f in learned_aggregations(caches["test"].perception_tag, args.setting, budgets=learned)
+                if f not in fusions]
     for f in fusions:
         make_fusion(f)  # a bad name is a one-line error before any work
     res = evaluate_teams(caches, sizes, times, args.bootstrap, args.bootstrap_seed, fusions=fusions)
