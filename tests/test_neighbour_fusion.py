@@ -352,15 +352,45 @@ def test_a_map_policy_fine_tunes_from_a_checkpoint_on_a_fusion_reading_features(
                                          pg_iterations=1, **kw), caches=caches)
 
 
-def test_the_envs_refuse_a_fusion_reading_cell_features_in_one_line(tmp_path):
-    from uavsearch.search.config import setting_config
-    from uavsearch.search.envs.search_env import WideSearchEnv
-    from uavsearch.search.envs.team_env import TeamSearchEnv
-    from uavsearch.testing.synthetic_views import synthetic_cache
+def test_the_envs_fly_a_fusion_reading_cell_features_as_the_loop_does(tmp_path):
+    """WideSearch-v0 takes a learned aggregation that reads cell features: the buffered episodes keep its running
+    feature sums, and the rule played through the env flies the loop's routes with the loop's AF1, also across
+    resets (the sums start afresh); a fusion reading features without a running sum, or a cache without
+    features, is a one-line error. (The team env: tests/test_team_env.py.)"""
+    import numpy as np
 
-    cache = synthetic_cache(2, k=10, seed=2, config=setting_config("wide"))
-    path = save_neighbour(feature_fusion(), tmp_path / "f.pt")
+    from uavsearch.search.envs.search_env import LoopPolicyPlayer, WideSearchEnv, check_buffered_fusion, play_scenes
+    from uavsearch.search.fusion import Fusion
+    from uavsearch.search.neighbour_fusion import FeatureCorrectionNet
+    from uavsearch.search.scoring import score_episode
+    from uavsearch.search.search_loop import Agent, CachedViews, run_search
+    from uavsearch.search.wide_policies import rule_policy
+    from uavsearch.testing.synthetic_views import synthetic_wide_cache
+
+    cache = synthetic_wide_cache(3, seed=2, cell_dim=D)
+    env = WideSearchEnv(cache=cache, budget="8", progress=False)
+    torch.manual_seed(0)
+    wide = NeighbourFusion.around(CalibratedFusion((1.1, -0.05, -0.3, 0.02), 0.08, 0.25),
+                                  FeatureCorrectionNet(2 * D, kernel=3, reduce=4, hidden=8).eval(), 0.5, env.config)
+    path = save_neighbour(wide, tmp_path / "f.pt")
+    env = WideSearchEnv(cache=cache, budget="8", fusion=f"neighbour:{path}", progress=False)
+    assert env.fusion.reads_features
+    rule = rule_policy(env.config, "4 covering, resurvey below p 0.4")
+    seeds = [*cache.scene_seed, *cache.scene_seed[::-1]]  # the second pass: each episode's sums start at zero
+    f1, routes = play_scenes(env, LoopPolicyPlayer(rule, env.config).act, seeds)
+    with torch.no_grad():
+        ep = run_search(CachedViews(cache, np.arange(cache.num_scenes), env.config), Agent(env.fusion, rule))
+    want = score_episode(ep).f1[:, -1]
+    assert [ep.lattice_idx[i, :len(r)].tolist() for i, r in enumerate(routes[:3])] == routes[:3]
+    np.testing.assert_allclose(f1[:3], want, atol=1e-5)
+    np.testing.assert_allclose(f1[3:], want[::-1], atol=1e-5)
+
+    class FeaturesNoSum(Fusion):
+        name, needs = "features-no-sum", ("cell_features",)
+
     with pytest.raises(UavsearchError, match="buffered episodes do not keep"):
-        WideSearchEnv(cache=cache, budget="8", fusion=f"neighbour:{path}", progress=False)
-    with pytest.raises(UavsearchError, match="buffered episodes do not keep"):
-        TeamSearchEnv(cache=cache, fusion=f"neighbour:{path}", progress=False)
+        check_buffered_fusion(FeaturesNoSum())
+    bare = cache._replace(cell_features=cache.cell_features[..., :0])  # a cache that kept no features
+    env = WideSearchEnv(cache=bare, budget="8", fusion=f"neighbour:{path}", progress=False)
+    with pytest.raises(UavsearchError, match="cell features"):
+        env.reset(seed=0)

@@ -73,9 +73,23 @@ def test_only_the_arriving_vehicle_chooses_and_the_others_keep_going():
             assert not (obs[a]["action_mask"][:-1].astype(bool) & flying_to).any()
 
 
+def _learned_aggregation(path) -> str:
+    """The spec of a (random) neighbour fusion reading CACHE's cell features, saved at `path`."""
+    from uavsearch.search.fusion import CalibratedFusion
+    from uavsearch.search.neighbour_fusion import FeatureCorrectionNet, NeighbourFusion, save_neighbour
+
+    torch.manual_seed(0)
+    d = int(CACHE.cell_features.shape[-1])
+    f = NeighbourFusion.around(CalibratedFusion((1.1, -0.05, -0.3, 0.02), 0.08, 0.5),
+                               FeatureCorrectionNet(2 * d, kernel=3, reduce=4, hidden=8).eval(), 0.5, CACHE.config)
+    return f"neighbour:{save_neighbour(f, path)}"
+
+
 @pytest.mark.parametrize("planner,fusion", [("team_entropy:0.8", "bayes:0.5"), ("partition", "average"),
-                                            ("rule", "average")])
-def test_stepping_with_a_planners_choices_is_run_team(planner, fusion):
+                                            ("rule", "average"), ("team_entropy:0.8", "learned")])
+def test_stepping_with_a_planners_choices_is_run_team(planner, fusion, tmp_path):
+    if fusion == "learned":  # a learned aggregation reading cell features, which the env's views serve
+        fusion = _learned_aggregation(tmp_path / "learned.pt")
     env = _env(fusion=fusion)
     ep = run_team(CachedViews(CACHE, np.arange(CACHE.num_scenes), env.config), make_fusion(fusion),
                   make_planner(planner, env.config), 3, 80.0)

@@ -17,6 +17,7 @@ Nothing here imports gymnasium (flying and evaluation never load it).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -43,6 +44,9 @@ class CellTables(NamedTuple):
     labels: torch.Tensor  # (S, N) bool ground truth
     scene_seed: np.ndarray  # (S,) int64
     occupied_cells: np.ndarray  # (S,) int64
+    # (rows, positions) -> (..., N, D) the views' cell features (ViewCache.features_at), for a fusion that reads
+    # them (a learned aggregation), else None: read view by view, a scene family's stay on disk
+    features: Callable | None = None
 
 
 @torch.no_grad()
@@ -58,7 +62,8 @@ def cell_tables(cache, fusion: Fusion, chunk: int = 4096) -> CellTables:
         flat = feats.reshape(-1, *feats.shape[2:])
         scores = torch.cat([net(flat[i:i + chunk].float()) for i in range(0, len(flat), chunk)]).reshape(p.shape)
     return CellTables(p, cache.valid.bool(), cache.cell_area_px.float(), scores, cache.occupancy.bool(),
-                      np.asarray(cache.scene_seed), np.asarray(cache.occupied_cells))
+                      np.asarray(cache.scene_seed), np.asarray(cache.occupied_cells),
+                      cache.features_at if "cell_features" in fusion.needs else None)
 
 
 class TableSource:
@@ -96,12 +101,16 @@ class TableSource:
         """`observe` in numpy (a buffered SearchState's views, episode.py)."""
         area, valid, scores, p, _ = self.host_tables()
         r = self.host_rows()
-        return Observation(None, None, None, area[r, lattice_idx], valid[r, lattice_idx],
+        feats = self.tables.features
+        f = None if feats is None else host(feats(r, lattice_idx)).astype(np.float32)
+        return Observation(None, f, None, area[r, lattice_idx], valid[r, lattice_idx],
                            None if scores is None else scores[r, lattice_idx], p[r, lattice_idx])
 
     def observe(self, lattice_idx) -> Observation:
         t, r = self.tables, self.rows
-        return Observation(None, None, None, t.area_px[r, lattice_idx], t.valid[r, lattice_idx],
+        f = None if t.features is None else t.features(r.cpu(), torch.as_tensor(lattice_idx).cpu()).float().to(
+            self.device)
+        return Observation(None, f, None, t.area_px[r, lattice_idx], t.valid[r, lattice_idx],
                            None if t.scores is None else t.scores[r, lattice_idx], t.p[r, lattice_idx])
 
 

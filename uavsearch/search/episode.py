@@ -116,8 +116,10 @@ def host(x) -> np.ndarray:
 
 
 def host_observation(o: Observation) -> Observation:
-    """What a buffered state keeps of an observation, as numpy arrays: p, valid, pixel areas, scores."""
-    return Observation(None, None, None, host(o.cell_area_px), host(o.valid).astype(bool),
+    """What a buffered state keeps of an observation, as numpy arrays: p, valid, pixel areas, scores (and the
+    cell features a source gives, which a fusion that reads them sums, `SearchState._buffer`)."""
+    f = o.cell_features if o.cell_features is not None and o.cell_features.shape[-1] > 0 else None
+    return Observation(None, None if f is None else host(f), None, host(o.cell_area_px), host(o.valid).astype(bool),
                        None if o.scores is None else host(o.scores), host(o.prob()))
 
 
@@ -185,6 +187,9 @@ class SearchState:
         self.hist_area = np.zeros((B, T, N), dtype=np.float64)
         self.hist_scores = np.zeros((B, T, N), dtype=np.float64)
         self.hist_viewpoint = np.zeros((B, T), dtype=np.int64)  # where each view was taken (a fusion may read it)
+        # a fusion reading cell features: its running summary of them (Fusion.feature_summary, made at the first
+        # view), not every view's (B x views x N x D numbers)
+        self.feature_summary: list[np.ndarray] | None = None
 
     # -- the clocks --------------------------------------------------------------------------------
 
@@ -257,11 +262,28 @@ class SearchState:
         self.hist_viewpoint[envs, t] = idx[envs]
         if o.scores is not None:
             self.hist_scores[envs, t] = o.scores[envs]
+        summary = self._sum_features(envs, o, idx) if "cell_features" in self.fusion.needs else None
         k, sel = int(t.max()) + 1, slice(None) if len(envs) == self.B else envs
         views = FusionViews(self.hist_p[sel, :k], self.hist_valid[sel, :k], self.hist_area[sel, :k],
                             scores=self.hist_scores[sel, :k] if o.scores is not None else None,
-                            viewpoints=self.hist_viewpoint[sel, :k], labels=self.labels[sel])
+                            viewpoints=self.hist_viewpoint[sel, :k], labels=self.labels[sel],
+                            feature_summary=None if summary is None else tuple(x[sel] for x in summary))
         self.fused[envs] = self.fusion.fuse_host(views)
+
+    def _sum_features(self, envs: np.ndarray, o: Observation, idx: np.ndarray) -> list[np.ndarray] | None:
+        """Add the view's summary of cell features (Fusion.feature_summary) to episodes `envs`' running ones;
+        without features from the source the fusion's own one-line error says what is missing."""
+        if o.cell_features is None:
+            return None
+        f = torch.as_tensor(o.cell_features[envs][:, None])
+        one = FusionViews(torch.as_tensor(o.p[envs][:, None]), torch.as_tensor(o.valid[envs][:, None]),
+                          cell_features=f, viewpoints=torch.as_tensor(idx[envs][:, None]))
+        parts = [host(x) for x in self.fusion.feature_summary(one)]
+        if self.feature_summary is None:
+            self.feature_summary = [np.zeros((self.B, *x.shape[1:]), x.dtype) for x in parts]
+        for acc, x in zip(self.feature_summary, parts):
+            acc[envs] += x
+        return self.feature_summary
 
     def view_scores(self) -> torch.Tensor | None:
         """(B, t+1, N) the confidence scores of the views so far (detached), or None (lockstep)."""
@@ -336,7 +358,8 @@ class SearchState:
         self.capture[envs] = False
         self.capture[envs, 0] = True
         self.views[envs] = 0
-        for buf in (self.visits, self.hist_p, self.hist_valid, self.hist_area, self.hist_scores, self.hist_viewpoint):
+        for buf in (self.visits, self.hist_p, self.hist_valid, self.hist_area, self.hist_scores, self.hist_viewpoint,
+                    *(self.feature_summary or ())):
             buf[envs] = 0
         self.labels[envs] = labels
 

@@ -280,6 +280,9 @@ class FusionViews(NamedTuple):
     # (B, T) long: cell_features is (U, N, D) and view (b, t) is its row feature_rows[b, t] (a cache batch
     # reads each distinct (scene, position) once)
     feature_rows: torch.Tensor | None = None
+    # what a fusion keeps of the views' cell features where that is a sum over views (Fusion.feature_summary):
+    # the envs' buffered episodes add each view's instead of keeping every view's features; read instead of them
+    feature_summary: tuple | None = None
 
 
 # the view-indexed fields and the dim that indexes T in each
@@ -324,6 +327,11 @@ class Fusion:
         if kernel is None or any(getattr(views, n) is None for n in self.needs):
             return np.asarray(self.fuse(views), dtype=np.float64)
         return kernel(views.p, views.valid, self.prior, **{n: getattr(views, n) for n in self.needs})
+
+    def feature_summary(self, views: FusionViews) -> tuple | None:
+        """What it keeps of the views' cell features, where that is a sum over views (tensors whose leading dim
+        is B; views of one episode add up), for FusionViews.feature_summary; None: it reads no features."""
+        return None
 
     def init_state(self, batch_size: int, num_cells: int):
         """The state before any view (None: no views yet; a method with a running state builds it here)."""

@@ -13,7 +13,8 @@ mean of the cell's views' cell features (the 104 numbers perception's classifier
 one cell, at two altitudes, carry more than their scores. The running state keeps per layer the sum of the views'
 features (B, 2, N, D), so a view costs the same however many came before it. Such a fusion needs each view's
 cell features: the loop serves them (a cached source reads them from its feature store, a live one from
-perception); the envs' buffered episodes keep only scores and say so.
+perception); the envs' buffered episodes keep per layer the running sums of them (`feature_summary`) rather than
+every view's.
 
 A checkpoint (`save_neighbour`) holds the fusion's `save_dict()`; the spec "neighbour:PATH.pt" loads it
 (`neighbour_from_spec`, what agents.make_fusion calls), "neighbour:A.pt,B.pt,C.pt" averages fits of other seeds
@@ -191,16 +192,24 @@ class NeighbourFusion(nn.Module, Fusion):
             f = f[views.feature_rows]
         if f is None or f.shape[-1] == 0:
             raise UavsearchError(f"this neighbour fusion reads each view's {self.cell_dim} cell features, which "
-                                 "this view source does not keep (the gymnasium envs' buffered episodes keep "
-                                 "scores only)")
+                                 "this view source does not give (a view cache without its feature store, or "
+                                 "views of scores only)")
         if f.shape[-1] != self.cell_dim:
             raise UavsearchError(f"this neighbour fusion reads {self.cell_dim} cell features per view (its "
                                  f"perception's), this view source gives {f.shape[-1]}")
         return f
 
     def _feature_sums(self, views: FusionViews, idx):
+        if views.feature_summary is not None:
+            return views.feature_summary
         return layer_feature_sums(self._view_features(views), torch.as_tensor(views.valid).bool(), idx,
                                   self.lowest.to(idx.device))
+
+    def feature_summary(self, views: FusionViews) -> tuple | None:
+        """Per altitude layer the views' feature sums and counts (layer_feature_sums): all it keeps of them."""
+        if not self.reads_features:
+            return None
+        return self._feature_sums(views._replace(feature_summary=None), torch.as_tensor(views.viewpoints))
 
     def _logits(self, planes) -> torch.Tensor:
         return self.net.to(planes.device)(planes).flatten(1) + self.shift
@@ -228,8 +237,9 @@ class NeighbourFusion(nn.Module, Fusion):
         def t(x):
             return None if x is None else torch.as_tensor(x)
 
+        summary = None if views.feature_summary is None else tuple(map(t, views.feature_summary))
         return self.fuse(FusionViews(t(views.p), t(views.valid), t(views.area_px), t(views.cell_features),
-                                     viewpoints=t(views.viewpoints))).double().numpy()
+                                     viewpoints=t(views.viewpoints), feature_summary=summary)).double().numpy()
 
     def view_scores(self, state):
         return None

@@ -75,12 +75,13 @@ WIDE_SCENE_MB = 19.0
 
 
 def check_buffered_fusion(fusion: Fusion) -> None:
-    """The envs' buffered episodes keep each view's p, pixel areas, scores and viewpoint, not its cell features:
-    a fusion that reads them is a one-line error here rather than at the first step."""
-    if "cell_features" in fusion.needs:
+    """The envs' buffered episodes keep each view's p, pixel areas, scores and viewpoint, and of its cell
+    features only a fusion's running sum of them (Fusion.feature_summary): a fusion that reads features without
+    one is a one-line error here rather than at the first step."""
+    if "cell_features" in fusion.needs and type(fusion).feature_summary is Fusion.feature_summary:
         raise UavsearchError(f"{getattr(fusion, 'spec', fusion.name)} reads each view's cell features, which the "
-                             "envs' buffered episodes do not keep: give the env a fusion over scores (e.g. a "
-                             "neighbour fusion fitted without --features, or Table III's)")
+                             "envs' buffered episodes do not keep: give the env a fusion over scores or a learned "
+                             "aggregation (neighbour:PATH)")
 
 
 class SceneViews:
