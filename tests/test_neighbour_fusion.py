@@ -67,9 +67,10 @@ def test_an_ensemble_averages_its_members_shifted_log_odds_and_round_trips(tmp_p
         NeighbourEnsemble.of([members[0], fusion(3, gamma=0.75)])
 
 
-def test_a_shipped_stack_names_its_learned_aggregation():
+def test_a_shipped_stack_names_its_learned_aggregation(tmp_path, monkeypatch):
     """neighbour:PATH of a search policy's checkpoint is the learned aggregation it carries (the shipped stack's,
-    an ensemble of feature fits)."""
+    an ensemble of feature fits); a relative path names the repository's file wherever the command runs."""
+    monkeypatch.chdir(tmp_path)
     f = make_fusion("neighbour:models/search_wide_240s_map.pt")
     assert isinstance(f, NeighbourEnsemble) and "cell_features" in f.needs
 

@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from uavsearch.errors import UavsearchError
+from uavsearch.paths import REPO_ROOT
 
 from .fusion import FUSIONS, CalibratedFusion, Fusion, FusionViews, calibrated_logit
 
@@ -325,6 +326,8 @@ def load_neighbour(path) -> NeighbourFusion:
     error."""
     from .fusion import load_fusion
 
+    if not Path(path).is_file() and not Path(path).is_absolute() and (REPO_ROOT / path).is_file():
+        path = REPO_ROOT / path  # "neighbour:models/..." names the repository's wherever it runs from
     if not Path(path).is_file():
         raise UavsearchError(f"neighbour fusion checkpoint {path} not found")
     try:
