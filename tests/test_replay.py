@@ -145,8 +145,9 @@ def team_run(tmp_path_factory):
 
 
 def test_a_team_flight_replays_with_no_flags(team_run, tmp_path, capsys):
-    """The run folder and its own tlog (re-rendered in the flown scene with the flown mission's bayes:0.5
-    fusion) both score what the flight scored."""
+    """The run folder (the flight's own maps: its learned aggregation reads cell features, which no log holds)
+    and its own tlog (perception run again on the flight's images, the mission's learned aggregation fed their
+    cell features) both score what the flight scored."""
     from uavsearch.cli import main
 
     run, summary = team_run
@@ -154,14 +155,16 @@ def test_a_team_flight_replays_with_no_flags(team_run, tmp_path, capsys):
     assert replay_run_dir(run).f1[-1] == pytest.approx(summary["f1"], abs=1e-6)
     assert main(["replay", str(run / "telemetry.tlog"), "--out", str(tmp_path / "o")]) == 0
     res = json.loads((tmp_path / "o" / "replay.json").read_text())
-    assert res["fusion"] == "bayes:0.5" and res["views"] == summary["steps"]
+    from uavsearch.paths import MISSIONS_DIR
+
+    assert res["fusion"] == load_mission(MISSIONS_DIR / "wide_team.yaml").fusion and res["views"] == summary["steps"]
     assert res["f1"][-1] == pytest.approx(summary["f1"], abs=1e-4)
     assert res["acc"][-1] == pytest.approx(summary["acc"], abs=1e-4)
 
 
 def test_a_tlog_flown_elsewhere_replays_with_its_team_mission(team_run, tmp_path):
-    """A bare .tlog with the wide team mission: its bayes:0.5 spec through the fusion registry, its family's
-    scene (was: KeyError 'bayes:0.5')."""
+    """A bare .tlog with the wide team mission: its fusion spec (a learned aggregation, fed the cell features of
+    perception run again) through the fusion registry, its family's scene."""
     import shutil
 
     from uavsearch.replay.replay import replay_tlog
@@ -172,7 +175,7 @@ def test_a_tlog_flown_elsewhere_replays_with_its_team_mission(team_run, tmp_path
 
     mission = load_mission(MISSIONS_DIR / "wide_team.yaml")
     d = replay_tlog(tmp_path / "t.tlog", mission.scene_spec(), mission, progress=False)
-    assert d.fusion == "bayes:0.5" and d.f1[-1] == pytest.approx(summary["f1"], abs=1e-4)
+    assert d.fusion == mission.fusion and d.f1[-1] == pytest.approx(summary["f1"], abs=1e-4)
 
 
 @pytest.mark.parametrize("flags, said", [
@@ -200,7 +203,8 @@ def test_flags_that_agree_with_the_record_are_fine(team_run):
 
     run, summary = team_run
     rec = flight_record(run)
-    assert (rec.seed, rec.setting, rec.fusion, rec.vehicles) == (summary["scene_seed"], "wide", "bayes:0.5", 3)
+    mission_fusion = load_mission(MISSIONS_DIR / "wide_team.yaml").fusion  # the spec the flight recorded
+    assert (rec.seed, rec.setting, rec.fusion, rec.vehicles) == (summary["scene_seed"], "wide", mission_fusion, 3)
     check_flags(rec, scene=rec.seed, setting="wide", occupied_cells=rec.occupied_cells,
                 mission=str(MISSIONS_DIR / "wide_team.yaml"))
     check_flags(rec, fusion="average", mission=str(MISSIONS_DIR / "wide_team.yaml"))  # --fusion re-fuses on purpose

@@ -2,6 +2,8 @@
 rewards, and stepping it with a team planner's choices is run_team with that planner (synthetic wide caches, no
 rendering)."""
 
+import csv
+
 import numpy as np
 import pytest
 import torch
@@ -128,7 +130,12 @@ def test_per_view_rewards_add_up_to_the_final_maps(reward, credit):
 def test_defaults_are_the_team_mission():
     m = yaml.safe_load((REPO_ROOT / "missions" / "wide_team.yaml").read_text())
     assert (m["scene"]["setting"], m["team"]["vehicles"], m["team"]["mission_time_s"], m["fusion"]) == \
-        (team_env.TEAM_SETTING, team_env.TEAM_VEHICLES, team_env.TEAM_MISSION_TIME_S, team_env.TEAM_FUSION)
+        (team_env.TEAM_SETTING, team_env.TEAM_VEHICLES, team_env.TEAM_MISSION_TIME_S, team_env.TEAM_LEARNED_FUSION)
+    # the env's default fusion is the hand-made table's choice for the mission's task
+    rows = list(csv.DictReader((REPO_ROOT / "results/team_wide/hand_made/team.csv").open()))
+    chosen = next(r for r in rows if r["team_planner"] == "True" and int(r["vehicles"]) == team_env.TEAM_VEHICLES
+                  and float(r["time_s"]) == team_env.TEAM_MISSION_TIME_S)
+    assert chosen["fusion"] == team_env.TEAM_FUSION
 
 
 @pytest.mark.parametrize("kw,options", [({"reward": "terminal", "credit": "own"}, None), ({"vehicles": 0}, None),

@@ -136,14 +136,13 @@ class TeamSearch:
         self.perception = load_perception(mission.perception_path)[0].for_grid(self.config.grid.num_cells)
 
     def header(self) -> dict:
-        from ..search.fusion import fusion_name
-
         c, n = self.config, self.n
         return dict(config={"altitude_m": c.altitude_m, "altitudes_m": list(c.layers_m), "budget_s": c.budget_s,
                             "actions": ["viewpoint"]},
                     team={"vehicles": n, "planner": self.mission.policy, "mission_time_s": c.budget_s,
                           "max_views": self.max_views, "system_ids": list(range(1, n + 1))},
-                    agent=self.method.description, fusion=fusion_name(self.method.fusion), policy=self.mission.policy)
+                    agent=self.method.description, policy=self.mission.policy,
+                    fusion=self.mission.fusion)  # its spec: a learned aggregation's names its checkpoint
 
     def at(self, views: int) -> str:
         """Where a failure ended the search, after `views` views."""

@@ -190,11 +190,13 @@ class ReplayData:
         return np.logical_or.accumulate(np.asarray(self.valid, dtype=bool), axis=0)
 
 
-def _fuse_all(method, p, valid, area=None, scores=None, labels=None, viewpoints=None, logged=None) -> np.ndarray:
+def _fuse_all(method, p, valid, area=None, scores=None, labels=None, viewpoints=None, logged=None,
+              features=None) -> np.ndarray:
     """The fused map after each view, with the inputs the log holds (the method takes what it needs); `method`
     is a name, a spec, or a Fusion object (one fitted on training scenes, loaded from a checkpoint).
-    `viewpoints` (T,): each view's lattice index (a neighbour fusion reads its altitude layer); `logged` (T, N):
-    the maps the flight fused, what a fusion reading cell features (which no log holds) replays."""
+    `viewpoints` (T,): each view's lattice index (a neighbour fusion reads its altitude layer); `features`
+    (T, N, D): each view's cell features where perception ran again (a tlog's replay); else `logged` (T, N): the
+    maps the flight fused, what a fusion reading cell features (which no log holds) replays."""
     if isinstance(method, Fusion):
         fusion, method = method, fusion_name(method)
     elif ":" in method:  # a spec with its prior (a wide-area mission's fusion, e.g. bayes:0.5)
@@ -205,7 +207,7 @@ def _fuse_all(method, p, valid, area=None, scores=None, labels=None, viewpoints=
     if "scores" in fusion.needs and scores is None:
         raise LogError(f"{method} fusion needs confidence scores, which this log does not hold "
                        "(it was flown without a learned confidence network)")
-    if "cell_features" in fusion.needs:
+    if "cell_features" in fusion.needs and features is None:
         if logged is None:
             raise LogError(f"{fusion_name(fusion)} reads each view's cell features, which a flight log does not "
                            "hold: replay the flight's own maps (without --fusion) or name another fusion")
@@ -216,19 +218,24 @@ def _fuse_all(method, p, valid, area=None, scores=None, labels=None, viewpoints=
     def t(x):  # one episode: a batch of one
         return None if x is None else torch.as_tensor(np.asarray(x))[None]
     views = FusionViews(t(np.asarray(p, float)), t(np.asarray(valid, bool)), t(area), scores=t(scores),
-                        labels=t(labels), viewpoints=None if viewpoints is None else t(np.asarray(viewpoints, np.int64)))
+                        labels=t(labels), viewpoints=None if viewpoints is None else t(np.asarray(viewpoints, np.int64)),
+                        cell_features=None if features is None else t(np.asarray(features, np.float32)))
     with torch.no_grad():
         return np.asarray(fusion.prefixes(views)[0], dtype=float)
 
 
 def _checkpoint_fusion(header: dict) -> Fusion | None:
-    """The fusion a learned wide-area policy's flight fused with: the one saved in the mission's checkpoint
-    (fitted on training scenes, so no spec rebuilds it); None for every other flight."""
-    if header.get("policy") != WIDE_POLICY:
+    """The fusion a flight fused with where a checkpoint holds it (fitted on training scenes, so no name
+    rebuilds it): a learned wide-area policy's, saved beside it, or a learned aggregation the mission names
+    (neighbour:PATH, a team's); None for every other flight."""
+    named = str((header.get("mission") or {}).get("fusion") or "")
+    if header.get("policy") != WIDE_POLICY and not named.startswith("neighbour:"):
         return None
     try:
-        path = mission_from_dict(header["mission"], header.get("mission_file")).checkpoint_path
-        return load_search_model(path).fusion
+        mission = mission_from_dict(header["mission"], header.get("mission_file"))
+        if header.get("policy") != WIDE_POLICY:
+            return make_fusion(mission.fusion)
+        return load_search_model(mission.checkpoint_path).fusion
     except (UavsearchError, KeyError) as e:
         raise LogError(f"the flight fused with its policy's checkpoint, which cannot be loaded: {e} (give "
                        "--fusion to re-fuse with another method)") from None
@@ -359,6 +366,9 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     loaded = loaded_mission.agent(config)
     renderer = SceneRenderer(spec, config.intrinsics, config.render)
     p_list, valid_list, area_list, score_list, images, poses, positions = [], [], [], [], [], [], []
+    # a fusion that reads cell features (a learned aggregation) gets perception's, which it ran again here
+    feature_list = [] if isinstance(method, str) and ":" in method and "cell_features" in make_fusion(method).needs \
+        else None
     try:
         for _, lla, rpy, image_file in tqdm(shots, desc="views", disable=not progress, file=sys.stderr):
             pos = origin.geodetic_to_enu(np.asarray(lla, float))
@@ -374,6 +384,8 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
                 area_list.append(view.cell_area_px)
                 if loaded.scores_net is not None:
                     score_list.append(loaded.scores_net(o.cell_features)[0].reshape(-1).numpy())
+                if feature_list is not None:
+                    feature_list.append(o.cell_features[0].float().cpu().numpy())
             images.append(img)
             poses.append(pose)
             positions.append(pos)
@@ -382,7 +394,9 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     labels = np.asarray(spec.occupancy_array(), dtype=bool)
     scores = np.stack(score_list) if len(score_list) == len(p_list) else None
     p, valid, area = np.stack(p_list), np.stack(valid_list), np.stack(area_list)
-    maps = _fuse_all(method, p, valid, area, scores, labels)
+    viewpoints = [config.lattice.nearest(x) for x in positions] if feature_list is not None else None
+    maps = _fuse_all(method, p, valid, area, scores, labels, viewpoints,
+                     features=None if feature_list is None else np.stack(feature_list))
     track = origin.geodetic_to_enu(tr.lla) if len(tr.lla) else np.zeros((0, 3))
     return ReplayData(track_t=tr.t_s, view_t=np.array([s[0] for s in shots]), title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",
                       grid=config.grid, labels=labels, fusion=method, maps=maps, p_occ=p, valid=valid,

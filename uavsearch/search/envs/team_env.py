@@ -48,8 +48,12 @@ from ..search_loop import R_FP, R_TP, step_rewards
 from .search_env import SceneViews, cells_space, check_buffered_fusion
 
 # The team task `uavsearch eval team` reports and missions/wide_team.yaml flies: three vehicles for 80 s of
-# flight on the wide family, Bayes fusion with prior 0.5 (chosen on validation for 3 vehicles at 80 s).
+# flight on the wide family. The env fuses by default with the hand-made fusion chosen on validation for that
+# task (Bayes, prior 0.5: results/team_wide/hand_made), fast and for any perception; the mission flies the one
+# chosen among hand-made and learned, the shipped learned stack's aggregation (TEAM_LEARNED_FUSION:
+# results/team_wide), which the env takes too (it reads each view's cell features: several times the cost).
 TEAM_SETTING, TEAM_VEHICLES, TEAM_MISSION_TIME_S, TEAM_FUSION = "wide", 3, 80.0, "bayes:0.5"
+TEAM_LEARNED_FUSION = "neighbour:models/search_wide_240s_map.pt"
 REWARDS = ("shaped", "terminal", "f1")
 CREDITS = ("team", "own")
 
@@ -104,8 +108,9 @@ class TeamSearchEnv(ParallelEnv):
     WideSearchEnv's; ``cache`` a ViewCache in memory instead); ``reset(seed=s)`` draws a scene from the env's
     RNG, ``options={"scene_seed": S}`` names one of the caches (other keys are ignored).
 
-    **Arguments.** ``vehicles`` (3), ``mission_time_s`` (80), ``fusion`` (``"bayes:0.5"``): the team task of
-    missions/wide_team.yaml and results/team_wide; ``max_views`` caps the team's views (None); ``part``
+    **Arguments.** ``vehicles`` (3), ``mission_time_s`` (80): the team task of missions/wide_team.yaml and
+    results/team_wide; ``fusion`` (``"bayes:0.5"``, the hand-made one chosen for that task; the mission's is the
+    learned stack's aggregation, TEAM_LEARNED_FUSION); ``max_views`` caps the team's views (None); ``part``
     ("train": learn there, evaluate on "val" or "test"); ``device`` where the episode's tensors live.
     """
 
