@@ -99,9 +99,11 @@
 #                     the training scenes) and the rule's survey chosen on validation, fixed view sets searched
 #                     on 20 training scenes. measured: see docs/results.md.
 #     team            teams of 1, 2, 3 vehicles on the 100 wide test scenes: AF1 against mission time, planners
-#                     and fusions chosen on 50 validation scenes (results/team_wide/), and 3-vehicle flights of
-#                     the team mission on 5 test scenes against teleport (results/team_wide/flights.md).
-#                     measured: see docs/results.md.
+#                     and fusions (hand-made and the learned stack's aggregation) chosen on 50 validation scenes
+#                     (results/team_wide/), the same with hand-made fusions only (results/team_wide/hand_made/),
+#                     the two paired (results/team_wide/learned_vs_hand_made.md), and 3-vehicle flights of the
+#                     team mission on 5 test scenes against teleport (results/team_wide/flights.md).
+#                     measured: 1603 s, 70 s, 354 s and 61 s on the quiet 2-core machine.
 #     map_flights     the learned wide-area policy's mission (missions/wide.yaml) flown on the first 10 wide test
 #                     scenes against teleport (results/map_policy/flights.md), and its routes against the rule's on
 #                     the 100 test scenes (results/map_policy/routes.md). measured: see docs/results.md.
@@ -220,8 +222,8 @@ add perception_wide full "the wide net against its targets per altitude (test vi
   "$UAV eval perception --setting wide --part test --out results/perception_wide --no-progress"
 add wide full "Table III: wide (100 test scenes) and wide-uniform (50), models/perception_wide.pt -> results/search_wide/, results/search_wide_uniform/" \
   "$UAV eval search --setting wide --wide-train-scenes 20 --episodes 10 --seeds 2 --no-progress --out results/search_wide && $UAV eval search --setting wide-uniform --wide-test-scenes 50 --wide-val-scenes 20 --wide-train-scenes 20 --episodes 10 --seeds 2 --no-progress --out results/search_wide_uniform"
-add team full "teams of 1-3 vehicles on the wide test scenes, flown 3-vehicle missions vs teleport -> results/team_wide/" \
-  "$UAV eval team --setting wide --wide-val-scenes 50 --no-progress --out results/team_wide && $PY tools/wide_flights.py --mission missions/wide_team.yaml --scenes 5 --out results/team_wide/flights.md"
+add team full "teams of 1-3 vehicles on the wide test scenes, with and without the learned aggregation, paired; flown 3-vehicle missions vs teleport -> results/team_wide/" \
+  "$UAV eval team --setting wide --wide-val-scenes 50 --no-progress --out results/team_wide && $UAV eval team --setting wide --wide-val-scenes 50 --learned none --no-progress --out results/team_wide/hand_made && $PY tools/team_learned_vs_hand_made.py --out results/team_wide/learned_vs_hand_made.md && $PY tools/wide_flights.py --mission missions/wide_team.yaml --scenes 5 --out results/team_wide/flights.md"
 add map_flights full "the learned wide-area policy flown (missions/wide.yaml) on 10 wide test scenes against teleport, and its routes against the rule's -> results/map_policy/" \
   "$PY tools/wide_flights.py --scenes 10 --out results/map_policy/flights.md && $PY tools/wide_routes.py --out results/map_policy/routes.md"
 FLIGHT_CMD=""
