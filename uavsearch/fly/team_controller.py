@@ -136,13 +136,17 @@ class TeamSearch:
         self.perception = load_perception(mission.perception_path)[0].for_grid(self.config.grid.num_cells)
 
     def header(self) -> dict:
+        from ..search.fusion import fusion_name
+
         c, n = self.config, self.n
+        # what replay and its flag checks read: a learned aggregation by the spec that names its checkpoint
+        named = str(self.mission.fusion)
+        fusion = named if named.startswith("neighbour:") else fusion_name(self.method.fusion)
         return dict(config={"altitude_m": c.altitude_m, "altitudes_m": list(c.layers_m), "budget_s": c.budget_s,
                             "actions": ["viewpoint"]},
                     team={"vehicles": n, "planner": self.mission.policy, "mission_time_s": c.budget_s,
                           "max_views": self.max_views, "system_ids": list(range(1, n + 1))},
-                    agent=self.method.description, policy=self.mission.policy,
-                    fusion=self.mission.fusion)  # its spec: a learned aggregation's names its checkpoint
+                    agent=self.method.description, fusion=fusion, policy=self.mission.policy)
 
     def at(self, views: int) -> str:
         """Where a failure ended the search, after `views` views."""

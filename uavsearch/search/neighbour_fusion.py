@@ -330,27 +330,18 @@ def load_neighbour(path) -> NeighbourFusion:
         path = REPO_ROOT / path  # "neighbour:models/..." names the repository's wherever it runs from
     if not Path(path).is_file():
         raise UavsearchError(f"neighbour fusion checkpoint {path} not found")
+    fusion = None
     try:
         ck = torch.load(path, map_location="cpu", weights_only=True)
         if ck.get("format") == FORMAT:
             return load_fusion(ck["fusion"])
+        if "policy_state" in ck and isinstance(ck.get("fusion"), dict):  # a search policy's (policy.py's layout)
+            fusion = load_fusion(ck["fusion"])
     except (OSError, KeyError, AttributeError, RuntimeError, ValueError, TypeError) as e:
         raise UavsearchError(f"{path} is not a neighbour fusion checkpoint ({type(e).__name__})") from None
-    fusion = _policy_aggregation(path)
-    if fusion is None:
+    if not isinstance(fusion, NeighbourFusion):
         raise UavsearchError(f"{path} is not a neighbour fusion checkpoint, nor a search policy carrying one")
     return fusion
-
-
-def _policy_aggregation(path) -> NeighbourFusion | None:
-    """The neighbour fusion a search policy checkpoint carries, None where it is no such checkpoint."""
-    from .policy import load_search_model
-
-    try:
-        fusion = load_search_model(path, "cpu")[0]
-    except UavsearchError:
-        return None
-    return fusion if isinstance(fusion, NeighbourFusion) else None
 
 
 def neighbour_from_spec(spec: str) -> NeighbourFusion | None:
