@@ -154,3 +154,20 @@ def test_a_learned_aggregation_is_a_team_candidate(tmp_path):
     tag = load_search_model(path).extra["perception_tag"]
     assert learned_aggregations(tag) == [f"neighbour:{display_path(path)}"]
     assert len(learned_aggregations(tag, budgets=("8", "240"))) == 2
+
+
+def test_the_team_comparison_reads_each_tables_team_planners(tmp_path):
+    """tools/team_learned_vs_hand_made.py pairs the committed tables' choices: one team planner per condition,
+    the learned table's on the learned aggregation; a file without such rows is one line."""
+    from uavsearch.paths import REPO_ROOT
+    from uavsearch.research.team_learned_vs_hand_made import team_choices
+
+    learned = team_choices(REPO_ROOT / "results/team_wide/team.csv")
+    hand = team_choices(REPO_ROOT / "results/team_wide/hand_made/team.csv")
+    assert set(learned) == set(hand) and len(learned) == 15
+    assert all(f.startswith("neighbour:") for _, f, _ in learned.values())
+    assert not any(f.startswith("neighbour:") for _, f, _ in hand.values())
+    bad = tmp_path / "team.csv"
+    bad.write_text("vehicles,time_s\n1,40\n")
+    with pytest.raises(UavsearchError, match="no team planner rows"):
+        team_choices(bad)

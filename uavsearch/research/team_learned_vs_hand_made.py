@@ -24,6 +24,7 @@ from ..paths import display_path
 from ..search.evaluate.team import TeamEvalArgs, team_scores
 from ..search.evaluate.wide import family_caches
 from ..search.metrics import RESAMPLES, bootstrap_ci
+from .wide_policy_probes import write_markdown
 
 
 def team_choices(path: Path) -> dict[tuple[int, float], tuple[str, str, float]]:
@@ -70,10 +71,7 @@ def main(argv=None) -> int:
                      f"{learned[(v, t)][0]}, {learned[(v, t)][1]} | {f1['learned'].mean():.3f} | "
                      f"{m:+.3f} [{lo:+.3f}, {hi:+.3f}] |")
     lines += ["", f"{time.perf_counter() - t0:.0f} s."]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
-    print(out.read_text())
+    write_markdown(args.out, lines)
     return 0
 
 
