@@ -366,9 +366,10 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     loaded = loaded_mission.agent(config)
     renderer = SceneRenderer(spec, config.intrinsics, config.render)
     p_list, valid_list, area_list, score_list, images, poses, positions = [], [], [], [], [], [], []
-    # a fusion that reads cell features (a learned aggregation) gets perception's, which it ran again here
-    feature_list = [] if isinstance(method, str) and ":" in method and "cell_features" in make_fusion(method).needs \
-        else None
+    # a spec's fusion built once; one that reads cell features (a learned aggregation) gets perception's, which
+    # runs again here
+    fuser = make_fusion(method) if isinstance(method, str) and ":" in method else method
+    feature_list = [] if isinstance(fuser, Fusion) and "cell_features" in fuser.needs else None
     try:
         for _, lla, rpy, image_file in tqdm(shots, desc="views", disable=not progress, file=sys.stderr):
             pos = origin.geodetic_to_enu(np.asarray(lla, float))
@@ -395,7 +396,7 @@ def replay_tlog(path, spec, mission, fusion: str | None = None, every_s: float |
     scores = np.stack(score_list) if len(score_list) == len(p_list) else None
     p, valid, area = np.stack(p_list), np.stack(valid_list), np.stack(area_list)
     viewpoints = [config.lattice.nearest(x) for x in positions] if feature_list is not None else None
-    maps = _fuse_all(method, p, valid, area, scores, labels, viewpoints,
+    maps = _fuse_all(fuser, p, valid, area, scores, labels, viewpoints,
                      features=None if feature_list is None else np.stack(feature_list))
     track = origin.geodetic_to_enu(tr.lla) if len(tr.lla) else np.zeros((0, 3))
     return ReplayData(track_t=tr.t_s, view_t=np.array([s[0] for s in shots]), title=f"{path.name} in scene {spec.seed}: {method} fusion over {len(shots)} views",

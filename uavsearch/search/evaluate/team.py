@@ -28,6 +28,7 @@ from uavsearch.viz import pyplot, save_figure
 
 from ..agents import PLANNERS, make_fusion, make_planner
 from ..data.view_cache import ViewCache
+from ..map_policy import BUDGETS
 from ..metrics import map_f1
 from ..search_loop import CachedViews
 from ..team import run_team
@@ -54,6 +55,7 @@ def learned_aggregations(perception_tag: str, family: str = "wide", models_dir=N
     """Fusion specs of the shipped learned stacks' aggregations ("neighbour:PATH") fitted on the perception the
     caches hold (another net's features and scores mean nothing to them)."""
     from ..checkpoints import wide_checkpoint
+    from ..neighbour_fusion import NeighbourFusion
     from ..policy import load_search_model
 
     specs = []
@@ -62,7 +64,7 @@ def learned_aggregations(perception_tag: str, family: str = "wide", models_dir=N
         if not path.is_file():
             continue
         model = load_search_model(path, "cpu")
-        if model.fusion.trainable and model.extra.get("perception_tag") == perception_tag:
+        if isinstance(model.fusion, NeighbourFusion) and model.extra.get("perception_tag") == perception_tag:
             specs.append(f"neighbour:{display_path(path)}")
     return specs
 
@@ -207,9 +209,9 @@ def _numbers(text: str, flag: str, kind=float) -> list:
 
 def _learned_budgets(text: str) -> tuple[str, ...]:
     budgets = tuple(b.strip() for b in str(text).split(",") if b.strip() and b.strip() != "none")
-    bad = [b for b in budgets if b not in ("8", "240")]
-    if bad:
-        raise UavsearchError(f"--learned takes the budgets 8 and 240 (comma-separated) or none, not {text!r}")
+    if any(b not in BUDGETS for b in budgets):
+        raise UavsearchError(f"--learned takes the budgets {' and '.join(BUDGETS)} (comma-separated) or none, "
+                             f"not {text!r}")
     return budgets
 
 
