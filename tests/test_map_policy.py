@@ -253,3 +253,18 @@ def test_fusion_probe_planes_hold_each_cells_views_per_altitude():
     images = [dihedral(m, k) for k in range(8)]
     assert len({tuple(i.flatten().tolist()) for i in images}) == 8
     assert torch.equal(dihedral(dihedral(m, 1), 3), m) and torch.equal(dihedral(dihedral(m, 4), 4), m)
+
+
+def test_fusion_seeds_study_refuses_a_missing_start_policy_before_fitting(tmp_path, capsys):
+    """tools/wide_fusion_seeds.py checks --start before its fits (each minutes to an hour): one line, exit 2,
+    no run folder made and no report written."""
+    from uavsearch.research.wide_fusion_seeds import main
+    from uavsearch.errors import run_command
+
+    out = tmp_path / "report.md"
+    argv = ["--budget", "240", "--start", str(tmp_path / "missing.pt"), "--runs-dir", str(tmp_path / "runs"),
+            "--out", str(out)]
+    assert run_command(main, argv, "wide_fusion_seeds.py") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"wide_fusion_seeds.py: error: --start {tmp_path / 'missing.pt'}: no such file"]
+    assert not out.exists() and not (tmp_path / "runs").exists()

@@ -83,6 +83,11 @@
 #                     wide validation scenes -> results/wide_study/fusion_seeds_T8.md and fusion_seeds_240s.md.
 #                     measured: 2019 s (T = 8, beside a perception training) and 1197 s (240 s) after the 300
 #                     scenes' caches.
+#     fusion_seeds_500  the 240 s neighbour fusion fitted on all 500 training scenes (seeds 0 and 1), their
+#                     ensemble under the shipped map policy and under the policy it was fine-tuned from (97f6d16's),
+#                     paired against the shipped stack -> results/wide_study/fusion_seeds_240s_500.md. measured:
+#                     787-1122 s per fit (one thread, the two side by side) after the 500 scenes' caches (about 16
+#                     minutes of rendering and 21 of perception the first time), 320 s to evaluate.
 #     fusion_features_seeds  the neighbour fusion reading cell features (`uavsearch train fusion --features`),
 #                     seeds 0 and 1, their ensemble, the rule and the shipped map policy on them ->
 #                     results/wide_study/fusion_features_seeds_T8.md and _240s.md. measured: 1182-1723 s per fit
@@ -208,6 +213,8 @@ add fusion_features_seeds full "the neighbour fusion reading cell features over 
   "$PY tools/wide_fusion_seeds.py --budget 8 --seeds 0 1 --features --threads 1 --out results/wide_study/fusion_features_seeds_T8.md && $PY tools/wide_fusion_seeds.py --budget 240 --seeds 0 1 --features --threads 1 --out results/wide_study/fusion_features_seeds_240s.md"
 add fusion_seeds full "the learned neighbour fusion over seeds 0-2 against the calibrated one (the rule and the shipped map policy, 50 wide validation scenes, T = 8 and 240 s) -> results/wide_study/fusion_seeds_*.md" \
   "$PY tools/wide_fusion_seeds.py --budget 8 --seeds 0 1 2 --out results/wide_study/fusion_seeds_T8.md && $PY tools/wide_fusion_seeds.py --budget 240 --seeds 0 1 2 --out results/wide_study/fusion_seeds_240s.md"
+add fusion_seeds_500 full "the 240 s neighbour fusion on all 500 training scenes (seeds 0 and 1) and its ensemble under the shipped map policy and its start, paired against the shipped stack (50 wide validation scenes) -> results/wide_study/fusion_seeds_240s_500.md" \
+  "git show 97f6d16:models/search_wide_240s_map.pt > $RUN/map_wide_240s_calibrated_shipped.pt && $PY tools/wide_fusion_seeds.py --budget 240 --seeds 0 1 --train-scenes 500 --threads 1 --runs-dir $RUN/fusion500 --start $RUN/map_wide_240s_calibrated_shipped.pt --out results/wide_study/fusion_seeds_240s_500.md"
 add ship ship "copy $NEWPERC, $NEWPERC_WIDE, $RUN/seed0/search_s*_*.pt and $RUN/search_wide_*_map.pt into models/" \
   "cp $NEWPERC models/perception.pt && cp $NEWPERC_WIDE models/perception_wide.pt && cp $RUN/seed0/search_s*_*.pt $RUN/search_wide_*_map.pt models/"
 add single_view quick "Table I + Fig. 4 from models/perception.pt -> results/single_view/" \

@@ -7,7 +7,10 @@ stopped mid-way is resumed (train_state.pt), so a rerun of this study continues.
 with the base fusion) and the shipped learned map policy fly with each seed's fusion; each is paired per scene
 against the rule on the base fusion (95% bootstrap interval over scenes), and the mean over seeds of each scene's
 F1 gives the ensemble-free "any fit" row; the ensemble of the seeds' fits (their shifted log-odds averaged,
-`neighbour:A.pt,B.pt,...`) is flown too. Also timed: the fusion's update per view during a flight (one episode,
+`neighbour:A.pt,B.pt,...`) is flown too, with the rule's variant also chosen on validation with the ensemble
+itself, and with `--start CKPT` (a second map policy, say the one the shipped policy was fine-tuned from). A second
+column pairs every row against the shipped stack (the shipped map policy on its own fusion): would the ensemble,
+with either policy, be worth shipping? Also timed: the fusion's update per view during a flight (one episode,
 the process's threads), base against learned.
 
     python tools/wide_fusion_seeds.py --budget 8 --seeds 0 1 2 --out results/wide_study/fusion_seeds_T8.md
@@ -25,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..errors import UavsearchError, run_command
 from ..paths import RUNS_DIR, display_path
 from ..search.agents import load_wide_agent
 from ..search.map_policy import wide_checkpoint
@@ -69,7 +73,12 @@ def update_ms(fusion, cache, config, views: int) -> float:
     return 1000 * (time.perf_counter() - t0) / views
 
 
-def main() -> int:
+def ci_text(diff: np.ndarray) -> str:
+    d, lo, hi = bootstrap_ci(diff)
+    return f"{d:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+
+
+def main(argv=None) -> int:
     ap = probe_parser(__doc__)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--train-scenes", type=int, default=300)
@@ -77,7 +86,10 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--runs-dir", default=str(RUNS_DIR))
     ap.add_argument("--features", action="store_true", help="fusions that read the views' cell features too")
-    args = ap.parse_args()
+    ap.add_argument("--start", help="a second map policy checkpoint for the budget, flown on the ensemble")
+    args = ap.parse_args(argv)
+    if args.start and not Path(args.start).is_file():  # before any fit, not after an hour of them
+        raise UavsearchError(f"--start {args.start}: no such file")
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
     name = f"fusion_study_{args.family}_{args.budget}{'_features' if args.features else ''}"
@@ -107,7 +119,11 @@ def main() -> int:
         return map_f1(ep.maps[:, -1].numpy(), labels)
 
     ref = f1(Agent(base, rule))
-    rows = [("the rule, base fusion", ref), ("the shipped map policy, its fusion", f1(ours))]
+    shipped = f1(ours)
+    ours_variant, _ = choose_rule(val, config, ours.fusion)
+    rows = [("the rule, base fusion", ref), ("the shipped map policy, its fusion", shipped),
+            (f"the rule, the shipped policy's fusion, its variant chosen with it ({ours_variant})",
+             f1(Agent(ours.fusion, rule_policy(config, ours_variant))))]
     rule_seeds = [f1(Agent(f, rule)) for f in fusions]
     ours_seeds = [f1(Agent(f, ours.policy)) for f in fusions]
     for s, a, b in zip(args.seeds, rule_seeds, ours_seeds):
@@ -116,8 +132,15 @@ def main() -> int:
              ("the shipped map policy, neighbour fusion, mean over seeds", np.mean(ours_seeds, 0))]
     ensemble = NeighbourEnsemble.of(fusions) if len(fusions) > 1 else None
     if ensemble is not None:
+        own, _ = choose_rule(val, config, ensemble)
         rows += [("the rule, ensemble of the seeds' fusions", f1(Agent(ensemble, rule))),
+                 (f"the rule, ensemble, its variant chosen with the ensemble ({own})",
+                  f1(Agent(ensemble, rule_policy(config, own)))),
                  ("the shipped map policy, ensemble of the seeds' fusions", f1(Agent(ensemble, ours.policy)))]
+        if args.start:
+            start = load_wide_agent(args.start, config, where="--start ")
+            rows.append((f"{display_path(args.start)}, ensemble of the seeds' fusions",
+                         f1(Agent(ensemble, start.policy))))
     steps = min(int(config.budget_T), 20)
     ms_base, ms_nb = update_ms(base, val, config, steps), update_ms(fusions[0], val, config, steps)
     ms_ens = f", the ensemble {update_ms(ensemble, val, config, steps):.2f} ms" if ensemble is not None else ""
@@ -131,10 +154,10 @@ def main() -> int:
              f"fusion its last epoch (nothing chosen on these scenes). Δ: per-scene final AF1 minus the rule's on "
              f"the base fusion, mean [95% bootstrap interval over scenes]. "
              f"`python tools/wide_fusion_seeds.py {shlex.join(sys.argv[1:])}`", "",
-             "| agent | AF1 | Δ vs the rule, base fusion [95% CI] |", "|---|---|---|"]
+             "| agent | AF1 | Δ vs the rule, base fusion [95% CI] | Δ vs the shipped stack [95% CI] |",
+             "|---|---|---|---|"]
     for n, f in rows:
-        d, lo, hi = bootstrap_ci(f - ref)
-        lines.append(f"| {n} | {f.mean():.3f} | {d:+.3f} [{lo:+.3f}, {hi:+.3f}] |")
+        lines.append(f"| {n} | {f.mean():.3f} | {ci_text(f - ref)} | {ci_text(f - shipped)} |")
     lines += ["", f"| seed | fit, s wall ({args.threads} thread(s), on the 2-core machine) | training maps | shift | "
               "weights SHA-256 (first 16) |",
               "|---|---|---|---|---|"]
@@ -147,5 +170,10 @@ def main() -> int:
     return 0
 
 
+def cli() -> int:
+    """The command line: bad input is one line and exit 2."""
+    return run_command(main, None, "wide_fusion_seeds.py")
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(cli())
