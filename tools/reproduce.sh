@@ -86,7 +86,7 @@
 #     fusion_seeds_500  the 240 s neighbour fusion fitted on all 500 training scenes (seeds 0 and 1), their
 #                     ensemble under the shipped map policy and under the policy it was fine-tuned from (97f6d16's),
 #                     paired against the shipped stack -> results/wide_study/fusion_seeds_240s_500.md. measured:
-#                     787-1122 s per fit (one thread, the two side by side) after the 500 scenes' caches (about 16
+#                     787-1122 s per fit (one thread, the two side by side; this step fits them one after the other) after the 500 scenes' caches (about 16
 #                     minutes of rendering and 21 of perception the first time), 320 s to evaluate.
 #     fusion_features_seeds  the neighbour fusion reading cell features (`uavsearch train fusion --features`),
 #                     seeds 0 and 1, their ensemble, the rule and the shipped map policy on them ->

@@ -88,7 +88,9 @@ def main(argv=None) -> int:
     ap.add_argument("--features", action="store_true", help="fusions that read the views' cell features too")
     ap.add_argument("--start", help="a second map policy checkpoint for the budget, flown on the ensemble")
     args = ap.parse_args(argv)
-    if args.start and not Path(args.start).is_file():  # before any fit, not after an hour of them
+    if args.start and len(args.seeds) < 2:  # before any fit, not after an hour of them
+        raise UavsearchError("--start flies on the seeds' ensemble: give two seeds or more")
+    if args.start and not Path(args.start).is_file():
         raise UavsearchError(f"--start {args.start}: no such file")
     torch.set_num_threads(args.threads)
     t0 = time.perf_counter()
@@ -152,7 +154,8 @@ def main(argv=None) -> int:
              f"{', '.join(map(str, args.seeds))} (base fusion "
              f"{summaries[0]['base']}, the rule's variant {variant}); {val.num_scenes} validation scenes, each "
              f"fusion its last epoch (nothing chosen on these scenes). Δ: per-scene final AF1 minus the rule's on "
-             f"the base fusion, mean [95% bootstrap interval over scenes]. "
+             f"the base fusion, or minus the shipped stack's (the shipped map policy on its own fusion), mean [95% "
+             f"bootstrap interval over scenes]. "
              f"`python tools/wide_fusion_seeds.py {shlex.join(sys.argv[1:])}`", "",
              "| agent | AF1 | Δ vs the rule, base fusion [95% CI] | Δ vs the shipped stack [95% CI] |",
              "|---|---|---|---|"]
